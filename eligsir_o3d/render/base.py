@@ -1,0 +1,80 @@
+"""RenderOutput and the tile-renderer skeleton that every CPU-side backend shares."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..camera import Camera
+from .projection import TILE, Projection, TileBins, bin_tiles, project
+
+ALPHA_MAX = 0.999  # gsplat 1.5 clamps per-Gaussian alpha here
+ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped
+T_MIN = 1e-4  # compositing stops before transmittance falls to this
+
+
+@dataclass
+class RenderOutput:
+    """One rendered view. Images are [H, W(, 3)] on the renderer's device."""
+
+    color: torch.Tensor  # [H, W, 3] in [0, 1], background composited
+    depth: torch.Tensor  # [H, W] expected z-depth in metres (accumulated depth / alpha; 0 where alpha ~ 0)
+    alpha: torch.Tensor  # [H, W] accumulated opacity
+    radii: torch.Tensor  # [N] int32 screen radius; 0 = the Gaussian was not rendered
+    means2d: torch.Tensor | None = None  # [N, 2] (for screen-space statistics)
+
+    @property
+    def visible(self) -> torch.Tensor:  # [N] bool
+        return self.radii > 0
+
+
+def finish(color_acc, depth_acc, alpha_acc, background) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Composite the background and normalise accumulated depth (shared by all backends)."""
+    if background is not None:
+        color = color_acc + (1.0 - alpha_acc)[..., None] * background
+    else:
+        color = color_acc
+    depth = torch.where(alpha_acc > 1e-4, depth_acc / alpha_acc.clamp_min(1e-4), torch.zeros_like(depth_acc))
+    return color, depth, alpha_acc
+
+
+class TileRenderer:
+    """Projection + tile binning in torch; ``composite`` (per-tile front-to-back blending) is the backend part."""
+
+    name = "base"
+
+    def __init__(self, device: str | torch.device = "cpu"):
+        self.device = torch.device(device)
+
+    def render(self, means, quats, scales, opacities, colors, camera: Camera, T_world_cam,
+               background: torch.Tensor | None = None) -> RenderOutput:
+        """means [N, 3], quats [N, 4] wxyz, scales [N, 3] metres, opacities [N] in (0, 1), colors [N, 3]."""
+        proj = project(means, quats, scales, camera, T_world_cam)
+        bins = bin_tiles(proj, camera.width, camera.height)
+        color_acc, depth_acc, alpha_acc = self.composite(proj, opacities, colors, bins, camera.width, camera.height)
+        if background is not None:
+            background = torch.as_tensor(background, dtype=color_acc.dtype, device=color_acc.device)
+        color, depth, alpha = finish(color_acc, depth_acc, alpha_acc, background)
+        return RenderOutput(color, depth, alpha, proj.radii, proj.means2d)
+
+    def composite(self, proj: Projection, opacities, colors, bins: TileBins, width: int, height: int):
+        """Return accumulated colour [H, W, 3], depth [H, W] and alpha [H, W] (no background)."""
+        raise NotImplementedError  # abstract: each backend implements it
+
+
+def tile_pixel_coords(bins: TileBins, device) -> torch.Tensor:
+    """[T, 256, 2] pixel-centre coordinates (x, y) of every pixel slot of every tile."""
+    ty, tx = torch.meshgrid(torch.arange(bins.tiles_y, device=device), torch.arange(bins.tiles_x, device=device),
+                            indexing="ij")
+    py, px = torch.meshgrid(torch.arange(TILE, device=device), torch.arange(TILE, device=device), indexing="ij")
+    x = tx.reshape(-1, 1) * TILE + px.reshape(1, -1)
+    y = ty.reshape(-1, 1) * TILE + py.reshape(1, -1)
+    return torch.stack([x, y], -1).float()
+
+
+def untile(values: torch.Tensor, bins: TileBins, width: int, height: int) -> torch.Tensor:
+    """[T, 256, C] per-tile pixel values -> [H, W, C] image (crop the padding of edge tiles)."""
+    c = values.shape[-1]
+    img = values.reshape(bins.tiles_y, bins.tiles_x, TILE, TILE, c).permute(0, 2, 1, 3, 4)
+    return img.reshape(bins.tiles_y * TILE, bins.tiles_x * TILE, c)[:height, :width]
