@@ -1,0 +1,191 @@
+"""GaussianMap: the Gaussian parameters and their Adam state, kept aligned on every add, remove and relocation.
+
+Raw parameters are stored (log scales, logit opacities, unnormalised wxyz quaternions, SH coefficients); activated
+values are exposed as properties. Every change of the population goes through :meth:`_resize`, the one place that
+rewrites parameters and optimizer moments together (the gsplat strategy-ops pattern).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+SH_C0 = 0.28209479177387814  # Y_0^0
+
+
+def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
+    return (rgb - 0.5) / SH_C0
+
+
+def sh0_to_rgb(sh0: torch.Tensor) -> torch.Tensor:
+    return sh0 * SH_C0 + 0.5
+
+
+@dataclass
+class LearningRates:
+    """Adam step sizes per parameter (metres for means; log/logit/SH units otherwise)."""
+
+    means: float = 5e-4
+    scales: float = 5e-3
+    quats: float = 1e-3
+    opacities: float = 5e-2
+    sh0: float = 5e-3
+    shN: float = 5e-3 / 20
+
+
+PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
+
+
+class GaussianMap:
+    """N 3D Gaussians with spherical-harmonic colour of degree ``sh_degree`` and one Adam per parameter."""
+
+    def __init__(self, sh_degree: int = 0, device: str | torch.device = "cpu", lrs: LearningRates | None = None):
+        if not 0 <= sh_degree <= 3:
+            raise ValueError(f"sh_degree must be 0..3, got {sh_degree}")
+        self.sh_degree = sh_degree
+        self.device = torch.device(device)
+        self.lrs = lrs or LearningRates()
+        k = (sh_degree + 1) ** 2 - 1
+        empty = {
+            "means": torch.zeros(0, 3), "scales": torch.zeros(0, 3), "quats": torch.zeros(0, 4),
+            "opacities": torch.zeros(0), "sh0": torch.zeros(0, 1, 3), "shN": torch.zeros(0, k, 3),
+        }
+        self.params = torch.nn.ParameterDict({n: torch.nn.Parameter(v.to(self.device)) for n, v in empty.items()})
+        self.optimizers = {n: self._make_optimizer(n) for n in PARAM_NAMES}
+
+    def _make_optimizer(self, name: str) -> torch.optim.Adam:
+        return torch.optim.Adam([self.params[name]], lr=getattr(self.lrs, name), eps=1e-15)
+
+    # ---- activated views -------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return self.params["means"].shape[0]
+
+    @property
+    def means(self) -> torch.Tensor:  # [N, 3] metres
+        return self.params["means"]
+
+    @property
+    def scales(self) -> torch.Tensor:  # [N, 3] metres
+        return torch.exp(self.params["scales"])
+
+    @property
+    def quats(self) -> torch.Tensor:  # [N, 4] wxyz, unnormalised
+        return self.params["quats"]
+
+    @property
+    def opacities(self) -> torch.Tensor:  # [N] in (0, 1)
+        return torch.sigmoid(self.params["opacities"])
+
+    def colors(self, cam_center: torch.Tensor | None = None) -> torch.Tensor:
+        """[N, 3] RGB seen from ``cam_center`` (view-dependent only for sh_degree > 0)."""
+        if self.sh_degree == 0 or cam_center is None:
+            return torch.clamp_min(sh0_to_rgb(self.params["sh0"][:, 0]), 0.0)
+        from .render.sh import eval_sh_colors
+
+        dirs = self.means - cam_center[None]
+        sh = torch.cat([self.params["sh0"], self.params["shN"]], 1)
+        return eval_sh_colors(self.sh_degree, sh, dirs)
+
+    # ---- population changes ----------------------------------------------------------------------------
+    def add(self, means: torch.Tensor, rgbs: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor | float,
+            quats: torch.Tensor | None = None) -> torch.Tensor:
+        """Append Gaussians given in activated units (scales in metres [M] or [M, 3], opacity in (0, 1)).
+
+        Returns the indices of the new Gaussians. Their Adam moments start at zero.
+        """
+        m = means.shape[0]
+        dev = self.device
+        scales = torch.as_tensor(scales, dtype=torch.float32, device=dev)
+        if scales.ndim == 1:
+            scales = scales[:, None].expand(m, 3)
+        opac = torch.as_tensor(opacities, dtype=torch.float32, device=dev).expand(m).clamp(1e-4, 1 - 1e-4)
+        if quats is None:
+            quats = torch.zeros(m, 4, device=dev)
+            quats[:, 0] = 1.0
+        new = {
+            "means": means.to(dev, torch.float32),
+            "scales": torch.log(scales.clamp_min(1e-6)),
+            "quats": quats.to(dev, torch.float32),
+            "opacities": torch.logit(opac),
+            "sh0": rgb_to_sh0(rgbs.to(dev, torch.float32))[:, None, :],
+            "shN": torch.zeros(m, self.params["shN"].shape[1], 3, device=dev),
+        }
+        n0 = len(self)
+        self._resize(lambda name, p: torch.cat([p, new[name].to(p.dtype)], 0),
+                     lambda name, s: torch.cat([s, torch.zeros((m, *s.shape[1:]), dtype=s.dtype, device=s.device)], 0))
+        return torch.arange(n0, n0 + m, device=dev)
+
+    def remove(self, mask: torch.Tensor) -> None:
+        """Remove Gaussians where ``mask`` [N] is True."""
+        keep = ~mask.to(self.device)
+        self._resize(lambda name, p: p[keep], lambda name, s: s[keep])
+
+    def assign(self, idx: torch.Tensor, values: dict[str, torch.Tensor], reset_state: bool = True) -> None:
+        """Overwrite raw parameters at ``idx`` (MCMC relocation/replacement), zeroing their Adam moments."""
+        with torch.no_grad():
+            for name, v in values.items():
+                self.params[name][idx] = v.to(self.params[name].dtype)
+        if reset_state:
+            for name in values:
+                for s in self.optimizers[name].state.get(self.params[name], {}).values():
+                    if isinstance(s, torch.Tensor) and s.ndim > 0 and s.shape[0] == len(self):
+                        s[idx] = 0
+
+    def _resize(self, param_fn, state_fn) -> None:
+        """Rewrite every parameter with ``param_fn`` and its per-Gaussian Adam moments with ``state_fn``."""
+        for name in PARAM_NAMES:
+            opt = self.optimizers[name]
+            old = self.params[name]
+            new = torch.nn.Parameter(param_fn(name, old.detach()))
+            state = opt.state.pop(old, None)
+            if state is not None:
+                state = {k: (state_fn(name, v) if isinstance(v, torch.Tensor) and v.ndim > 0 else v)
+                         for k, v in state.items()}
+                opt.state[new] = state
+            opt.param_groups[0]["params"] = [new]
+            self.params[name] = new
+
+    # ---- optimisation ----------------------------------------------------------------------------------
+    def zero_grad(self) -> None:
+        for opt in self.optimizers.values():
+            opt.zero_grad(set_to_none=True)
+
+    def step(self) -> None:
+        """One Adam step on every parameter that received a gradient."""
+        for name, opt in self.optimizers.items():
+            if self.params[name].grad is not None:
+                opt.step()
+
+    def check_aligned(self) -> None:
+        """Raise if a parameter or its Adam state disagrees with N (an invariant the tests hold us to)."""
+        n = len(self)
+        for name in PARAM_NAMES:
+            p = self.params[name]
+            if p.shape[0] != n:
+                raise AssertionError(f"{name} has {p.shape[0]} rows, map has {n}")
+            if self.optimizers[name].param_groups[0]["params"][0] is not p:
+                raise AssertionError(f"optimizer of {name} does not hold the current parameter")
+            for k, s in self.optimizers[name].state.get(p, {}).items():
+                if isinstance(s, torch.Tensor) and s.ndim > 0 and s.shape != p.shape:
+                    raise AssertionError(f"optimizer state {name}.{k} has shape {tuple(s.shape)}, parameter {tuple(p.shape)}")
+
+    # ---- persistence -----------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "sh_degree": self.sh_degree,
+            "params": {n: p.detach().cpu() for n, p in self.params.items()},
+            "optimizers": {n: o.state_dict() for n, o in self.optimizers.items()},
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.sh_degree = int(state["sh_degree"])
+        for n in PARAM_NAMES:
+            self.params[n] = torch.nn.Parameter(state["params"][n].to(self.device))
+            self.optimizers[n] = self._make_optimizer(n)
+            if "optimizers" in state:
+                self.optimizers[n].load_state_dict(state["optimizers"][n])
+
+    def render_args(self, cam_center: torch.Tensor | None = None) -> tuple:
+        """(means, quats, scales, opacities, colors) in activated units, as every renderer takes them."""
+        return self.means, self.quats, self.scales, self.opacities, self.colors(cam_center)

@@ -1,0 +1,204 @@
+"""Reconstructor: the Open3D-style object users integrate RGB-D frames into. It only composes the parts.
+
+    rec = Reconstructor(intrinsic, device="cpu")
+    for rgbd, T_world_cam in stream:
+        rec.integrate(rgbd, T_world_cam)
+    rec.finalize(); rec.save_ply("map.ply")
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import open3d as o3d
+import torch
+
+from .camera import Camera, check_pose
+from .config import Config
+from .frame import Frame, FrameError
+from .gaussians import GaussianMap
+from .optim import supervision_loss
+from .render import RenderOutput, get_renderer, resolve_backend
+from .scheduling import MapContext, get_policies
+
+
+@dataclass
+class MappingStats:
+    """Compute accounting of the paper's protocol (evaluation callbacks excluded from the time)."""
+
+    frames_released: int = 0
+    frames_admitted: int = 0
+    updates: int = 0
+    supervised_pixels: int = 0  # sum of image sizes of every supervised view over all updates
+    mapping_s: float = 0.0
+    tracking_s: float = 0.0
+
+    @property
+    def supervised_mpix(self) -> float:
+        return self.supervised_pixels / 1e6
+
+
+class Reconstructor:
+    """Online RGB-D -> 3D Gaussian map under a bounded optimisation budget (EliGSiR).
+
+    intrinsic: ``o3d.camera.PinholeCameraIntrinsic`` of the incoming images; device: ``"cpu"`` or ``"cuda:0"``.
+    ``config`` selects the renderer, the policies (``config.ablate``) and the budget; ``pose_source`` tracks
+    frames integrated with ``pose=None``.
+    """
+
+    def __init__(self, intrinsic: o3d.camera.PinholeCameraIntrinsic, device: str = "cpu",
+                 config: Config | None = None, pose_source=None):
+        self.config = config if config is not None else Config()
+        self.config.device = str(device)
+        self.device = torch.device(device)
+        self.camera = intrinsic if isinstance(intrinsic, Camera) else Camera.from_o3d(intrinsic)
+        self.config.renderer = resolve_backend(self.config.renderer, self.device)
+        self.renderer = get_renderer(self.config.renderer, self.device)
+        torch.manual_seed(self.config.seed)
+        self.rng = torch.Generator().manual_seed(self.config.seed)
+        self.gmap = GaussianMap(self.config.sh_degree, self.device, self.config.optim.lrs)
+        self.views, self.fidelity, self.growth = get_policies(self.config)
+        self.ctx = MapContext(self.gmap, self._render, self.device, self.config.max_gaussians)
+        self.pose_source = pose_source
+        self.stats = MappingStats()
+        self.backlog = 0  # frames waiting to be integrated (set by a real-time driver)
+        self.callbacks: list[Callable[["Reconstructor"], None]] = []  # after every update; time excluded
+        self._background = torch.tensor(self.config.background, dtype=torch.float32, device=self.device)
+
+    # ---- the online loop -------------------------------------------------------------------------------
+    def integrate(self, rgbd, pose=None, timestamp: float | None = None, *, updates: int | None = None,
+                  deadline: float | None = None) -> dict:
+        """Integrate one RGB-D frame (legacy or tensor ``RGBDImage``, or a :class:`Frame`) at ``T_world_cam``.
+
+        Steps: wrap and validate -> admission -> sparse support for new space -> the optimisation budget
+        (``updates`` updates, or until the ``time.perf_counter()`` ``deadline``; default: config's per-frame budget).
+        A bad frame raises :class:`FrameError` before anything in the map changes.
+        """
+        t0 = time.perf_counter()
+        frame = self._to_frame(rgbd, pose, timestamp)
+        self.stats.frames_released += 1
+        self.ctx.frames_released = self.stats.frames_released
+        admitted = self.views.admit(frame, self.ctx)
+        self.stats.frames_admitted += int(admitted)
+        added = self.growth.on_frame(frame, admitted, self.ctx)
+        self.stats.mapping_s += time.perf_counter() - t0
+        if updates is None and deadline is None:
+            updates = self.config.optim.updates_per_frame
+        done = self.optimize(updates, deadline)
+        return {"index": frame.index, "admitted": admitted, "added": added, "updates": done,
+                "gaussians": len(self.gmap)}
+
+    def optimize(self, updates: int | None = None, deadline: float | None = None, scale: float | None = None) -> int:
+        """Run optimisation updates: ``updates`` of them, or as many as fit before ``deadline`` (perf_counter)."""
+        done = 0
+        while (updates is None or done < updates) and (deadline is None or time.perf_counter() < deadline):
+            if not self.views.views or len(self.gmap) == 0:
+                break
+            self._step(scale)
+            done += 1
+        return done
+
+    def finalize(self) -> None:
+        """The bounded drain after the stream (the paper's ME map state)."""
+        self.optimize(self.config.optim.drain_updates)
+
+    def refine(self, steps: int, scale: float | None = None) -> None:
+        """``steps`` post-mapping updates (the paper's +N PM), at ``scale`` (default: config.optim.refine_scale)."""
+        self.optimize(int(steps), scale=self.config.optim.refine_scale if scale is None else scale)
+
+    def _step(self, scale: float | None) -> None:
+        t0 = time.perf_counter()
+        frame = self.views.select(self.rng)
+        s = self.fidelity.scale() if scale is None else scale
+        color, depth, cam = frame.at_scale(s, self.device)
+        out = self._render(cam, frame.T_world_cam)
+        loss, error = supervision_loss(out, color, depth, self.config.optim.loss)
+        reg = self.growth.pre_backward(out, self.ctx)
+        if reg is not None:
+            loss = loss + reg
+        self.gmap.zero_grad()
+        loss.backward()
+        self.gmap.step()
+        self.growth.post_step(frame, out, depth, cam, self.ctx)
+        self.views.feedback(frame, out, error, depth, cam)
+        dt = time.perf_counter() - t0
+        self.stats.updates += 1
+        self.stats.supervised_pixels += cam.pixels
+        self.stats.mapping_s += dt
+        self.ctx.updates = self.stats.updates
+        self.fidelity.observe(dt, cam.pixels, self.backlog)
+        for cb in self.callbacks:
+            cb(self)
+
+    # ---- rendering -------------------------------------------------------------------------------------
+    def _render(self, camera: Camera, T_world_cam) -> RenderOutput:
+        cam_center = torch.as_tensor(np.asarray(T_world_cam)[:3, 3], dtype=torch.float32, device=self.device)
+        return self.renderer.render(*self.gmap.render_args(cam_center), camera, T_world_cam, self._background)
+
+    @torch.no_grad()
+    def render(self, pose, intrinsic: o3d.camera.PinholeCameraIntrinsic | Camera | None = None,
+               scale: float = 1.0) -> RenderOutput:
+        """Render colour [H, W, 3], depth [H, W] (metres) and alpha [H, W] at ``T_world_cam`` ``pose``."""
+        cam = self.camera if intrinsic is None else (intrinsic if isinstance(intrinsic, Camera)
+                                                     else Camera.from_o3d(intrinsic))
+        T = check_pose(pose, "render pose")
+        out = self._render(cam.scaled(scale), T)
+        out.color = out.color.clamp(0.0, 1.0)
+        return out
+
+    # ---- input -----------------------------------------------------------------------------------------
+    def _to_frame(self, rgbd, pose, timestamp) -> Frame:
+        index = self.stats.frames_released
+        ts = float(timestamp) if timestamp is not None else index / 30.0
+        if isinstance(rgbd, Frame):
+            frame = rgbd
+            if pose is not None:
+                frame.T_world_cam = self._checked(pose, frame.index)
+        else:
+            placeholder = np.eye(4) if pose is None else pose
+            frame = Frame.from_rgbd(rgbd, self.camera, placeholder, depth_scale=self.config.depth_scale,
+                                    depth_max=self.config.depth_max, timestamp=ts, index=index)
+            if pose is None:
+                frame.T_world_cam = self._track(frame)
+        if frame.camera != self.camera:
+            raise FrameError(f"frame {frame.index}: camera {frame.camera} differs from the reconstructor's {self.camera}")
+        return frame
+
+    def _checked(self, pose, index: int) -> np.ndarray:
+        try:
+            return check_pose(pose, f"frame {index}: pose")
+        except ValueError as e:
+            raise FrameError(str(e)) from None
+
+    def _track(self, frame: Frame) -> np.ndarray:
+        if self.pose_source is None:
+            raise FrameError(f"frame {frame.index}: no pose given and no pose source configured "
+                             "(pass T_world_cam, or Reconstructor(..., pose_source=get_pose_source('odometry')))")
+        t0 = time.perf_counter()
+        T = self.pose_source.track(frame.index, frame.timestamp, frame.color, frame.depth, frame.camera)
+        self.stats.tracking_s += time.perf_counter() - t0
+        return self._checked(T, frame.index)
+
+    # ---- persistence -----------------------------------------------------------------------------------
+    def save_ply(self, path: str | Path) -> Path:
+        """Write the map as a standard 3DGS PLY (atomic replace)."""
+        from .ply import save_ply
+
+        return save_ply(self.gmap, path)
+
+    def load_ply(self, path: str | Path) -> None:
+        """Replace the map with the Gaussians of a 3DGS PLY (optimizer state starts fresh)."""
+        from .ply import load_ply
+
+        gmap = load_ply(path, self.device, self.config.optim.lrs)
+        self.gmap = gmap
+        self.ctx.gmap = gmap
+        self.config.sh_degree = gmap.sh_degree
+
+    def __repr__(self) -> str:
+        return (f"Reconstructor({self.camera.width}x{self.camera.height}, device={self.device}, "
+                f"renderer={self.config.renderer}, gaussians={len(self.gmap)}, updates={self.stats.updates})")

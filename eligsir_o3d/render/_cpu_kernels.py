@@ -1,0 +1,213 @@
+"""Numba kernels of the ``cpu`` renderer: per-tile front-to-back compositing and its back-to-front gradient.
+
+The math is the reference's (``torch_backend.TorchRenderer._tiles``) written per pixel, in float32, in the same
+order of operations: ``sigma = 0.5 * (a dx^2 + c dy^2) + b dx dy`` with ``(dx, dy) = pixel - mean``, Gaussians with
+``sigma < 0`` or ``alpha < 1/255`` are skipped, ``alpha = min(0.999, o exp(-sigma))``, and a pixel stops before the
+Gaussian whose blending would take its transmittance to ``<= 1e-4``. The backward pass follows gsplat's
+``rasterize_to_pixels`` backward: it starts from the stored final transmittance and the number of Gaussians the
+forward pass walked through, and recovers each Gaussian's transmittance by dividing by ``1 - alpha``.
+
+Parallelism: one tile per task (``prange``), heaviest tiles first, in chunks of one so that the cores share uneven
+tiles dynamically. Tiles never write to the same memory: the backward pass writes one gradient row per
+(tile, Gaussian) intersection and the caller sums the rows per Gaussian (``index_add_``), so no atomics are needed.
+
+Compilation is lazy (first call) and cached on disk (``cache=True``): numba writes next to this file when the package
+folder is writable, else to ``$NUMBA_CACHE_DIR`` or the user cache folder; where none is writable the kernels
+still work, compiled once per process.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numba
+import numpy as np
+from numba import prange
+
+TILE = 16
+ALPHA_MAX = np.float32(0.999)
+ALPHA_MIN = np.float32(1.0 / 255.0)
+T_MIN = np.float32(1e-4)
+HALF = np.float32(0.5)
+ONE = np.float32(1.0)
+ZERO = np.float32(0.0)
+
+
+def _jit(fn):
+    """``njit(parallel=True, cache=True)``; without a writable cache location, fall back to an uncached kernel."""
+    try:
+        return numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)(fn)
+    except RuntimeError as err:  # numba: "cannot cache function ...: no locator available"
+        warnings.warn(f"numba cannot cache the cpu renderer's kernels ({err}); they compile on every start. "
+                      "Set NUMBA_CACHE_DIR to a writable folder to keep them.", RuntimeWarning, stacklevel=2)
+        return numba.njit(parallel=True, cache=False, fastmath=False, nogil=True)(fn)
+
+
+@_jit
+def composite_forward(means2d, conics, opacities, feats, offsets, flat_ids, order, tiles_x, width, height,
+                      out_feats, out_alpha, out_T, out_last):
+    """Blend every tile front to back.
+
+    means2d [N, 2], conics [N, 3], opacities [N], feats [N, F] (float32); offsets [T + 1] and flat_ids [M] (int64):
+    tile t's depth-sorted Gaussians are ``flat_ids[offsets[t]:offsets[t + 1]]``; order [T]: the tiles to run, heaviest
+    first. Writes out_feats [H, W, F] (accumulated features), out_alpha [H, W] (accumulated opacity), out_T [H, W]
+    (final transmittance) and out_last [H, W] int32 (how many of the tile's Gaussians the pixel walked through).
+    """
+    n_feat = feats.shape[1]
+    numba.set_parallel_chunksize(1)
+    for i in prange(order.shape[0]):
+        t = order[i]
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        s = offsets[t]
+        n = offsets[t + 1] - s
+        # Gather the tile's Gaussians once: the 256 pixels then read them from contiguous, cache-resident memory.
+        gx = np.empty(n, np.float32)
+        gy = np.empty(n, np.float32)
+        ga = np.empty(n, np.float32)
+        gb = np.empty(n, np.float32)
+        gc = np.empty(n, np.float32)
+        go = np.empty(n, np.float32)
+        gf = np.empty((n, n_feat), np.float32)
+        for k in range(n):
+            g = flat_ids[s + k]
+            gx[k] = means2d[g, 0]
+            gy[k] = means2d[g, 1]
+            ga[k] = conics[g, 0]
+            gb[k] = conics[g, 1]
+            gc[k] = conics[g, 2]
+            go[k] = opacities[g]
+            for f in range(n_feat):
+                gf[k, f] = feats[g, f]
+        acc = np.empty(n_feat, np.float32)
+        for py in range(TILE):
+            y = ty * TILE + py
+            if y >= height:
+                break
+            fy = np.float32(y)
+            for px in range(TILE):
+                x = tx * TILE + px
+                if x >= width:
+                    break
+                fx = np.float32(x)
+                for f in range(n_feat):
+                    acc[f] = ZERO
+                T = ONE
+                wsum = ZERO
+                walked = 0
+                for k in range(n):
+                    dx = fx - gx[k]
+                    dy = fy - gy[k]
+                    sigma = HALF * (ga[k] * dx * dx + gc[k] * dy * dy) + gb[k] * dx * dy
+                    if sigma < ZERO:
+                        continue
+                    alpha = min(ALPHA_MAX, go[k] * math.exp(-sigma))
+                    if alpha < ALPHA_MIN:
+                        continue
+                    next_T = T * (ONE - alpha)
+                    if next_T <= T_MIN:
+                        break
+                    w = alpha * T
+                    for f in range(n_feat):
+                        acc[f] += w * gf[k, f]
+                    wsum += w
+                    T = next_T
+                    walked = k + 1
+                for f in range(n_feat):
+                    out_feats[y, x, f] = acc[f]
+                out_alpha[y, x] = wsum  # = 1 - T up to rounding; summed like the reference
+                out_T[y, x] = T
+                out_last[y, x] = walked
+
+
+@_jit
+def composite_backward(means2d, conics, opacities, feats, offsets, flat_ids, order, tiles_x, width, height,
+                       final_T, last, grad_feats, grad_alpha, v_isect):
+    """Back-to-front gradients of ``composite_forward``.
+
+    grad_feats [H, W, F], grad_alpha [H, W]: gradients of the accumulated outputs. Writes v_isect [M, 6 + F], one row
+    per intersection: d/d(mean x, mean y, conic a, conic b, conic c, opacity, feature 0..F-1).
+    """
+    n_feat = feats.shape[1]
+    numba.set_parallel_chunksize(1)
+    for i in prange(order.shape[0]):
+        t = order[i]
+        ty = t // tiles_x
+        tx = t - ty * tiles_x
+        s = offsets[t]
+        n = offsets[t + 1] - s
+        gx = np.empty(n, np.float32)
+        gy = np.empty(n, np.float32)
+        ga = np.empty(n, np.float32)
+        gb = np.empty(n, np.float32)
+        gc = np.empty(n, np.float32)
+        go = np.empty(n, np.float32)
+        gf = np.empty((n, n_feat), np.float32)
+        for k in range(n):
+            g = flat_ids[s + k]
+            gx[k] = means2d[g, 0]
+            gy[k] = means2d[g, 1]
+            ga[k] = conics[g, 0]
+            gb[k] = conics[g, 1]
+            gc[k] = conics[g, 2]
+            go[k] = opacities[g]
+            for f in range(n_feat):
+                gf[k, f] = feats[g, f]
+        # this tile's rows of v_isect: accumulated over its pixels, written once
+        v = np.zeros((n, 6 + n_feat), np.float32)
+        buf = np.empty(n_feat, np.float32)
+        gout = np.empty(n_feat, np.float32)
+        for py in range(TILE):
+            y = ty * TILE + py
+            if y >= height:
+                break
+            fy = np.float32(y)
+            for px in range(TILE):
+                x = tx * TILE + px
+                if x >= width:
+                    break
+                fx = np.float32(x)
+                walked = last[y, x]
+                if walked == 0:
+                    continue
+                T_final = final_T[y, x]
+                T = T_final
+                g_a = grad_alpha[y, x]
+                for f in range(n_feat):
+                    buf[f] = ZERO
+                    gout[f] = grad_feats[y, x, f]
+                for k in range(walked - 1, -1, -1):
+                    dx = fx - gx[k]
+                    dy = fy - gy[k]
+                    a = ga[k]
+                    b = gb[k]
+                    c = gc[k]
+                    sigma = HALF * (a * dx * dx + c * dy * dy) + b * dx * dy
+                    if sigma < ZERO:
+                        continue
+                    vis = math.exp(-sigma)
+                    o_vis = go[k] * vis
+                    alpha = min(ALPHA_MAX, o_vis)
+                    if alpha < ALPHA_MIN:
+                        continue
+                    ra = ONE / (ONE - alpha)
+                    T = T * ra  # transmittance in front of Gaussian k
+                    fac = alpha * T
+                    v_alpha = T_final * ra * g_a
+                    for f in range(n_feat):
+                        v[k, 6 + f] += fac * gout[f]
+                        v_alpha += (gf[k, f] * T - buf[f] * ra) * gout[f]
+                        buf[f] += gf[k, f] * fac
+                    if o_vis <= ALPHA_MAX:  # the clamp passes no gradient
+                        v_sigma = -o_vis * v_alpha
+                        # d sigma / d mean = -(conic @ (pixel - mean))
+                        v[k, 0] -= v_sigma * (a * dx + b * dy)
+                        v[k, 1] -= v_sigma * (b * dx + c * dy)
+                        v[k, 2] += HALF * v_sigma * dx * dx
+                        v[k, 3] += v_sigma * dx * dy
+                        v[k, 4] += HALF * v_sigma * dy * dy
+                        v[k, 5] += vis * v_alpha
+        for k in range(n):
+            for j in range(6 + n_feat):
+                v_isect[s + k, j] = v[k, j]

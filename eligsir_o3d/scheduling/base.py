@@ -1,0 +1,99 @@
+"""The three runtime decisions as small policy interfaces, and the context they act on.
+
+Each EliGSiR mechanism (paper Sec. "Method") is one policy with explicit state and hooks named for when they run;
+each ablation swaps it for a plain policy. The Reconstructor calls only these hooks, so it never knows which
+policy is active.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import torch
+
+from ..camera import Camera
+from ..frame import Frame
+from ..gaussians import GaussianMap
+from ..render import RenderOutput
+
+
+@dataclass
+class MapContext:
+    """What a policy may read or change: the map, a renderer call and the running counters."""
+
+    gmap: GaussianMap
+    render: Callable[[Camera, object], RenderOutput]  # (camera, T_world_cam) -> RenderOutput, differentiable
+    device: torch.device
+    max_gaussians: int
+    updates: int = 0
+    frames_released: int = 0
+
+
+class ViewPolicy:
+    """Which released frames are retained, and which retained view supervises the next update."""
+
+    name = "views"
+
+    def admit(self, frame: Frame, ctx: MapContext) -> bool:
+        """Called once per released source frame; True if the frame is retained for supervision."""
+        raise NotImplementedError
+
+    def select(self, rng: torch.Generator) -> Frame:
+        """The view for the next optimisation update."""
+        raise NotImplementedError
+
+    def feedback(self, frame: Frame, out: RenderOutput, error: torch.Tensor, depth: torch.Tensor,
+                 camera: Camera) -> None:
+        """After an update: the training render's per-pixel error [h, w] (already computed by the loss)."""
+
+    @property
+    def views(self) -> list[Frame]:
+        raise NotImplementedError
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass
+
+
+class FidelityPolicy:
+    """At which image scale the next update is supervised."""
+
+    name = "fidelity"
+
+    def scale(self) -> float:
+        raise NotImplementedError
+
+    def observe(self, seconds: float, pixels: int, backlog: int) -> None:
+        """After an update: its measured cost and the current backlog of unprocessed frames."""
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass
+
+
+class GrowthPolicy:
+    """Where the Gaussian population grows, moves or shrinks."""
+
+    name = "growth"
+
+    def on_frame(self, frame: Frame, admitted: bool, ctx: MapContext) -> int:
+        """Called once per released source frame; returns the number of Gaussians added."""
+        raise NotImplementedError
+
+    def pre_backward(self, out: RenderOutput, ctx: MapContext) -> torch.Tensor | None:
+        """Optional regulariser added to the loss (for example MCMC's opacity/scale terms)."""
+        return None
+
+    def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
+        """After the optimizer step (relocation, noise, evidence-gated insertion)."""
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        pass
