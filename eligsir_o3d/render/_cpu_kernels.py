@@ -34,6 +34,16 @@ ONE = np.float32(1.0)
 ZERO = np.float32(0.0)
 
 
+def _select_threading_layer() -> None:
+    """Prefer OpenMP over an old system TBB (numba warns and skips TBB < 2021.6 anyway); the user's choice wins."""
+    import os
+    if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
+        numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+
+
+_select_threading_layer()
+
+
 def _jit(fn):
     """``njit(parallel=True, cache=True)``; without a writable cache location, fall back to an uncached kernel."""
     try:
@@ -55,7 +65,6 @@ def composite_forward(means2d, conics, opacities, feats, offsets, flat_ids, orde
     (final transmittance) and out_last [H, W] int32 (how many of the tile's Gaussians the pixel walked through).
     """
     n_feat = feats.shape[1]
-    numba.set_parallel_chunksize(1)
     for i in prange(order.shape[0]):
         t = order[i]
         ty = t // tiles_x
@@ -130,7 +139,6 @@ def composite_backward(means2d, conics, opacities, feats, offsets, flat_ids, ord
     per intersection: d/d(mean x, mean y, conic a, conic b, conic c, opacity, feature 0..F-1).
     """
     n_feat = feats.shape[1]
-    numba.set_parallel_chunksize(1)
     for i in prange(order.shape[0]):
         t = order[i]
         ty = t // tiles_x
@@ -211,3 +219,12 @@ def composite_backward(means2d, conics, opacities, feats, offsets, flat_ids, ord
         for k in range(n):
             for j in range(6 + n_feat):
                 v_isect[s + k, j] = v[k, j]
+
+
+def run(kernel, *args) -> None:
+    """Call a kernel with chunks of one tile, so that idle cores take the next tile (dynamic load balance)."""
+    old = numba.set_parallel_chunksize(1)
+    try:
+        kernel(*args)
+    finally:
+        numba.set_parallel_chunksize(old)

@@ -1,0 +1,128 @@
+"""``cpu`` renderer: the reference's projection and tile binning in torch, compositing in compiled numba kernels.
+
+Projection (EWA covariance, culling) stays in differentiable torch - it is O(N) and cheap. Compositing, the
+O(pixels x Gaussians per tile) part, runs as a ``torch.autograd.Function`` whose forward and backward are the
+kernels in :mod:`._cpu_kernels`, parallel over tiles on all cores numba is allowed to use
+(``NUMBA_NUM_THREADS`` / ``numba.set_num_threads``). Float32 throughout; inputs of other dtypes are cast and the
+gradients cast back.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from .base import TileRenderer
+from .projection import Projection, TileBins
+
+_warm_seconds: float | None = None
+
+
+def _kernels():
+    """Import (and so JIT-load) the kernels lazily: ``import eligsir_o3d.render`` must not pay numba's start-up."""
+    from . import _cpu_kernels
+    return _cpu_kernels
+
+
+def warmup() -> float:
+    """Compile (or load from numba's cache) both kernels on a tiny problem; returns the seconds it took.
+
+    Called on a renderer's first use; benchmarks call it to report the first-call cost separately.
+    """
+    global _warm_seconds
+    if _warm_seconds is None:
+        t0 = time.perf_counter()
+        k = _kernels()
+        f32 = np.float32
+        means2d = np.array([[3.0, 4.0]], f32)
+        conics = np.array([[0.5, 0.0, 0.5]], f32)
+        opac = np.array([0.5], f32)
+        feats = np.ones((1, 4), f32)
+        offsets = np.array([0, 1], np.int64)
+        ids = np.zeros(1, np.int64)
+        order = np.zeros(1, np.int64)
+        h, w = 8, 8
+        out_f, out_a = np.empty((h, w, 4), f32), np.empty((h, w), f32)
+        out_T, out_last = np.empty((h, w), f32), np.empty((h, w), np.int32)
+        k.run(k.composite_forward, means2d, conics, opac, feats, offsets, ids, order, 1, w, h, out_f, out_a, out_T, out_last)
+        v = np.empty((1, 10), f32)
+        k.run(k.composite_backward, means2d, conics, opac, feats, offsets, ids, order, 1, w, h, out_T, out_last,
+                             np.ones((h, w, 4), f32), np.ones((h, w), f32), v)
+        _warm_seconds = time.perf_counter() - t0
+    return _warm_seconds
+
+
+def _f32(x: torch.Tensor) -> torch.Tensor:
+    return x.detach().to(torch.float32).contiguous()
+
+
+class _Composite(torch.autograd.Function):
+    """(means2d [N,2], conics [N,3], opacities [N], feats [N,F]) -> (accumulated feats [H,W,F], alpha [H,W])."""
+
+    @staticmethod
+    def forward(ctx, means2d, conics, opacities, feats, offsets, flat_ids, order, tiles_x, width, height):
+        k = _kernels()
+        m, c, o, f = _f32(means2d), _f32(conics), _f32(opacities), _f32(feats)
+        n_feat = f.shape[1]
+        out_feats = torch.empty(height, width, n_feat, dtype=torch.float32)
+        out_alpha = torch.empty(height, width, dtype=torch.float32)
+        out_T = torch.empty(height, width, dtype=torch.float32)
+        out_last = torch.empty(height, width, dtype=torch.int32)
+        k.run(k.composite_forward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), offsets.numpy(), flat_ids.numpy(),
+                            order.numpy(), tiles_x, width, height,
+                            out_feats.numpy(), out_alpha.numpy(), out_T.numpy(), out_last.numpy())
+        ctx.save_for_backward(m, c, o, f, offsets, flat_ids, order, out_T, out_last)
+        ctx.meta = (tiles_x, width, height, [means2d.dtype, conics.dtype, opacities.dtype, feats.dtype])
+        return out_feats.to(feats.dtype), out_alpha.to(feats.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_feats, grad_alpha):
+        k = _kernels()
+        m, c, o, f, offsets, flat_ids, order, out_T, out_last = ctx.saved_tensors
+        tiles_x, width, height, dtypes = ctx.meta
+        n, n_feat = f.shape
+        if grad_feats is None:
+            grad_feats = torch.zeros(height, width, n_feat)
+        if grad_alpha is None:
+            grad_alpha = torch.zeros(height, width)
+        v_isect = torch.empty(flat_ids.shape[0], 6 + n_feat, dtype=torch.float32)
+        k.run(k.composite_backward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), offsets.numpy(), flat_ids.numpy(),
+                             order.numpy(), tiles_x, width, height, out_T.numpy(), out_last.numpy(),
+                             _f32(grad_feats).numpy(), _f32(grad_alpha).numpy(), v_isect.numpy())
+        v = torch.zeros(n, 6 + n_feat, dtype=torch.float32).index_add_(0, flat_ids, v_isect)
+        grads = (v[:, 0:2], v[:, 2:5], v[:, 5], v[:, 6:])
+        grads = tuple(g.to(dt) for g, dt in zip(grads, dtypes))
+        return grads + (None,) * 6
+
+
+def tile_lists(bins: TileBins) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Padded per-tile ids [T, K] -> (offsets [T + 1], flat ids [M], tile order heaviest first [T]), all int64."""
+    ids = bins.ids.cpu()
+    valid = ids >= 0
+    counts = valid.sum(1)
+    offsets = torch.zeros(ids.shape[0] + 1, dtype=torch.long)
+    torch.cumsum(counts, 0, out=offsets[1:])
+    flat = ids[valid].contiguous()
+    order = torch.argsort(counts, descending=True, stable=True)
+    return offsets, flat, order
+
+
+class CpuRenderer(TileRenderer):
+    """Compiled CPU tile rasteriser; same images and gradients as :class:`TorchRenderer` up to float32 rounding."""
+
+    name = "cpu"
+
+    def __init__(self, device="cpu"):
+        super().__init__(device)
+        if self.device.type != "cpu":
+            raise ValueError(f"the 'cpu' renderer runs on the CPU only, not on {self.device}")
+
+    def composite(self, proj: Projection, opacities, colors, bins: TileBins, width: int, height: int):
+        warmup()
+        offsets, flat, order = tile_lists(bins)
+        feats = torch.cat([colors, proj.depths[:, None].to(colors.dtype)], -1)  # [N, 4]
+        acc, alpha = _Composite.apply(proj.means2d, proj.conics, opacities, feats, offsets, flat, order,
+                                      bins.tiles_x, width, height)
+        return acc[..., :3], acc[..., 3], alpha
