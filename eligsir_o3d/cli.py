@@ -1,0 +1,130 @@
+"""The ``eligsir`` command line: map, demo, eval, export. Thin: heavy modules are imported inside commands."""
+
+from __future__ import annotations
+
+import logging
+from enum import Enum
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="EliGSiR: budget-aware online RGB-D Gaussian-splatting mapping on Open3D.")
+
+
+class Renderer(str, Enum):
+    auto = "auto"
+    torch = "torch"
+    cpu = "cpu"
+    gsplat = "gsplat"
+
+
+class Mechanism(str, Enum):
+    scheduling = "scheduling"
+    fidelity = "fidelity"
+    growth = "growth"
+
+
+class BadFrame(str, Enum):
+    skip = "skip"
+    stop = "stop"
+
+
+def _fail(msg: str) -> None:
+    typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
+    raise typer.Exit(2)
+
+
+@app.command("map")
+def map_cmd(
+    path: str = typer.Argument(..., help="Sequence folder (TUM, Replica, plain folder layout) or 'synthetic'."),
+    out: Path = typer.Option(Path("runs/map"), "--out", "-o", help="Results folder."),
+    device: str = typer.Option("cpu", help="'cpu' or 'cuda:0'."),
+    renderer: Renderer = typer.Option(Renderer.auto, help="auto: gsplat on CUDA, else the compiled cpu rasteriser."),
+    max_frames: Optional[int] = typer.Option(None, help="Use only the first N frames."),
+    holdout_every: int = typer.Option(8, help="Hold out every N-th frame for evaluation (never mapped)."),
+    holdout_list: Optional[Path] = typer.Option(None, help="File of frame indices to hold out instead."),
+    pose: str = typer.Option("gt", help="gt | odometry | kiss-icp | colmap (runs SfM BEFORE mapping) | PATH to a TUM trajectory."),
+    realtime: bool = typer.Option(False, "--realtime", help="Real-time replay against the wall clock (frames can drop)."),
+    speed: float = typer.Option(1.0, help="Real-time replay speed factor."),
+    updates_per_frame: Optional[int] = typer.Option(None, help="Deterministic budget: updates per source frame."),
+    ablate: List[Mechanism] = typer.Option([], help="Swap a mechanism for its plain policy (repeatable)."),
+    refine: int = typer.Option(0, help="Extra post-mapping updates (+N PM map state)."),
+    offline_reference: bool = typer.Option(False, "--offline-reference", help="Offline reference: all frames at once, long full-res schedule."),
+    eval_every: int = typer.Option(100, help="Held-out checkpoint every N updates (0: only at the end)."),
+    on_bad_frame: BadFrame = typer.Option(BadFrame.skip, help="What to do with a frame that cannot be read or used."),
+    config: Optional[Path] = typer.Option(None, help="config.json to start from (e.g. one written by an earlier run)."),
+    seed: int = typer.Option(0, help="Random seed."),
+    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+) -> None:
+    """Map a recorded RGB-D sequence into a 3D Gaussian map and evaluate it on held-out views."""
+    from .config import Config
+    from .pipeline import RunOptions, run_mapping
+
+    logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(levelname)s %(message)s")
+    cfg = Config.load(config) if config else Config()
+    cfg.device, cfg.renderer, cfg.seed = device, renderer.value, seed
+    cfg.ablate = tuple(sorted({a.value for a in ablate}))
+    if updates_per_frame is not None:
+        cfg.optim.updates_per_frame = updates_per_frame
+    opts = RunOptions(max_frames=max_frames, holdout_every=holdout_every,
+                      holdout_list=str(holdout_list) if holdout_list else None, pose=pose, realtime=realtime,
+                      speed=speed, eval_every=eval_every, refine=refine, offline_reference=offline_reference,
+                      on_bad_frame=on_bad_frame.value, progress=not quiet)
+    try:
+        m = run_mapping(path, out, cfg, opts)
+    except (ValueError, OSError, RuntimeError) as e:
+        _fail(str(e))
+    _summary(m, out)
+
+
+def _summary(m: dict, out: Path) -> None:
+    h = m["heldout"]
+
+    def f(x, fmt):
+        return "n/a" if x is None else format(x, fmt)
+
+    typer.echo(f"held-out PSNR {f(h['psnr'], '.2f')} dB  SSIM {f(h['ssim'], '.3f')}  depth RMSE {f(h['depth_rmse_m'], '.3f')} m")
+    typer.echo(f"CVQ-AUC {f(m['cvq_auc'], '.2f')} dB  CUC@20 {f(m['cuc20_final'], '.3f')}  "
+               f"Gaussians {m['gaussians']}  updates {m['updates']}  supervised {m['supervised_mpix']:.1f} MPix")
+    typer.echo(f"mapping {m['mapping_time_s']:.1f} s  RTF {f(m['rtf'], '.2f')}  dropped {m['dropped_frames']}  "
+               f"renderer {m['renderer']}  state {m['map_state']}")
+    typer.echo(f"results in {out.resolve()}")
+
+
+@app.command()
+def demo(
+    out: Path = typer.Option(Path("runs/demo"), "--out", "-o", help="Results folder."),
+    frames: int = typer.Option(120, help="Frames of the embedded synthetic room."),
+    device: str = typer.Option("cpu"),
+) -> None:
+    """Map the embedded synthetic room (no download) and print where the outputs are."""
+    from .config import Config
+    from .pipeline import RunOptions, run_mapping
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    cfg = Config(device=device)
+    m = run_mapping("synthetic", out, cfg, RunOptions(max_frames=frames, eval_every=200))
+    _summary(m, out)
+
+
+@app.command("eval")
+def eval_cmd(
+    results: List[Path] = typer.Argument(..., help="Results folders to compare (each with metrics.json)."),
+) -> None:
+    """Compare results folders side by side (PSNR, SSIM, CVQ-AUC, CUC@20, MPix, Gaussians, time)."""
+    from .eval import compare_results
+
+    missing = [str(r) for r in results if not (r / "metrics.json").is_file()]
+    if missing:
+        _fail(f"no metrics.json in {', '.join(missing)}")
+    typer.echo(compare_results(results))
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":
+    main()
