@@ -1,0 +1,88 @@
+"""Format registry: ``open_sequence(path)`` finds the reader whose layout matches the folder.
+
+Readers register a ``detect(path) -> bool`` and an ``open(path, **options) -> RGBDSequence``; detection runs in
+registration order (the first match wins), and ``kind=`` skips it. A name ``synthetic`` or ``synthetic:<scene>``
+opens the built-in scene instead of a folder.
+"""
+
+from __future__ import annotations
+
+import inspect
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from . import folder, replica, tum
+from .base import DatasetError, RGBDSequence
+from .synthetic import SyntheticRoom, open_synthetic
+
+
+@dataclass(frozen=True)
+class _Format:
+    name: str
+    detect: Callable[[Path], bool]
+    open: Callable[..., RGBDSequence]
+    looks_for: str
+
+
+_FORMATS: dict[str, _Format] = {}
+
+
+def register_format(name: str, detect_fn: Callable[[Path], bool], open_fn: Callable[..., RGBDSequence],
+                    looks_for: str = "") -> None:
+    """Add (or replace) a reader. ``looks_for`` describes the layout for error messages."""
+    _FORMATS[name] = _Format(name, detect_fn, open_fn, looks_for or name)
+
+
+def list_formats() -> list[str]:
+    """Names accepted as ``kind=`` (besides "auto"), in detection order; "synthetic" is always available."""
+    return [*_FORMATS, "synthetic"]
+
+
+def _call(fmt_name: str, fn: Callable[..., RGBDSequence], *args, **options) -> RGBDSequence:
+    params = inspect.signature(fn).parameters
+    if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
+        unknown = sorted(set(options) - set(params))
+        if unknown:
+            accepted = [k for k, p in params.items() if p.kind is p.KEYWORD_ONLY]
+            raise DatasetError(f"unknown option(s) {', '.join(unknown)} for format {fmt_name!r}; "
+                               f"it accepts: {', '.join(accepted) or 'none'}")
+    return fn(*args, **options)
+
+
+def open_sequence(path_or_name: str | Path, kind: str = "auto", **options) -> RGBDSequence:
+    """Open a recorded RGB-D sequence (or the synthetic scene) as an :class:`RGBDSequence`.
+
+    kind: "auto" (detect from the folder's files) or one of :func:`list_formats`. Options go to the reader,
+    for example ``max_dt=0.02`` (tum), ``fps=30`` (replica, folder), ``depth_scale=`` (tum, replica, folder),
+    ``n_frames, width, height, seed`` (synthetic).
+    """
+    text = str(path_or_name)
+    if kind == "synthetic" or (kind == "auto" and (text == "synthetic" or text.startswith("synthetic:"))):
+        scene = text.split(":", 1)[1] if text.startswith("synthetic:") else "room"
+        sig = inspect.signature(SyntheticRoom.__init__).parameters
+        unknown = sorted(set(options) - set(sig))
+        if unknown:
+            raise DatasetError(f"unknown option(s) {', '.join(unknown)} for the synthetic scene; it accepts: "
+                               f"{', '.join(k for k in sig if k != 'self')}")
+        return open_synthetic(scene, **options)
+    path = Path(path_or_name).expanduser()
+    if not path.exists():
+        raise DatasetError(f"sequence folder {path} does not exist")
+    if not path.is_dir():
+        raise DatasetError(f"{path} is not a folder (a sequence is a folder of images and text files)")
+    if kind != "auto":
+        if kind not in _FORMATS:
+            raise DatasetError(f"unknown format {kind!r}; available: {', '.join(list_formats())}")
+        return _call(kind, _FORMATS[kind].open, path, **options)
+    for fmt in _FORMATS.values():
+        if fmt.detect(path):
+            return _call(fmt.name, fmt.open, path, **options)
+    looked = "\n".join(f"  - {f.name}: {f.looks_for}" for f in _FORMATS.values())
+    raise DatasetError(f"{path}: unrecognised sequence layout; looked for\n{looked}")
+
+
+register_format("tum", tum.detect, tum.open_tum, "rgb.txt + depth.txt (+ groundtruth.txt), TUM RGB-D")
+register_format("replica", replica.detect, replica.open_replica,
+                "results/frame*.jpg + results/depth*.png + traj.txt, NICE-SLAM Replica")
+register_format("folder", folder.detect, folder.open_folder, "color/ (or rgb/) + depth/ + intrinsics.json")
