@@ -15,7 +15,7 @@ from typing import Iterator, Sequence
 import numpy as np
 import open3d as o3d
 
-from ..camera import Camera, check_pose
+from ..camera import Camera, check_pose, pose_from_tum
 from ..frame import Frame
 
 
@@ -235,8 +235,6 @@ def check_increasing(path: Path, linenos: Sequence[int], stamps: Sequence[float]
 
 def read_tum_trajectory(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
     """TUM trajectory file ``timestamp tx ty tz qx qy qz qw`` -> (timestamps [N], camera-to-world [4, 4] list)."""
-    from ..camera import pose_from_tum
-
     rows = read_table(path, 8)
     stamps = [float(f[0]) for _, f in rows]
     check_increasing(path, [n for n, _ in rows], stamps)

@@ -122,14 +122,16 @@ class SyntheticRoom(RGBDSequence):
             self.scene.add_triangles(o3d.core.Tensor(s.vertices.astype(np.float32)),
                                      o3d.core.Tensor(s.triangles.astype(np.uint32)))
         self._cache: dict[int, tuple[o3d.t.geometry.Image, o3d.t.geometry.Image]] = {}
+        self._dirs_cam: tuple[Camera | None, np.ndarray | None] = (None, None)  # pixel rays of the last camera
 
     def render(self, T_world_cam: np.ndarray, camera: Camera | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Colour [H, W, 3] float32 in [0, 1] and z-depth [H, W] float32 metres (0 = no hit) from any pose."""
         cam = camera or self.camera
         T = np.asarray(T_world_cam, dtype=np.float64)
-        v, u = np.mgrid[0:cam.height, 0:cam.width].astype(np.float64)
-        dirs_cam = np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u)], -1)  # z = 1
-        dirs = dirs_cam @ T[:3, :3].T
+        if self._dirs_cam[0] != cam:
+            v, u = np.mgrid[0:cam.height, 0:cam.width].astype(np.float64)
+            self._dirs_cam = (cam, np.stack([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, np.ones_like(u)], -1))
+        dirs = self._dirs_cam[1] @ T[:3, :3].T  # [H, W, 3], camera-frame z = 1
         rays = np.concatenate([np.broadcast_to(T[:3, 3], dirs.shape), dirs], -1).astype(np.float32)
         hit = self.scene.cast_rays(o3d.core.Tensor(rays))
         depth = hit["t_hit"].numpy()  # the ray's z component is 1 in the camera frame: t is z-depth

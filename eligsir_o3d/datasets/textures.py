@@ -19,18 +19,21 @@ class ValueNoise:
 
     def __call__(self, p: np.ndarray, freq: float) -> np.ndarray:  # [M, 3] -> [M] in [0, 1]
         q = p * freq
-        i = np.floor(q).astype(np.int64)
+        i = np.floor(q)
         f = q - i
         f = f * f * (3 - 2 * f)
-        out = np.zeros(len(p))
-        for dx in (0, 1):
-            for dy in (0, 1):
-                for dz in (0, 1):
-                    w = (f[:, 0] if dx else 1 - f[:, 0]) * (f[:, 1] if dy else 1 - f[:, 1]) * \
-                        (f[:, 2] if dz else 1 - f[:, 2])
-                    idx = (i + [dx, dy, dz]) % self.size
-                    out += w * self.table[idx[:, 0], idx[:, 1], idx[:, 2]]
-        return out
+        i = i.astype(np.int64) % self.size
+        j = (i + 1) % self.size
+        n = self.size
+        t = self.table.reshape(-1)
+        x0, x1, y0, y1, z0, z1 = i[:, 0] * n * n, j[:, 0] * n * n, i[:, 1] * n, j[:, 1] * n, i[:, 2], j[:, 2]
+        fx, fy, fz = f[:, 0], f[:, 1], f[:, 2]
+        lerp = lambda a, b, w: a + w * (b - a)  # noqa: E731
+        c00 = lerp(t[x0 + y0 + z0], t[x0 + y0 + z1], fz)
+        c01 = lerp(t[x0 + y1 + z0], t[x0 + y1 + z1], fz)
+        c10 = lerp(t[x1 + y0 + z0], t[x1 + y0 + z1], fz)
+        c11 = lerp(t[x1 + y1 + z0], t[x1 + y1 + z1], fz)
+        return lerp(lerp(c00, c01, fy), lerp(c10, c11, fy), fx)
 
     def fbm(self, p: np.ndarray, freq: float, octaves: int = 3) -> np.ndarray:
         total, amp, norm = np.zeros(len(p)), 1.0, 0.0
@@ -92,13 +95,13 @@ def room(noise: ValueNoise, lo: np.ndarray, hi: np.ndarray):
         m = wx_hi  # warm gradient with a framed noise painting
         c = _mix((0.9, 0.6, 0.32), (0.68, 0.22, 0.24), (y[m] - lo[1]) / (hi[1] - lo[1]))
         c *= (0.85 + 0.15 * z[m] / hi[2])[:, None]
-        art = _rect(y[m], z[m], 0.3, 1.5, 1.0, 1.8)
+        c[_rect(y[m], z[m], 0.3, 1.5, 1.0, 1.8)] = (0.15, 0.1, 0.05)
         inner = _rect(y[m], z[m], 0.36, 1.44, 1.06, 1.74)
-        land = noise.fbm(w[m], 3.0, 4)
-        painting = np.where((z[m] - 1.06 + 0.25 * land > 0.35)[:, None], _mix((0.3, 0.5, 0.85), (0.9, 0.95, 1.0), land),
+        land = noise.fbm(w[m][inner], 3.0, 4)
+        sky = (z[m][inner] - 1.06 + 0.25 * land > 0.35)[:, None]
+        c[inner] = np.where(sky, _mix((0.3, 0.5, 0.85), (0.9, 0.95, 1.0), land),
                             _mix((0.15, 0.45, 0.15), (0.6, 0.7, 0.2), land))
-        c = np.where(art[:, None], (0.15, 0.1, 0.05), c)
-        rgb[m] = np.where(inner[:, None], painting, c)
+        rgb[m] = c
 
         m = wy_lo  # green plaster with a panelled door
         c = _mix((0.42, 0.55, 0.38), (0.7, 0.8, 0.6), noise.fbm(w[m], 4.0, 3))
