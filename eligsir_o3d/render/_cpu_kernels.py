@@ -54,6 +54,71 @@ def _jit(fn):
         return numba.njit(parallel=True, cache=False, fastmath=False, nogil=True)(fn)
 
 
+SUB = 4  # side of the pixel sub-blocks that get their own culled Gaussian lists
+NSUB = TILE // SUB
+
+
+@numba.njit(cache=True, fastmath=False, nogil=True)
+def _gather_tile(means2d, conics, opacities, feats, flat_ids, s, n, x0, y0):
+    """Copy tile Gaussians ``flat_ids[s:s + n]`` into contiguous arrays and cull them per SUB x SUB pixel block.
+
+    Returns gp [7, n] (mean x, mean y, conic a, b, c, opacity, sigma bound), gf [n, F] and, per sub-block,
+    the depth-ordered local indices of the Gaussians that can reach it: sub_ids [NSUB * NSUB, n], sub_n [NSUB * NSUB].
+    Culling is conservative, so it changes no result: a Gaussian contributes to a pixel only if
+    ``o exp(-sigma) >= 1/255``, i.e. ``sigma <= log(255 o)``; the bound keeps a margin of 1e-3 above that, and the
+    block test uses the ellipse's bounding box at that level widened by 1e-4 relative + 1e-3 px.
+    """
+    n_feat = feats.shape[1]
+    gp = np.empty((7, n), np.float32)
+    gf = np.empty((n, n_feat), np.float32)
+    sub_ids = np.empty((NSUB * NSUB, n), np.int32)
+    sub_n = np.zeros(NSUB * NSUB, np.int64)
+    for k in range(n):
+        g = flat_ids[s + k]
+        mx = means2d[g, 0]
+        my = means2d[g, 1]
+        a = conics[g, 0]
+        b = conics[g, 1]
+        c = conics[g, 2]
+        o = opacities[g]
+        gp[0, k] = mx
+        gp[1, k] = my
+        gp[2, k] = a
+        gp[3, k] = b
+        gp[4, k] = c
+        gp[5, k] = o
+        for f in range(n_feat):
+            gf[k, f] = feats[g, f]
+        o64 = np.float64(o)
+        if not (o64 * 255.0 >= 1.0):  # never reaches alpha 1/255 (NaN-safe: NaN opacities are not culled here)
+            if o64 == o64:
+                gp[6, k] = np.float32(-1.0)
+                continue
+        smax = math.log(max(o64 * 255.0, 1.0)) + 1e-3
+        gp[6, k] = np.float32(smax) if o64 == o64 else np.float32(np.inf)
+        a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)
+        det = a64 * c64 - b64 * b64
+        sx0, sx1, sy0, sy1 = 0, NSUB - 1, 0, NSUB - 1
+        if det > 0.0 and a64 > 0.0 and smax == smax:
+            rx = math.sqrt(2.0 * smax * c64 / det) * 1.0001 + 1e-3
+            ry = math.sqrt(2.0 * smax * a64 / det) * 1.0001 + 1e-3
+            lo_x = (np.float64(mx) - rx - x0) / SUB
+            hi_x = (np.float64(mx) + rx - x0) / SUB
+            lo_y = (np.float64(my) - ry - y0) / SUB
+            hi_y = (np.float64(my) + ry - y0) / SUB
+            # a block spans pixel centres [x0 + SUB j, x0 + SUB j + SUB - 1]
+            sx0 = max(0, int(math.ceil(lo_x - (SUB - 1.0) / SUB))) if lo_x > -1.0 else 0
+            sx1 = min(NSUB - 1, int(math.floor(hi_x))) if hi_x < NSUB else NSUB - 1
+            sy0 = max(0, int(math.ceil(lo_y - (SUB - 1.0) / SUB))) if lo_y > -1.0 else 0
+            sy1 = min(NSUB - 1, int(math.floor(hi_y))) if hi_y < NSUB else NSUB - 1
+        for by in range(sy0, sy1 + 1):
+            for bx in range(sx0, sx1 + 1):
+                j = by * NSUB + bx
+                sub_ids[j, sub_n[j]] = k
+                sub_n[j] += 1
+    return gp, gf, sub_ids, sub_n
+
+
 @_jit
 def composite_forward(means2d, conics, opacities, feats, offsets, flat_ids, order, tiles_x, width, height,
                       out_feats, out_alpha, out_T, out_last):
@@ -62,7 +127,7 @@ def composite_forward(means2d, conics, opacities, feats, offsets, flat_ids, orde
     means2d [N, 2], conics [N, 3], opacities [N], feats [N, F] (float32); offsets [T + 1] and flat_ids [M] (int64):
     tile t's depth-sorted Gaussians are ``flat_ids[offsets[t]:offsets[t + 1]]``; order [T]: the tiles to run, heaviest
     first. Writes out_feats [H, W, F] (accumulated features), out_alpha [H, W] (accumulated opacity), out_T [H, W]
-    (final transmittance) and out_last [H, W] int32 (how many of the tile's Gaussians the pixel walked through).
+    (final transmittance) and out_last [H, W] int32 (how far the pixel walked through its sub-block's list).
     """
     n_feat = feats.shape[1]
     for i in prange(order.shape[0]):
@@ -71,24 +136,8 @@ def composite_forward(means2d, conics, opacities, feats, offsets, flat_ids, orde
         tx = t - ty * tiles_x
         s = offsets[t]
         n = offsets[t + 1] - s
-        # Gather the tile's Gaussians once: the 256 pixels then read them from contiguous, cache-resident memory.
-        gx = np.empty(n, np.float32)
-        gy = np.empty(n, np.float32)
-        ga = np.empty(n, np.float32)
-        gb = np.empty(n, np.float32)
-        gc = np.empty(n, np.float32)
-        go = np.empty(n, np.float32)
-        gf = np.empty((n, n_feat), np.float32)
-        for k in range(n):
-            g = flat_ids[s + k]
-            gx[k] = means2d[g, 0]
-            gy[k] = means2d[g, 1]
-            ga[k] = conics[g, 0]
-            gb[k] = conics[g, 1]
-            gc[k] = conics[g, 2]
-            go[k] = opacities[g]
-            for f in range(n_feat):
-                gf[k, f] = feats[g, f]
+        gp, gf, sub_ids, sub_n = _gather_tile(means2d, conics, opacities, feats, flat_ids, s, n,
+                                              tx * TILE, ty * TILE)
         acc = np.empty(n_feat, np.float32)
         for py in range(TILE):
             y = ty * TILE + py
@@ -100,18 +149,20 @@ def composite_forward(means2d, conics, opacities, feats, offsets, flat_ids, orde
                 if x >= width:
                     break
                 fx = np.float32(x)
+                sb = (py // SUB) * NSUB + px // SUB
                 for f in range(n_feat):
                     acc[f] = ZERO
                 T = ONE
                 wsum = ZERO
                 walked = 0
-                for k in range(n):
-                    dx = fx - gx[k]
-                    dy = fy - gy[k]
-                    sigma = HALF * (ga[k] * dx * dx + gc[k] * dy * dy) + gb[k] * dx * dy
-                    if sigma < ZERO:
+                for j in range(sub_n[sb]):
+                    k = sub_ids[sb, j]
+                    dx = fx - gp[0, k]
+                    dy = fy - gp[1, k]
+                    sigma = HALF * (gp[2, k] * dx * dx + gp[4, k] * dy * dy) + gp[3, k] * dx * dy
+                    if sigma < ZERO or sigma > gp[6, k]:
                         continue
-                    alpha = min(ALPHA_MAX, go[k] * math.exp(-sigma))
+                    alpha = min(ALPHA_MAX, gp[5, k] * math.exp(-sigma))
                     if alpha < ALPHA_MIN:
                         continue
                     next_T = T * (ONE - alpha)
@@ -122,7 +173,7 @@ def composite_forward(means2d, conics, opacities, feats, offsets, flat_ids, orde
                         acc[f] += w * gf[k, f]
                     wsum += w
                     T = next_T
-                    walked = k + 1
+                    walked = j + 1
                 for f in range(n_feat):
                     out_feats[y, x, f] = acc[f]
                 out_alpha[y, x] = wsum  # = 1 - T up to rounding; summed like the reference
@@ -145,23 +196,8 @@ def composite_backward(means2d, conics, opacities, feats, offsets, flat_ids, ord
         tx = t - ty * tiles_x
         s = offsets[t]
         n = offsets[t + 1] - s
-        gx = np.empty(n, np.float32)
-        gy = np.empty(n, np.float32)
-        ga = np.empty(n, np.float32)
-        gb = np.empty(n, np.float32)
-        gc = np.empty(n, np.float32)
-        go = np.empty(n, np.float32)
-        gf = np.empty((n, n_feat), np.float32)
-        for k in range(n):
-            g = flat_ids[s + k]
-            gx[k] = means2d[g, 0]
-            gy[k] = means2d[g, 1]
-            ga[k] = conics[g, 0]
-            gb[k] = conics[g, 1]
-            gc[k] = conics[g, 2]
-            go[k] = opacities[g]
-            for f in range(n_feat):
-                gf[k, f] = feats[g, f]
+        gp, gf, sub_ids, sub_n = _gather_tile(means2d, conics, opacities, feats, flat_ids, s, n,
+                                              tx * TILE, ty * TILE)
         # this tile's rows of v_isect: accumulated over its pixels, written once
         v = np.zeros((n, 6 + n_feat), np.float32)
         buf = np.empty(n_feat, np.float32)
@@ -175,27 +211,29 @@ def composite_backward(means2d, conics, opacities, feats, offsets, flat_ids, ord
                 x = tx * TILE + px
                 if x >= width:
                     break
-                fx = np.float32(x)
                 walked = last[y, x]
                 if walked == 0:
                     continue
+                fx = np.float32(x)
+                sb = (py // SUB) * NSUB + px // SUB
                 T_final = final_T[y, x]
                 T = T_final
                 g_a = grad_alpha[y, x]
                 for f in range(n_feat):
                     buf[f] = ZERO
                     gout[f] = grad_feats[y, x, f]
-                for k in range(walked - 1, -1, -1):
-                    dx = fx - gx[k]
-                    dy = fy - gy[k]
-                    a = ga[k]
-                    b = gb[k]
-                    c = gc[k]
+                for j in range(walked - 1, -1, -1):
+                    k = sub_ids[sb, j]
+                    dx = fx - gp[0, k]
+                    dy = fy - gp[1, k]
+                    a = gp[2, k]
+                    b = gp[3, k]
+                    c = gp[4, k]
                     sigma = HALF * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    if sigma < ZERO:
+                    if sigma < ZERO or sigma > gp[6, k]:
                         continue
                     vis = math.exp(-sigma)
-                    o_vis = go[k] * vis
+                    o_vis = gp[5, k] * vis
                     alpha = min(ALPHA_MAX, o_vis)
                     if alpha < ALPHA_MIN:
                         continue

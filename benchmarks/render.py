@@ -1,0 +1,210 @@
+"""Renderer benchmark: forward and forward+backward time of every available backend on a real scene.
+
+Gaussians are seeded from the first frames of ``../shared/data/7scenes_redkitchen_jpg1000`` (depth back-projected
+to coloured points, isotropic scales from nearest-neighbour spacing, opacity 0.5) and rendered from frame 0's pose
+at 1/8, 1/4, 1/2 and 1x of 640x480. Times are medians over ``--repeats`` runs after one untimed warm-up run; the
+cpu backend's first-call kernel compile (or cache load) is reported separately. The loss of the backward pass is an
+L1 colour + depth loss against the frame, so every output carries gradient.
+
+    python benchmarks/render.py                       # table
+    python benchmarks/render.py --json                # one JSON object per line
+    python benchmarks/render.py --gaussians 20000 --scales 0.25 --backends torch cpu
+
+Peak memory: on the CPU, the rise of the process's peak RSS (``/proc/self/status`` VmHWM, reset through
+``/proc/self/clear_refs`` before each configuration) over its RSS before; on CUDA, ``torch.cuda.max_memory_allocated``.
+The torch reference is skipped where its forward+backward is predicted (from the same scene at the next lower
+resolution, scaled by pixel count) to exceed ``--max-ref-seconds``; such rows say ``"skipped"`` and have no speedup.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from eligsir_o3d.camera import Camera, pose_from_tum  # noqa: E402
+from eligsir_o3d.render import available_backends, get_renderer  # noqa: E402
+
+DATA = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_jpg1000"
+BASE = Camera(640, 480, 585.0, 585.0, 320.0, 240.0)
+
+
+def _read_frame(i: int):
+    import open3d as o3d
+    color = np.asarray(o3d.t.io.read_image(str(DATA / "rgb" / f"{i:06d}.jpg")).as_tensor().numpy(), np.float32) / 255.0
+    depth = np.asarray(o3d.t.io.read_image(str(DATA / "depth" / f"{i:06d}.png")).as_tensor().numpy())[..., 0]
+    return color, depth.astype(np.float32) / 1000.0
+
+
+def _poses() -> list[np.ndarray]:
+    rows = [ln.split() for ln in (DATA / "groundtruth.txt").read_text().splitlines() if ln and not ln.startswith("#")]
+    return [pose_from_tum(np.array(r[1:4], float), np.array(r[4:8], float)) for r in rows]
+
+
+def load_scene(n: int, frames=(0, 15, 30), seed: int = 0):
+    """(params dict, frame-0 colour [480, 640, 3], depth [480, 640], frame-0 T_world_cam) with ``n`` Gaussians."""
+    import open3d as o3d
+    poses = _poses()
+    pts, cols = [], []
+    for i in frames:
+        color, depth = _read_frame(i)
+        p, idx = BASE.backproject(torch.from_numpy(depth))
+        T = torch.from_numpy(poses[i]).float()
+        pts.append(p @ T[:3, :3].T + T[:3, 3])
+        cols.append(torch.from_numpy(color.reshape(-1, 3))[idx])
+    pts, cols = torch.cat(pts), torch.cat(cols)
+    g = torch.Generator().manual_seed(seed)
+    sel = torch.randperm(pts.shape[0], generator=g)[:n]
+    pts, cols = pts[sel].contiguous(), cols[sel].contiguous()
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts.double().numpy()))
+    nn = torch.from_numpy(np.asarray(pcd.compute_nearest_neighbor_distance())).float()
+    scale = nn.clamp(1e-3, 0.05)
+    params = {
+        "means": pts,
+        "quats": torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1),
+        "scales": scale[:, None].expand(n, 3).contiguous(),
+        "opacities": torch.full((n,), 0.5),
+        "colors": cols,
+    }
+    color0, depth0 = _read_frame(frames[0])
+    return params, color0, depth0, poses[frames[0]]
+
+
+def _resize(img: np.ndarray, w: int, h: int) -> torch.Tensor:
+    import cv2
+    interp = cv2.INTER_AREA if img.ndim == 3 else cv2.INTER_NEAREST
+    return torch.from_numpy(cv2.resize(img, (w, h), interpolation=interp))
+
+
+def _peak_rss_reset() -> int:
+    """Reset the kernel's peak-RSS counter; return the current RSS in kB (0 where /proc is missing)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
+    return _status_kb("VmRSS")
+
+
+def _status_kb(key: str) -> int:
+    try:
+        for ln in Path("/proc/self/status").read_text().splitlines():
+            if ln.startswith(key + ":"):
+                return int(ln.split()[1])
+    except OSError:
+        pass
+    return 0
+
+
+def time_backend(name: str, params, camera: Camera, T_world_cam, target_rgb, target_depth, device, repeats: int):
+    renderer = get_renderer(name, device)
+    ps = {k: v.to(device).clone().requires_grad_(True) for k, v in params.items()}
+    tgt_rgb, tgt_d = target_rgb.to(device), target_depth.to(device)
+    bg = torch.zeros(3, device=device)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+
+    def fwd():
+        return renderer.render(ps["means"], ps["quats"], ps["scales"], ps["opacities"], ps["colors"], camera,
+                               T_world_cam, background=bg)
+
+    def fwdbwd():
+        out = fwd()
+        valid = tgt_d > 0
+        loss = (out.color - tgt_rgb).abs().mean() + 0.1 * (out.depth - tgt_d)[valid].abs().mean()
+        loss.backward()
+        for p in ps.values():
+            p.grad = None
+
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+        mem0 = torch.cuda.memory_allocated(device)
+    rss0 = _peak_rss_reset()
+    fwdbwd()  # warm-up (allocator, caches)
+    fwd_t, fb_t = [], []
+    for _ in range(repeats):
+        sync()
+        t0 = time.perf_counter()
+        fwd()
+        sync()
+        fwd_t.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        fwdbwd()
+        sync()
+        fb_t.append(time.perf_counter() - t0)
+    if device.type == "cuda":
+        peak = (torch.cuda.max_memory_allocated(device) - mem0) / 2**20
+    else:
+        peak = max(0, _status_kb("VmHWM") - rss0) / 1024
+    return statistics.median(fwd_t), statistics.median(fb_t), peak
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--gaussians", type=int, nargs="+", default=[5000, 20000, 100000])
+    ap.add_argument("--scales", type=float, nargs="+", default=[0.125, 0.25, 0.5, 1.0])
+    ap.add_argument("--backends", nargs="+", default=None, help="default: every available backend")
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--max-ref-seconds", type=float, default=30.0,
+                    help="skip a torch-reference row predicted to take longer than this per forward+backward")
+    ap.add_argument("--json", action="store_true", help="one JSON object per line instead of a table")
+    args = ap.parse_args(argv)
+
+    device = torch.device(args.device)
+    backends = args.backends or available_backends(device)
+    if "torch" in backends:  # the reference first: speedups need its time
+        backends = ["torch"] + [b for b in backends if b != "torch"]
+    info = {"device": str(device), "torch_threads": torch.get_num_threads(), "cpu_count": os.cpu_count()}
+    if "cpu" in backends:
+        from eligsir_o3d.render.cpu_backend import warmup
+        info["cpu_kernel_first_call_s"] = round(warmup(), 3)
+    if not args.json:
+        print("# " + ", ".join(f"{k}={v}" for k, v in info.items()))
+        print(f"{'backend':>8} {'WxH':>9} {'gaussians':>9} {'fwd_ms':>9} {'fwdbwd_ms':>10} {'speedup':>8} {'peak_MB':>8}")
+    for n in args.gaussians:
+        params, color0, depth0, T0 = load_scene(n)
+        ref_prev = None  # (pixels, seconds) of the reference at the previous resolution
+        for s in sorted(args.scales):
+            cam = BASE.scaled(s)
+            rgb, dep = _resize(color0, cam.width, cam.height), _resize(depth0, cam.width, cam.height)
+            ref_fb = None
+            for b in backends:
+                row = {"backend": b, "width": cam.width, "height": cam.height, "gaussians": n}
+                if b == "torch" and ref_prev is not None and \
+                        ref_prev[1] * cam.pixels / ref_prev[0] > args.max_ref_seconds:
+                    row.update(fwd_s=None, fwdbwd_s=None, speedup_fwdbwd=None, peak_mem_mb=None,
+                               skipped=f"predicted {ref_prev[1] * cam.pixels / ref_prev[0]:.0f} s > "
+                                       f"--max-ref-seconds {args.max_ref_seconds:g}")
+                    ref_prev = (cam.pixels, ref_prev[1] * cam.pixels / ref_prev[0])
+                else:
+                    reps = 1 if b == "torch" else args.repeats
+                    f, fb, peak = time_backend(b, params, cam, T0, rgb, dep, device, reps)
+                    if b == "torch":
+                        ref_fb, ref_prev = fb, (cam.pixels, fb)
+                    row.update(fwd_s=round(f, 5), fwdbwd_s=round(fb, 5),
+                               speedup_fwdbwd=round(ref_fb / fb, 2) if ref_fb else None,
+                               peak_mem_mb=round(peak, 1))
+                if args.json:
+                    print(json.dumps(row), flush=True)
+                else:
+                    def ms(x):
+                        return f"{1e3 * x:9.1f}" if x is not None else f"{'skipped':>9}"
+                    sp = f"{row['speedup_fwdbwd']:7.1f}x" if row["speedup_fwdbwd"] else f"{'-':>8}"
+                    pk = f"{row['peak_mem_mb']:8.0f}" if row["peak_mem_mb"] is not None else f"{'-':>8}"
+                    print(f"{b:>8} {cam.width:>4}x{cam.height:<4} {n:>9} {ms(row['fwd_s'])} {ms(row['fwdbwd_s']):>10} "
+                          f"{sp} {pk}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,216 @@
+"""Every renderer backend against the pure-torch reference: images and gradients of all parameters.
+
+Tolerances (stated once, used below):
+- cpu vs torch: both float32 with the same operation order, so images agree to rounding: ``atol=2e-5, rtol=1e-4``
+  (colour and alpha in [0, 1], depth in metres). Gradients are sums over hundreds of pixels in a different order:
+  ``rtol=2e-3`` and ``atol = 2e-4 * max|reference gradient|`` per parameter tensor.
+- gsplat vs torch (CUDA only): gsplat uses a fast exp and opacity-aware per-axis bounding boxes, so on a scene whose
+  opacities stay below 0.35 (where both bounds admit exactly the Gaussians that reach alpha >= 1/255) images must
+  agree within ``atol=1e-3`` and gradients within ``rtol=2e-2, atol=2e-3 * max|grad|``; on the full edge-case scene
+  (opacities up to 0.99) the mean image error must stay below 1e-3 and the largest below 0.05.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from eligsir_o3d.camera import Camera
+from eligsir_o3d.render import get_renderer
+from eligsir_o3d.render.cpu_backend import CpuRenderer
+
+PARAMS = ("means", "quats", "scales", "opacities", "colors")
+
+
+def look_at_pose(eye, target=(0.0, 0.0, 0.0), up=(0.0, -1.0, 0.0)) -> np.ndarray:
+    """Camera-to-world pose of an OpenCV camera (z forward, y down) at ``eye`` looking at ``target``."""
+    eye, target, up = (np.asarray(v, float) for v in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(up, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z], 1)
+    T[:3, 3] = eye
+    return T
+
+
+def edge_case_scene(n: int = 400, seed: int = 0, max_opacity: float = 0.99):
+    """Random Gaussians around the origin plus the hard cases, seen by a camera at z = -3 looking at the origin.
+
+    Hard cases: behind the camera and inside the near plane, centres off-screen with their tails on it, very small
+    (1e-4 m, the 0.3 px^2 low-pass dominates) and very large (2 m, covering the whole image), nearly transparent
+    (opacity around the 1/255 skip threshold), and a stack of opaque Gaussians in front of everything so that
+    compositing stops early (transmittance below 1e-4).
+    """
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g) * torch.tensor([0.8, 0.6, 0.6])
+    scales = torch.exp(torch.empty(n, 3).uniform_(-4.0, -1.5, generator=g))
+    opac = torch.empty(n).uniform_(0.05, max_opacity, generator=g)
+    m = n // 10
+    means[:m, 2] = -3.0 - torch.rand(m, generator=g)  # behind the camera
+    means[m:2 * m, 2] = -3.0 + 0.005  # inside the near plane
+    means[2 * m:3 * m, :2] = torch.tensor([1.6, 1.2]) * torch.sign(torch.randn(m, 2, generator=g))  # off-screen
+    scales[2 * m:3 * m] = 0.3
+    scales[3 * m:4 * m] = 1e-4  # sub-pixel
+    scales[4 * m:4 * m + 3] = 2.0  # huge
+    opac[4 * m:4 * m + 3] = torch.minimum(torch.tensor(0.3), opac[4 * m:4 * m + 3])
+    opac[5 * m:6 * m] = torch.empty(m).uniform_(0.002, 0.006, generator=g)  # around alpha 1/255
+    # opaque stack right in front of the image centre: transmittance falls below 1e-4 there
+    means[6 * m:6 * m + 12] = torch.tensor([0.0, 0.0, -1.5]) + 0.05 * torch.randn(12, 3, generator=g)
+    scales[6 * m:6 * m + 12] = 0.15
+    opac[6 * m:6 * m + 12] = max_opacity
+    quats = torch.randn(n, 4, generator=g)
+    colors = torch.rand(n, 3, generator=g)
+    params = dict(means=means, quats=quats, scales=scales, opacities=opac, colors=colors)
+    return params, look_at_pose([0.0, 0.0, -3.0])
+
+
+def render_with_grads(renderer, params, camera, T, background, seed: int = 1):
+    """Render, back-propagate a fixed random weighting of colour, depth and alpha; return outputs and gradients."""
+    ps = {k: v.clone().requires_grad_(True) for k, v in params.items()}
+    out = renderer.render(ps["means"], ps["quats"], ps["scales"], ps["opacities"], ps["colors"], camera, T,
+                          background=background)
+    g = torch.Generator().manual_seed(seed)
+    h, w = camera.height, camera.width
+    wc, wd, wa = torch.rand(h, w, 3, generator=g), torch.rand(h, w, generator=g), torch.rand(h, w, generator=g)
+    loss = (out.color * wc.to(out.color)).sum() + (out.depth * wd.to(out.depth)).sum() + \
+        (out.alpha * wa.to(out.alpha)).sum()
+    loss.backward()
+    return out, {k: v.grad for k, v in ps.items()}
+
+
+def assert_grads_close(got, ref, rtol, atol_frac):
+    for k in PARAMS:
+        scale = float(ref[k].abs().max())
+        torch.testing.assert_close(got[k], ref[k], rtol=rtol, atol=atol_frac * max(scale, 1e-12),
+                                   msg=lambda m, k=k: f"gradient of {k}: {m}")
+
+
+CAMERAS = [Camera(64, 48, 60.0, 60.0, 31.5, 23.5), Camera(70, 45, 55.0, 58.0, 30.0, 25.0)]
+
+
+@pytest.mark.parametrize("camera", CAMERAS, ids=lambda c: f"{c.width}x{c.height}")
+@pytest.mark.parametrize("seed", [0, 1])
+def test_cpu_matches_reference(camera, seed):
+    params, T = edge_case_scene(seed=seed)
+    bg = torch.tensor([0.2, 0.4, 0.6])
+    ref_out, ref_g = render_with_grads(get_renderer("torch"), params, camera, T, bg)
+    out, g = render_with_grads(get_renderer("cpu"), params, camera, T, bg)
+    # the scene really exercises early termination (alpha stops just short of 1 - 1e-4) and partial coverage
+    a = ref_out.alpha.detach()
+    assert 0.999 < float(a.max()) <= 1.0 - 1e-4 + 1e-6 and float(a.min()) < 0.5
+    for name in ("color", "depth", "alpha"):
+        torch.testing.assert_close(getattr(out, name), getattr(ref_out, name), atol=2e-5, rtol=1e-4,
+                                   msg=lambda m, name=name: f"{name}: {m}")
+    assert torch.equal(out.radii, ref_out.radii)
+    assert_grads_close(g, ref_g, rtol=2e-3, atol_frac=2e-4)
+    for k in PARAMS:
+        assert torch.isfinite(g[k]).all(), k
+    # culled Gaussians (behind the camera, off-screen) get exactly zero gradient, as in the reference
+    culled = ref_out.radii == 0
+    assert culled.any()
+    assert float(g["means"][culled].abs().max()) == 0.0
+
+
+def test_cpu_early_termination_and_skip_match_reference():
+    """A stack of opaque Gaussians (stops after two) plus a veil just below and above alpha 1/255."""
+    camera = Camera(32, 32, 40.0, 40.0, 15.5, 15.5)
+    n = 8
+    means = torch.zeros(n, 3)
+    means[:, 2] = torch.linspace(1.0, 2.0, n)
+    params = dict(means=means, quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), scales=torch.full((n, 3), 0.5),
+                  opacities=torch.tensor([0.0039, 0.0040, 0.99, 0.99, 0.99, 0.99, 0.5, 0.5]),
+                  colors=torch.rand(n, 3, generator=torch.Generator().manual_seed(3)))
+    ref_out, ref_g = render_with_grads(get_renderer("torch"), params, camera, np.eye(4), None)
+    out, g = render_with_grads(get_renderer("cpu"), params, camera, np.eye(4), None)
+    torch.testing.assert_close(out.color, ref_out.color, atol=2e-5, rtol=1e-4)
+    torch.testing.assert_close(out.alpha, ref_out.alpha, atol=2e-5, rtol=1e-4)
+    assert_grads_close(g, ref_g, rtol=2e-3, atol_frac=2e-4)
+    # at the centre the opaque pair ends compositing: the Gaussians behind it change nothing there
+    front = {k: v[:6] for k, v in params.items()}
+    out_front = get_renderer("cpu").render(**front, camera=camera, T_world_cam=np.eye(4))
+    assert torch.equal(out_front.color[16, 16], out.color[16, 16].detach())
+    assert float(out.alpha[16, 16]) > 0.999
+
+
+def test_cpu_float64_inputs_and_unused_outputs():
+    """float64 parameters are rendered in float32 and get float64 gradients; a loss on colour only works."""
+    params, T = edge_case_scene(n=120, seed=5)
+    camera = CAMERAS[0]
+    ps = {k: v.double().requires_grad_(True) for k, v in params.items()}
+    out = CpuRenderer().render(ps["means"], ps["quats"], ps["scales"], ps["opacities"], ps["colors"], camera, T)
+    assert out.color.dtype == torch.float64
+    out.color.sum().backward()
+    assert all(ps[k].grad is not None and ps[k].grad.dtype == torch.float64 for k in PARAMS)
+
+
+def test_cpu_renders_empty_and_fully_culled_scenes():
+    camera = CAMERAS[1]
+    empty = dict(means=torch.zeros(0, 3), quats=torch.zeros(0, 4), scales=torch.zeros(0, 3),
+                 opacities=torch.zeros(0), colors=torch.zeros(0, 3))
+    out = CpuRenderer().render(**empty, camera=camera, T_world_cam=np.eye(4), background=torch.ones(3))
+    assert out.color.shape == (45, 70, 3) and torch.all(out.color == 1.0) and torch.all(out.alpha == 0)
+    behind = dict(means=torch.tensor([[0.0, 0.0, -1.0]]), quats=torch.tensor([[1.0, 0, 0, 0]]),
+                  scales=torch.full((1, 3), 0.1), opacities=torch.tensor([0.9]), colors=torch.ones(1, 3),
+                  )
+    ps = {k: v.clone().requires_grad_(True) for k, v in behind.items()}
+    out = CpuRenderer().render(**ps, camera=camera, T_world_cam=np.eye(4))
+    assert torch.all(out.alpha == 0) and torch.all(out.depth == 0) and int(out.radii[0]) == 0
+    out.color.sum().backward()
+    assert float(ps["means"].grad.abs().sum()) == 0.0
+
+
+def test_cpu_kernels_are_loaded_lazily():
+    """``import eligsir_o3d.render`` must not import numba or compile anything."""
+    import subprocess
+    import sys
+    code = ("import sys, eligsir_o3d.render as r; "
+            "assert 'eligsir_o3d.render._cpu_kernels' not in sys.modules; assert 'numba' not in sys.modules")
+    subprocess.run([sys.executable, "-c", code], check=True)
+
+
+# ---------------------------------------------------------------- gsplat (CUDA) ---------------------------------------
+
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat needs a CUDA device")
+
+
+def _gsplat_or_skip():
+    pytest.importorskip("gsplat")
+    return get_renderer("gsplat", "cuda")
+
+
+def _to(params, device):
+    return {k: v.to(device) for k, v in params.items()}
+
+
+@needs_cuda
+@pytest.mark.cuda
+def test_gsplat_matches_reference_low_opacity():
+    renderer = _gsplat_or_skip()
+    camera = CAMERAS[0]
+    params, T = edge_case_scene(seed=2, max_opacity=0.35)
+    bg = torch.tensor([0.2, 0.4, 0.6])
+    ref_out, ref_g = render_with_grads(get_renderer("torch", "cuda"), _to(params, "cuda"), camera, T, bg.cuda())
+    out, g = render_with_grads(renderer, _to(params, "cuda"), camera, T, bg.cuda())
+    for name in ("color", "depth", "alpha"):
+        torch.testing.assert_close(getattr(out, name), getattr(ref_out, name), atol=1e-3, rtol=1e-3,
+                                   msg=lambda m, name=name: f"{name}: {m}")
+    both = (out.radii > 0) & (ref_out.radii > 0)
+    torch.testing.assert_close(out.means2d[both], ref_out.means2d[both], atol=1e-3, rtol=1e-5)
+    assert_grads_close(g, ref_g, rtol=2e-2, atol_frac=2e-3)
+
+
+@needs_cuda
+@pytest.mark.cuda
+def test_gsplat_close_to_reference_on_edge_cases():
+    renderer = _gsplat_or_skip()
+    camera = CAMERAS[1]
+    params, T = edge_case_scene(seed=3)
+    ref = get_renderer("torch", "cuda").render(**_to(params, "cuda"), camera=camera, T_world_cam=T)
+    out = renderer.render(**_to(params, "cuda"), camera=camera, T_world_cam=T)
+    err = (out.color - ref.color).abs()
+    assert float(err.mean()) < 1e-3 and float(err.max()) < 0.05
+    assert out.radii.shape == ref.radii.shape and out.radii.dtype == torch.int32
