@@ -136,15 +136,15 @@ class RGBDSequence:
                              self.depth_paths[i] if self.depth_paths else None)
 
     def frame(self, i: int, depth_max: float = 10.0, T_world_cam: np.ndarray | None = None) -> Frame:
-        """Frame i as a :class:`Frame` (float colour, metric depth). ``T_world_cam`` overrides the ground truth;
-        a sequence without poses needs it (for example from a pose source)."""
+        """Frame i as a :class:`Frame` (float colour, metric depth, capped at ``depth_max`` metres).
+
+        Its pose is ``T_world_cam`` if given, else the ground truth; a sequence without poses gets the identity
+        as a placeholder, for the caller's pose source to replace (``frame.T_world_cam = ...``).
+        """
         item = self[i]
         T = item.T_world_cam if T_world_cam is None else T_world_cam
-        if T is None:
-            raise DatasetError(f"sequence {self.name!r} has no ground-truth poses: pass T_world_cam= for frame {i} "
-                               f"(for example from a pose source)")
-        return Frame.from_rgbd(item.rgbd, self.camera, T, depth_scale=self.depth_scale, depth_max=depth_max,
-                               timestamp=item.timestamp, index=item.index)
+        return Frame.from_rgbd(item.rgbd, self.camera, np.eye(4) if T is None else T, depth_scale=self.depth_scale,
+                               depth_max=depth_max, timestamp=item.timestamp, index=item.index)
 
 
 # -- image reading ------------------------------------------------------------------------------------------

@@ -174,7 +174,8 @@ class SyntheticRoom(RGBDSequence):
             depth = np.round(depth * 1000).astype(np.uint16) if self.depth_dtype == "uint16" else depth
             self._cache[i] = (o3d.t.geometry.Image(o3d.core.Tensor(color8)),
                               o3d.t.geometry.Image(o3d.core.Tensor(depth[..., None])))
-        return self._cache[i]
+        color, depth = self._cache[i]
+        return color.clone(), depth.clone()  # callers may write into their images; the cache stays intact
 
 
 def open_synthetic(name: str = "room", **options) -> SyntheticRoom:
