@@ -124,6 +124,15 @@ def test_cells_live_on_an_open3d_hashmap():
     assert reg.n_samples.tolist() == [400, 400] and reg.n_views.tolist() == [2, 2]
 
 
+def test_key_dedup_matches_torch_unique():
+    from eligsir_o3d.eval.regional import unique_keys
+    keys = torch.randint(-40, 40, (5000, 3), dtype=torch.int32)
+    keys[:3] = torch.tensor([[-(1 << 19), 0, 5], [(1 << 19), -1, -1], [0, 0, 0]], dtype=torch.int32)
+    uniq, inv = unique_keys(keys)
+    ref = torch.unique(keys, dim=0)
+    assert torch.equal(uniq, ref) and torch.equal(uniq[inv], keys)
+
+
 def test_measurable_needs_300_samples_from_two_heldout_views():
     ev = evaluator([make_frame(0, n_valid=150), make_frame(1, n_valid=149)])
     assert ev.regional.n_samples.tolist() == [299] and not ev.regional.measurable.any()

@@ -51,7 +51,7 @@ class HeldoutEvaluator:
 
     def __init__(self, heldout_frames: list[Frame], cell_size: float = 0.5, min_samples: int = 300,
                  min_views: int = 2, quality_threshold: float = 20.0, sample_stride: int = 4, *,
-                 min_source_views: int = 2, checkpoint_ssim: bool = True):
+                 min_source_views: int = 2, source_stride: int | None = None, checkpoint_ssim: bool = True):
         if not heldout_frames:
             raise ValueError("HeldoutEvaluator needs at least one held-out frame")
         self.eval_seconds = 0.0
@@ -61,7 +61,7 @@ class HeldoutEvaluator:
         self.curve: list[dict] = []
         with self.timed():
             self.regional = RegionalQuality(self.frames, cell_size, min_samples, min_views, quality_threshold,
-                                            sample_stride, min_source_views)
+                                            sample_stride, min_source_views, source_stride)
         self.up_axis = up_axis(self.frames)
 
     @contextmanager
@@ -126,6 +126,10 @@ class HeldoutEvaluator:
     def checkpoint(self, render_fn: Callable, *, t_s: float, progress: float, updates: int,
                    supervised_mpix: float, gaussians: int, extra: dict | None = None) -> dict:
         """Render every held-out view with ``render_fn(frame) -> RenderOutput | None`` and append one curve record.
+
+        The render needs ``.color`` [H, W, 3] in [0, 1] and ``.depth`` [H, W] metres at the frame's own resolution
+        (any device). None, or ``.color`` None, is a missing render (a failure); ``.depth`` None scores depth as
+        missing only.
 
         t_s: elapsed mapping time (evaluation excluded); progress: N_released / N_total of source frames.
         The record holds t_s, progress, updates, psnr, ssim, depth_rmse_m, depth_rmse_2m_m, cvq, cuc20 (None while

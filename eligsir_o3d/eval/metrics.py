@@ -47,8 +47,11 @@ def squared_errors(pred, ref) -> torch.Tensor:
     p, r = _as_tensor(pred, "pred"), _as_tensor(ref, "ref")
     if p.shape != r.shape or p.ndim != 3 or p.shape[-1] != 3:
         raise ValueError(f"colour images must both be [H, W, 3]; got pred {tuple(p.shape)} and ref {tuple(r.shape)}")
-    se = (p.clamp(0.0, 1.0) - r).pow(2)
-    return torch.where(torch.isfinite(p), se, torch.ones_like(se))
+    se = (p.clamp(0.0, 1.0) - r).square_()
+    bad = ~torch.isfinite(p)
+    if bad.any():
+        se[bad] = 1.0
+    return se
 
 
 def mse_to_psnr(mse: float) -> float:

@@ -34,7 +34,7 @@ def _quality_plot(curve: list[dict], x_key: str, x_label: str, path: Path, title
     ax.set_ylabel("dB")
     ax.set_title(title)
     ax.grid(alpha=0.3)
-    ax.legend(loc="lower right")
+    ax.legend(loc="best")
     return _save(fig, path)
 
 
@@ -76,7 +76,8 @@ def _cell_map(cells: dict, path: Path) -> Path:
         fig.colorbar(im, ax=ax, label="final cell PSNR q_c [dB] (column mean)", extend="both")
     n_ok = int(ok.sum())
     mean_q = f", mean {np.nanmean(q[ok]):.2f} dB" if n_ok else ""
-    ax.set_title(f"Top-down cell map ({size:g} m cells): {n_ok} evaluable{mean_q}; grey = not evaluable")
+    ax.set_title(f"Final cell PSNR, top-down ({size:g} m cells)\n{n_ok} evaluable cells{mean_q}; grey: not evaluable",
+                 fontsize=10)
     ax.set_xlabel(f"{AXES[a]} [m]")
     ax.set_ylabel(f"{AXES[b]} [m]")
     ax.set_aspect("equal")

@@ -9,8 +9,8 @@ Definitions (paper, "Regional quality"), implemented exactly:
 - Measurable: |Omega_c| >= ``min_samples`` (300) AND the samples come from >= ``min_views`` (2) distinct held-out views.
   Fixed once built; note that |Omega_c| counts subsampled pixels, so it depends on ``sample_stride``.
 - Eligible: from t_vis(c), the first checkpoint after the cell's surface was observed from >= ``min_source_views`` (2)
-  distinct SOURCE views. Observation = a released source frame's valid depth, back-projected with its pose, lands in
-  the cell. Held-out frames never count. It depends only on the released stream, never on the mapper.
+  distinct SOURCE views. Observation = a released source frame's valid depth (every ``source_stride``-th pixel,
+  default = ``sample_stride``), back-projected with its pose, lands in the cell. Held-out frames never count. It depends only on the released stream, never on the mapper.
 - M(t) = eligible and measurable cells. e_c(t) = mean over Omega_c and RGB of the squared error of the render at t;
   q_c(t) = -10 log10(max(e_c, 1e-12)); CVQ(t) = mean of q_c over M(t); CUC@Q(t) = fraction of M(t) with q_c >= Q.
   When M(t) is empty, CVQ and CUC are undefined and reported as None.
@@ -26,6 +26,21 @@ import torch
 
 from ..frame import Frame
 from .metrics import EPS, squared_errors
+
+
+_OFF, _BITS = 1 << 20, 21  # packing offset / bits per axis: keys within +-2^20 cells (+-524 km at 0.5 m)
+
+
+def unique_keys(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Deduplicate Int32 cell keys [M, 3] -> (unique keys [C, 3], inverse [M]); torch.unique(dim=0) is ~50x slower."""
+    k = keys.long() + _OFF
+    if keys.numel() and (k.min() < 0 or k.max() >= (1 << _BITS)):
+        raise ValueError("cell keys out of range: points farther than 2^20 cells from the origin")
+    packed = (k[:, 0] << (2 * _BITS)) | (k[:, 1] << _BITS) | k[:, 2]
+    uniq, inverse = torch.unique(packed, return_inverse=True)
+    mask = (1 << _BITS) - 1
+    out = torch.stack([uniq >> (2 * _BITS), (uniq >> _BITS) & mask, uniq & mask], dim=1) - _OFF
+    return out.to(torch.int32), inverse
 
 
 class RegionalQuality:
@@ -60,7 +75,7 @@ class RegionalQuality:
     def _build(self, frames: list[Frame]) -> None:
         per_view = [self._cell_keys(f, self.sample_stride) for f in frames]
         all_keys = torch.cat([k for k, _, _ in per_view]) if per_view else torch.zeros(0, 3, dtype=torch.int32)
-        keys, inverse = torch.unique(all_keys, dim=0, return_inverse=True)  # dedupe before the hash-map insert
+        keys, inverse = unique_keys(all_keys)  # dedupe before the hash-map insert (duplicates break it)
         self.keys = keys  # [C, 3] int32
         n_cells = keys.shape[0]
         self.hashmap = o3c.HashMap(max(n_cells, 1), key_dtype=o3c.int32, key_element_shape=(3,),
@@ -107,7 +122,7 @@ class RegionalQuality:
         if int(frame.index) in self.heldout_indices:
             return False
         keys, _, _ = self._cell_keys(frame, self.source_stride)
-        ids = self.cell_ids(torch.unique(keys, dim=0))
+        ids = self.cell_ids(unique_keys(keys)[0])
         ids = ids[ids >= 0]
         view = int(frame.index)
         first = self._first_source[ids]
