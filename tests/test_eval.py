@@ -117,6 +117,7 @@ def test_depth_rmse_masking_policy():
 def test_cells_live_on_an_open3d_hashmap():
     ev = evaluator([make_frame(0, x=0.5), make_frame(1, x=0.5)])
     reg = ev.regional
+    assert isinstance(reg, RegionalQuality)
     assert sorted(map(tuple, reg.keys.tolist())) == [(0, 0, 2), (1, 0, 2)]
     ids = reg.cell_ids(torch.tensor([[1, 0, 2], [5, 5, 5], [0, 0, 2]], dtype=torch.int32))
     assert ids[1] == -1 and sorted(ids[[0, 2]].tolist()) == [0, 1]
