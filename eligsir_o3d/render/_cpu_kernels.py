@@ -259,6 +259,62 @@ def composite_backward(means2d, conics, opacities, feats, offsets, flat_ids, ord
                 v_isect[s + k, j] = v[k, j]
 
 
+@numba.njit(cache=True, fastmath=False, nogil=True)
+def bin_tiles_csr(means2d, radii, depths, tiles_x, tiles_y):
+    """The reference's tile binning (:func:`..projection.bin_tiles`) as compressed lists.
+
+    means2d [N, 2] float32, radii [N] int32 (0 = culled), depths [N] float32. Returns offsets [T + 1] and flat_ids [M]
+    (int64): tile t's Gaussians, front to back (ties in depth by index, as the reference's stable sorts), are
+    ``flat_ids[offsets[t]:offsets[t + 1]]``. The tile range of a Gaussian is computed with the reference's float32
+    operations in the same order, so both produce identical lists.
+    """
+    n = radii.shape[0]
+    n_tiles = tiles_x * tiles_y
+    n_vis = 0
+    for g in range(n):
+        if radii[g] > 0:
+            n_vis += 1
+    vis = np.empty(n_vis, np.int64)
+    vd = np.empty(n_vis, np.float32)
+    j = 0
+    for g in range(n):
+        if radii[g] > 0:
+            vis[j] = g
+            vd[j] = depths[g]
+            j += 1
+    by_depth = vis[np.argsort(vd, kind="mergesort")]
+    rect = np.empty((n_vis, 4), np.int64)
+    counts = np.zeros(n_tiles + 1, np.int64)
+    inv_tile = np.float32(1.0 / TILE)
+    for i in range(n_vis):
+        g = by_depth[i]
+        r = np.float32(radii[g])
+        mx = means2d[g, 0]
+        my = means2d[g, 1]
+        x0 = min(max(math.floor(((mx - r) + HALF) * inv_tile), 0), tiles_x)
+        x1 = min(max(math.floor(((mx + r) + HALF) * inv_tile) + 1, 0), tiles_x)
+        y0 = min(max(math.floor(((my - r) + HALF) * inv_tile), 0), tiles_y)
+        y1 = min(max(math.floor(((my + r) + HALF) * inv_tile) + 1, 0), tiles_y)
+        rect[i, 0] = x0
+        rect[i, 1] = x1
+        rect[i, 2] = y0
+        rect[i, 3] = y1
+        for ty in range(y0, y1):
+            for tx in range(x0, x1):
+                counts[ty * tiles_x + tx + 1] += 1
+    offsets = np.cumsum(counts)
+    fill = offsets[:-1].copy()
+    flat_ids = np.empty(offsets[-1], np.int64)
+    for i in range(n_vis):
+        g = by_depth[i]
+        for ty in range(rect[i, 2], rect[i, 3]):
+            for tx in range(rect[i, 0], rect[i, 1]):
+                t = ty * tiles_x + tx
+                flat_ids[fill[t]] = g
+                fill[t] += 1
+    return offsets, flat_ids
+
+
 def run(kernel, *args) -> None:
     """Call a kernel with chunks of one tile, so that idle cores take the next tile (dynamic load balance)."""
     old = numba.set_parallel_chunksize(1)

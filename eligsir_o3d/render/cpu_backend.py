@@ -14,8 +14,9 @@ import time
 import numpy as np
 import torch
 
-from .base import TileRenderer
-from .projection import Projection, TileBins
+from ..camera import Camera
+from .base import RenderOutput, TileRenderer, finish
+from .projection import TILE, Projection, TileBins, project
 
 _warm_seconds: float | None = None
 
@@ -46,6 +47,7 @@ def warmup() -> float:
         h, w = 8, 8
         out_f, out_a = np.empty((h, w, 4), f32), np.empty((h, w), f32)
         out_T, out_last = np.empty((h, w), f32), np.empty((h, w), np.int32)
+        k.bin_tiles_csr(means2d, np.array([2], np.int32), np.ones(1, f32), 1, 1)
         k.run(k.composite_forward, means2d, conics, opac, feats, offsets, ids, order, 1, w, h, out_f, out_a, out_T, out_last)
         v = np.empty((1, 10), f32)
         k.run(k.composite_backward, means2d, conics, opac, feats, offsets, ids, order, 1, w, h, out_T, out_last,
@@ -97,16 +99,21 @@ class _Composite(torch.autograd.Function):
         return grads + (None,) * 6
 
 
-def tile_lists(bins: TileBins) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Padded per-tile ids [T, K] -> (offsets [T + 1], flat ids [M], tile order heaviest first [T]), all int64."""
+def tile_lists(bins: TileBins) -> tuple[torch.Tensor, torch.Tensor]:
+    """Padded per-tile ids [T, K] -> (offsets [T + 1], flat ids [M]), int64."""
     ids = bins.ids.cpu()
     valid = ids >= 0
-    counts = valid.sum(1)
     offsets = torch.zeros(ids.shape[0] + 1, dtype=torch.long)
-    torch.cumsum(counts, 0, out=offsets[1:])
-    flat = ids[valid].contiguous()
-    order = torch.argsort(counts, descending=True, stable=True)
-    return offsets, flat, order
+    torch.cumsum(valid.sum(1), 0, out=offsets[1:])
+    return offsets, ids[valid].contiguous()
+
+
+def bin_tiles_csr(proj: Projection, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """:func:`.projection.bin_tiles` in compiled code, as (offsets [T + 1], flat ids [M], tiles_x); same lists."""
+    tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
+    offsets, flat = _kernels().bin_tiles_csr(_f32(proj.means2d).numpy(), proj.radii.to(torch.int32).contiguous().numpy(),
+                                             _f32(proj.depths).numpy(), tiles_x, tiles_y)
+    return torch.from_numpy(offsets), torch.from_numpy(flat), tiles_x
 
 
 class CpuRenderer(TileRenderer):
@@ -119,10 +126,28 @@ class CpuRenderer(TileRenderer):
         if self.device.type != "cpu":
             raise ValueError(f"the 'cpu' renderer runs on the CPU only, not on {self.device}")
 
+    def render(self, means, quats, scales, opacities, colors, camera: Camera, T_world_cam,
+               background: torch.Tensor | None = None) -> RenderOutput:
+        """means [N, 3], quats [N, 4] wxyz, scales [N, 3] metres, opacities [N] in (0, 1), colors [N, 3]."""
+        warmup()
+        proj = project(means, quats, scales, camera, T_world_cam)
+        offsets, flat, tiles_x = bin_tiles_csr(proj, camera.width, camera.height)
+        color_acc, depth_acc, alpha_acc = self._composite(proj, opacities, colors, offsets, flat, tiles_x,
+                                                          camera.width, camera.height)
+        if background is not None:
+            background = torch.as_tensor(background, dtype=color_acc.dtype, device=color_acc.device)
+        color, depth, alpha = finish(color_acc, depth_acc, alpha_acc, background)
+        return RenderOutput(color, depth, alpha, proj.radii, proj.means2d)
+
     def composite(self, proj: Projection, opacities, colors, bins: TileBins, width: int, height: int):
         warmup()
-        offsets, flat, order = tile_lists(bins)
+        offsets, flat = tile_lists(bins)
+        return self._composite(proj, opacities, colors, offsets, flat, bins.tiles_x, width, height)
+
+    @staticmethod
+    def _composite(proj, opacities, colors, offsets, flat, tiles_x, width, height):
+        order = torch.argsort(offsets[1:] - offsets[:-1], descending=True, stable=True)  # heaviest tiles first
         feats = torch.cat([colors, proj.depths[:, None].to(colors.dtype)], -1)  # [N, 4]
         acc, alpha = _Composite.apply(proj.means2d, proj.conics, opacities, feats, offsets, flat, order,
-                                      bins.tiles_x, width, height)
+                                      tiles_x, width, height)
         return acc[..., :3], acc[..., 3], alpha
