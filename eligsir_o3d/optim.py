@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import torch
-from pytorch_msssim import ssim as _ssim
 
 from .render import RenderOutput
 
@@ -17,14 +17,39 @@ class LossConfig:
     depth_alpha_min: float = 0.5  # depth supervises only pixels the map already covers (growth handles the rest)
 
 
-def dssim(pred: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """1 - SSIM as in 3DGS: 11x11 Gaussian window (shrunk for tiny images); pred, ref [H, W, 3]."""
-    win = min(11, (min(pred.shape[0], pred.shape[1]) // 2) * 2 - 1)
+@lru_cache(maxsize=32)
+def _blur_matrix(n: int, win: int, sigma: float, device: str) -> torch.Tensor:
+    """[n, n - win + 1] banded matrix: ``x @ M`` is a 'valid' 1D Gaussian filter along x's last axis."""
+    t = torch.arange(win, dtype=torch.float32) - (win - 1) / 2
+    g = torch.exp(-(t * t) / (2 * sigma * sigma))
+    g = g / g.sum()
+    m = torch.zeros(n, n - win + 1)
+    cols = torch.arange(n - win + 1)
+    for k in range(win):
+        m[cols + k, cols] = g[k]
+    return m.to(device)
+
+
+def dssim(pred: torch.Tensor, ref: torch.Tensor, win: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """1 - SSIM as in 3DGS (11x11 Gaussian window, sigma 1.5, no padding); pred, ref [H, W, 3] in [0, 1].
+
+    Same value as ``pytorch_msssim.ssim`` (tested). The separable Gaussian filter of the five local moments is two
+    banded matrix products, which on the CPU is about 5x faster than torch's grouped conv2d at these sizes.
+    """
+    h, w = pred.shape[0], pred.shape[1]
+    win = min(win, (min(h, w) // 2) * 2 - 1)
     if win < 3:
         return torch.zeros((), device=pred.device)
-    x = pred.permute(2, 0, 1)[None]
-    y = ref.permute(2, 0, 1)[None]
-    return 1.0 - _ssim(x, y, data_range=1.0, size_average=True, win_size=win)
+    x, y = pred.permute(2, 0, 1), ref.permute(2, 0, 1)  # [3, H, W]
+    maps = torch.cat([x, y, x * x, y * y, x * y], 0)  # [15, H, W]
+    bw = _blur_matrix(w, win, sigma, str(pred.device))
+    bh = _blur_matrix(h, win, sigma, str(pred.device))
+    mu_x, mu_y, xx, yy, xy = (bh.T @ (maps @ bw)).split(3, 0)
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    sxx, syy, sxy = xx - mu_x * mu_x, yy - mu_y * mu_y, xy - mu_x * mu_y
+    cs = (2 * sxy + c2) / (sxx + syy + c2)
+    ssim_map = ((2 * mu_x * mu_y + c1) / (mu_x * mu_x + mu_y * mu_y + c1)) * cs
+    return 1.0 - ssim_map.mean()
 
 
 def supervision_loss(out: RenderOutput, color: torch.Tensor, depth: torch.Tensor, cfg: LossConfig):

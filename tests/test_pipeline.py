@@ -1,0 +1,84 @@
+"""The offline driver on the synthetic room: results folder contract, held-out split, evaluation time excluded."""
+
+import json
+import time
+
+import pytest
+
+from eligsir_o3d import Config
+from eligsir_o3d.pipeline import RunOptions, heldout_indices, run_mapping
+
+
+def _cfg():
+    cfg = Config(renderer="cpu")
+    cfg.optim.updates_per_frame = 3
+    cfg.optim.drain_updates = 10
+    return cfg
+
+
+def _opts(**kw):
+    base = dict(max_frames=16, holdout_every=4, eval_every=10, progress=False, plots=False)
+    base.update(kw)
+    return RunOptions(**base)
+
+
+def test_heldout_split():
+    assert heldout_indices(20, 8) == [4, 12]
+    assert heldout_indices(5, 0) == []
+
+
+def test_results_folder_contract_and_heldout_never_supervise(tmp_path, monkeypatch):
+    from eligsir_o3d.reconstructor import Reconstructor
+
+    seen = []
+    orig = Reconstructor.integrate
+
+    def spy(self, rgbd, *a, **kw):
+        seen.append(rgbd.index)
+        return orig(self, rgbd, *a, **kw)
+
+    monkeypatch.setattr(Reconstructor, "integrate", spy)
+    m = run_mapping("synthetic", tmp_path, _cfg(), _opts(plots=True))
+    held = set(heldout_indices(16, 4))
+    assert seen and not (set(seen) & held)
+    assert sorted(seen) == [i for i in range(16) if i not in held]
+    for name in ["map.ply", "trajectory.txt", "config.json", "metrics.json"]:
+        assert (tmp_path / name).is_file(), name
+    assert list(tmp_path.glob("*.png"))
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    for key in ["dataset", "frames_total", "frames_heldout", "device", "renderer", "map_state", "heldout", "cvq_auc",
+                "cvq_final", "cuc20_final", "mapping_time_s", "acquisition_time_s", "rtf", "updates",
+                "supervised_mpix", "gaussians", "dropped_frames", "peak_rss_mb", "curve"]:
+        assert key in saved, key
+    assert saved["frames_heldout"] == len(held) and saved["map_state"] == "ME"
+    assert saved["updates"] == 12 * 3 + 10
+    assert saved["heldout"]["psnr"] > 12.0
+    assert len(saved["curve"]) >= 4 and saved["curve"][-1]["progress"] == pytest.approx(1.0)
+    lines = [ln for ln in (tmp_path / "trajectory.txt").read_text().splitlines() if not ln.startswith("#")]
+    assert len(lines) == 12 and len(lines[0].split()) == 8
+
+
+def test_evaluation_time_is_not_mapping_time(tmp_path, monkeypatch):
+    from eligsir_o3d.eval import HeldoutEvaluator
+
+    base = run_mapping("synthetic", tmp_path / "a", _cfg(), _opts())
+    orig = HeldoutEvaluator.checkpoint
+
+    def slow(self, *a, **kw):
+        time.sleep(0.3)
+        return orig(self, *a, **kw)
+
+    monkeypatch.setattr(HeldoutEvaluator, "checkpoint", slow)
+    slowed = run_mapping("synthetic", tmp_path / "b", _cfg(), _opts())
+    n_checkpoints = len(slowed["curve"])
+    assert n_checkpoints >= 4
+    # 0.3 s of extra evaluation per checkpoint must not show up in mapping time
+    assert slowed["mapping_time_s"] < base["mapping_time_s"] + 0.3 * n_checkpoints / 2
+    assert slowed["eval_time_s"] >= 0.3 * n_checkpoints
+
+
+def test_missing_sequence_is_a_clear_error(tmp_path):
+    from eligsir_o3d.datasets import DatasetError
+
+    with pytest.raises(DatasetError, match="does_not_exist"):
+        run_mapping(str(tmp_path / "does_not_exist"), tmp_path / "out", _cfg(), _opts())
