@@ -105,7 +105,8 @@ def demo(
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     cfg = Config(device=device)
-    m = run_mapping("synthetic", out, cfg, RunOptions(max_frames=frames, eval_every=200))
+    m = run_mapping("synthetic", out, cfg, RunOptions(max_frames=frames, eval_every=200,
+                                                      sequence_options={"n_frames": frames}))
     _summary(m, out)
 
 

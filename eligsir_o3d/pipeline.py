@@ -26,6 +26,7 @@ log = logging.getLogger("eligsir_o3d")
 @dataclass
 class RunOptions:
     max_frames: int | None = None
+    sequence_options: dict | None = None  # passed to open_sequence (e.g. {"n_frames": 240} for the synthetic room)
     holdout_every: int = 8  # frames i with i % holdout_every == holdout_every // 2 are held out
     holdout_list: str | None = None  # a text file of frame indices to hold out instead
     pose: str = "gt"  # gt | odometry | kiss-icp | colmap | path to a TUM trajectory
@@ -73,7 +74,7 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
 
-    seq = open_sequence(path)
+    seq = open_sequence(path, **(opts.sequence_options or {}))
     n = len(seq) if opts.max_frames is None else min(len(seq), int(opts.max_frames))
     if n == 0:
         raise ValueError(f"{path}: the sequence has no frames")
