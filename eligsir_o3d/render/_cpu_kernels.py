@@ -7,6 +7,10 @@ Gaussian whose blending would take its transmittance to ``<= 1e-4``. The backwar
 ``rasterize_to_pixels`` backward: it starts from the stored final transmittance and the number of Gaussians the
 forward pass walked through, and recovers each Gaussian's transmittance by dividing by ``1 - alpha``.
 
+Work: a pixel walks only the part of its tile's list that can reach its 2x2 pixel block: each tile's list is culled
+per block by the bounding box of the ellipse where ``o exp(-sigma) >= 1/255`` (conservatively, so the result is the
+same as walking the whole list). On a real scene this cuts the walk from ~540 to ~50 Gaussians per pixel at 160x120.
+
 Parallelism: one tile per task (``prange``), heaviest tiles first, in chunks of one so that the cores share uneven
 tiles dynamically. Tiles never write to the same memory: the backward pass writes one gradient row per
 (tile, Gaussian) intersection and the caller sums the rows per Gaussian (``index_add_``), so no atomics are needed.
@@ -54,7 +58,7 @@ def _jit(fn):
         return numba.njit(parallel=True, cache=False, fastmath=False, nogil=True)(fn)
 
 
-SUB = 4  # side of the pixel sub-blocks that get their own culled Gaussian lists
+SUB = 2  # side of the pixel sub-blocks that get their own culled Gaussian lists
 NSUB = TILE // SUB
 
 
@@ -62,7 +66,7 @@ NSUB = TILE // SUB
 def _gather_tile(means2d, conics, opacities, feats, flat_ids, s, n, x0, y0):
     """Copy tile Gaussians ``flat_ids[s:s + n]`` into contiguous arrays and cull them per SUB x SUB pixel block.
 
-    Returns gp [7, n] (mean x, mean y, conic a, b, c, opacity, sigma bound), gf [n, F] and, per sub-block,
+    Returns gp [7, n] (mean x, mean y, conic a, b, c, opacity, sigma bound), gf [n, 4] and, per sub-block,
     the depth-ordered local indices of the Gaussians that can reach it: sub_ids [NSUB * NSUB, n], sub_n [NSUB * NSUB].
     Culling is conservative, so it changes no result: a Gaussian contributes to a pixel only if
     ``o exp(-sigma) >= 1/255``, i.e. ``sigma <= log(255 o)``; the bound keeps a margin of 1e-3 above that, and the
@@ -124,12 +128,11 @@ def composite_forward(means2d, conics, opacities, feats, offsets, flat_ids, orde
                       out_feats, out_alpha, out_T, out_last):
     """Blend every tile front to back.
 
-    means2d [N, 2], conics [N, 3], opacities [N], feats [N, F] (float32); offsets [T + 1] and flat_ids [M] (int64):
-    tile t's depth-sorted Gaussians are ``flat_ids[offsets[t]:offsets[t + 1]]``; order [T]: the tiles to run, heaviest
-    first. Writes out_feats [H, W, F] (accumulated features), out_alpha [H, W] (accumulated opacity), out_T [H, W]
+    means2d [N, 2], conics [N, 3], opacities [N], feats [N, 4] (r, g, b, depth; float32); offsets [T + 1] and
+    flat_ids [M] (int64): tile t's depth-sorted Gaussians are ``flat_ids[offsets[t]:offsets[t + 1]]``; order [T]: the
+    tiles to run, heaviest first. Writes out_feats [H, W, 4] (accumulated features), out_alpha [H, W] (accumulated opacity), out_T [H, W]
     (final transmittance) and out_last [H, W] int32 (how far the pixel walked through its sub-block's list).
     """
-    n_feat = feats.shape[1]
     for i in prange(order.shape[0]):
         t = order[i]
         ty = t // tiles_x
@@ -138,7 +141,6 @@ def composite_forward(means2d, conics, opacities, feats, offsets, flat_ids, orde
         n = offsets[t + 1] - s
         gp, gf, sub_ids, sub_n = _gather_tile(means2d, conics, opacities, feats, flat_ids, s, n,
                                               tx * TILE, ty * TILE)
-        acc = np.empty(n_feat, np.float32)
         for py in range(TILE):
             y = ty * TILE + py
             if y >= height:
@@ -150,8 +152,10 @@ def composite_forward(means2d, conics, opacities, feats, offsets, flat_ids, orde
                     break
                 fx = np.float32(x)
                 sb = (py // SUB) * NSUB + px // SUB
-                for f in range(n_feat):
-                    acc[f] = ZERO
+                acc0 = ZERO
+                acc1 = ZERO
+                acc2 = ZERO
+                acc3 = ZERO
                 T = ONE
                 wsum = ZERO
                 walked = 0
@@ -169,13 +173,17 @@ def composite_forward(means2d, conics, opacities, feats, offsets, flat_ids, orde
                     if next_T <= T_MIN:
                         break
                     w = alpha * T
-                    for f in range(n_feat):
-                        acc[f] += w * gf[k, f]
+                    acc0 += w * gf[k, 0]
+                    acc1 += w * gf[k, 1]
+                    acc2 += w * gf[k, 2]
+                    acc3 += w * gf[k, 3]
                     wsum += w
                     T = next_T
                     walked = j + 1
-                for f in range(n_feat):
-                    out_feats[y, x, f] = acc[f]
+                out_feats[y, x, 0] = acc0
+                out_feats[y, x, 1] = acc1
+                out_feats[y, x, 2] = acc2
+                out_feats[y, x, 3] = acc3
                 out_alpha[y, x] = wsum  # = 1 - T up to rounding; summed like the reference
                 out_T[y, x] = T
                 out_last[y, x] = walked
@@ -186,10 +194,9 @@ def composite_backward(means2d, conics, opacities, feats, offsets, flat_ids, ord
                        final_T, last, grad_feats, grad_alpha, v_isect):
     """Back-to-front gradients of ``composite_forward``.
 
-    grad_feats [H, W, F], grad_alpha [H, W]: gradients of the accumulated outputs. Writes v_isect [M, 6 + F], one row
-    per intersection: d/d(mean x, mean y, conic a, conic b, conic c, opacity, feature 0..F-1).
+    grad_feats [H, W, 4], grad_alpha [H, W]: gradients of the accumulated outputs. Writes v_isect [M, 10], one row
+    per intersection: d/d(mean x, mean y, conic a, conic b, conic c, opacity, r, g, b, depth).
     """
-    n_feat = feats.shape[1]
     for i in prange(order.shape[0]):
         t = order[i]
         ty = t // tiles_x
@@ -199,9 +206,7 @@ def composite_backward(means2d, conics, opacities, feats, offsets, flat_ids, ord
         gp, gf, sub_ids, sub_n = _gather_tile(means2d, conics, opacities, feats, flat_ids, s, n,
                                               tx * TILE, ty * TILE)
         # this tile's rows of v_isect: accumulated over its pixels, written once
-        v = np.zeros((n, 6 + n_feat), np.float32)
-        buf = np.empty(n_feat, np.float32)
-        gout = np.empty(n_feat, np.float32)
+        v = np.zeros((n, 10), np.float32)
         for py in range(TILE):
             y = ty * TILE + py
             if y >= height:
@@ -219,9 +224,14 @@ def composite_backward(means2d, conics, opacities, feats, offsets, flat_ids, ord
                 T_final = final_T[y, x]
                 T = T_final
                 g_a = grad_alpha[y, x]
-                for f in range(n_feat):
-                    buf[f] = ZERO
-                    gout[f] = grad_feats[y, x, f]
+                buf0 = ZERO
+                buf1 = ZERO
+                buf2 = ZERO
+                buf3 = ZERO
+                go0 = grad_feats[y, x, 0]
+                go1 = grad_feats[y, x, 1]
+                go2 = grad_feats[y, x, 2]
+                go3 = grad_feats[y, x, 3]
                 for j in range(walked - 1, -1, -1):
                     k = sub_ids[sb, j]
                     dx = fx - gp[0, k]
@@ -240,11 +250,20 @@ def composite_backward(means2d, conics, opacities, feats, offsets, flat_ids, ord
                     ra = ONE / (ONE - alpha)
                     T = T * ra  # transmittance in front of Gaussian k
                     fac = alpha * T
-                    v_alpha = T_final * ra * g_a
-                    for f in range(n_feat):
-                        v[k, 6 + f] += fac * gout[f]
-                        v_alpha += (gf[k, f] * T - buf[f] * ra) * gout[f]
-                        buf[f] += gf[k, f] * fac
+                    f0 = gf[k, 0]
+                    f1 = gf[k, 1]
+                    f2 = gf[k, 2]
+                    f3 = gf[k, 3]
+                    v[k, 6] += fac * go0
+                    v[k, 7] += fac * go1
+                    v[k, 8] += fac * go2
+                    v[k, 9] += fac * go3
+                    v_alpha = T_final * ra * g_a + (f0 * T - buf0 * ra) * go0 + (f1 * T - buf1 * ra) * go1 \
+                        + (f2 * T - buf2 * ra) * go2 + (f3 * T - buf3 * ra) * go3
+                    buf0 += f0 * fac
+                    buf1 += f1 * fac
+                    buf2 += f2 * fac
+                    buf3 += f3 * fac
                     if o_vis <= ALPHA_MAX:  # the clamp passes no gradient
                         v_sigma = -o_vis * v_alpha
                         # d sigma / d mean = -(conic @ (pixel - mean))
@@ -255,7 +274,7 @@ def composite_backward(means2d, conics, opacities, feats, offsets, flat_ids, ord
                         v[k, 4] += HALF * v_sigma * dy * dy
                         v[k, 5] += vis * v_alpha
         for k in range(n):
-            for j in range(6 + n_feat):
+            for j in range(10):
                 v_isect[s + k, j] = v[k, j]
 
 

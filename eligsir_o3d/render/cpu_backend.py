@@ -61,7 +61,7 @@ def _f32(x: torch.Tensor) -> torch.Tensor:
 
 
 class _Composite(torch.autograd.Function):
-    """(means2d [N,2], conics [N,3], opacities [N], feats [N,F]) -> (accumulated feats [H,W,F], alpha [H,W])."""
+    """(means2d [N,2], conics [N,3], opacities [N], feats [N,4] rgb+depth) -> (accumulated feats [H,W,4], alpha [H,W])."""
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, feats, offsets, flat_ids, order, tiles_x, width, height):
