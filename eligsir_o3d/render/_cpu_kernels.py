@@ -48,21 +48,34 @@ def _select_threading_layer() -> None:
 _select_threading_layer()
 
 
-def _jit(fn):
-    """``njit(parallel=True, cache=True)``; without a writable cache location, fall back to an uncached kernel."""
-    try:
-        return numba.njit(parallel=True, cache=True, fastmath=False, nogil=True)(fn)
-    except RuntimeError as err:  # numba: "cannot cache function ...: no locator available"
-        warnings.warn(f"numba cannot cache the cpu renderer's kernels ({err}); they compile on every start. "
-                      "Set NUMBA_CACHE_DIR to a writable folder to keep them.", RuntimeWarning, stacklevel=2)
-        return numba.njit(parallel=True, cache=False, fastmath=False, nogil=True)(fn)
+_uncached: list[str] = []
+
+
+def _compile(parallel: bool):
+    """``njit(cache=True)`` decorator; without a writable cache location, fall back to an uncached kernel."""
+    def deco(fn):
+        opts = dict(parallel=parallel, fastmath=False, nogil=True)
+        try:
+            return numba.njit(cache=True, **opts)(fn)
+        except RuntimeError as err:  # numba: "cannot cache function ...: no locator available for file ..."
+            if not _uncached:
+                warnings.warn(f"numba cannot cache the cpu renderer's kernels ({err}); they compile in every new "
+                              "process. Set NUMBA_CACHE_DIR to a writable folder to keep them.", RuntimeWarning,
+                              stacklevel=2)
+            _uncached.append(fn.__name__)
+            return numba.njit(cache=False, **opts)(fn)
+    return deco
+
+
+_jit = _compile(parallel=True)
+_jit_serial = _compile(parallel=False)
 
 
 SUB = 2  # side of the pixel sub-blocks that get their own culled Gaussian lists
 NSUB = TILE // SUB
 
 
-@numba.njit(cache=True, fastmath=False, nogil=True)
+@_jit_serial
 def _gather_tile(means2d, conics, opacities, feats, flat_ids, s, n, x0, y0):
     """Copy tile Gaussians ``flat_ids[s:s + n]`` into contiguous arrays and cull them per SUB x SUB pixel block.
 
@@ -278,7 +291,7 @@ def composite_backward(means2d, conics, opacities, feats, offsets, flat_ids, ord
                 v_isect[s + k, j] = v[k, j]
 
 
-@numba.njit(cache=True, fastmath=False, nogil=True)
+@_jit_serial
 def bin_tiles_csr(means2d, radii, depths, tiles_x, tiles_y):
     """The reference's tile binning (:func:`..projection.bin_tiles`) as compressed lists.
 
