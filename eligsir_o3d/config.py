@@ -11,6 +11,11 @@ from typing import Any
 from .gaussians import LearningRates
 from .optim import LossConfig
 from .scheduling.plain import SeedingConfig, StrideConfig
+from .clock import ClockConfig
+from .scheduling.fidelity import FidelityConfig
+from .scheduling.growth import GrowthConfig
+from .scheduling.support import ProbeConfig
+from .scheduling.views import ViewConfig
 
 
 @dataclass
@@ -37,6 +42,11 @@ class Config:
     optim: OptimConfig = field(default_factory=OptimConfig)
     stride: StrideConfig = field(default_factory=StrideConfig)
     seeding: SeedingConfig = field(default_factory=SeedingConfig)
+    views: ViewConfig = field(default_factory=ViewConfig)  # Map-Guided View Scheduling
+    fidelity: FidelityConfig = field(default_factory=FidelityConfig)  # Load-Adaptive Fidelity
+    growth: GrowthConfig = field(default_factory=GrowthConfig)  # Targeted Geometry Growth (+ 3DGS-MCMC)
+    support: ProbeConfig = field(default_factory=ProbeConfig)  # the low-res support render admission and growth share
+    clock: ClockConfig = field(default_factory=ClockConfig)  # which clock releases a recorded stream (get_clock)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -2,15 +2,41 @@
 
 from __future__ import annotations
 
-from .base import FidelityPolicy, GrowthPolicy, MapContext, ViewPolicy
-from .plain import FixedFidelity, NewSpaceSeeding, StrideKeyframes
+import dataclasses
 
-__all__ = ["FidelityPolicy", "GrowthPolicy", "MapContext", "ViewPolicy", "get_policies"]
+from .base import FidelityPolicy, GrowthPolicy, MapContext, ViewPolicy
+from .fidelity import FidelityConfig, LoadAdaptiveFidelity
+from .growth import GrowthConfig, TargetedGrowth
+from .mcmc import MCMCConfig
+from .plain import FixedFidelity, NewSpaceSeeding, StrideKeyframes
+from .support import ProbeConfig, SupportProbe
+from .views import MapGuidedViews, ViewConfig
+
+__all__ = ["ABLATIONS", "FidelityConfig", "FidelityPolicy", "GrowthConfig", "GrowthPolicy", "LoadAdaptiveFidelity",
+           "MCMCConfig", "MapContext", "MapGuidedViews", "ProbeConfig", "TargetedGrowth", "ViewConfig", "ViewPolicy",
+           "get_policies"]
+
+ABLATIONS = ("scheduling", "fidelity", "growth")
 
 
 def get_policies(cfg) -> tuple[ViewPolicy, FidelityPolicy, GrowthPolicy]:
-    """The (views, fidelity, growth) policies for a Config: EliGSiR's, or the plain one for each ablated mechanism."""
-    views = StrideKeyframes(cfg.stride)
-    fidelity = FixedFidelity(cfg.fixed_scale)
-    growth = NewSpaceSeeding(cfg.seeding, seed=cfg.seed)
+    """The (views, fidelity, growth) policies for a Config: EliGSiR's, or the plain one for each mechanism named in
+    ``cfg.ablate`` (scheduling -> fixed-stride keyframes with uniform replay, fidelity -> fixed native resolution,
+    growth -> dense per-frame depth insertion). Views and growth share one support probe (one render per frame)."""
+    unknown = [a for a in cfg.ablate if a not in ABLATIONS]
+    if unknown:
+        raise ValueError(f"unknown ablation(s) {unknown}; choose from {', '.join(ABLATIONS)}")
+    probe = SupportProbe(cfg.support)
+    if "scheduling" in cfg.ablate:
+        views = StrideKeyframes(cfg.stride)
+    else:
+        views = MapGuidedViews(cfg.views, probe)
+    if "fidelity" in cfg.ablate:
+        fidelity = FixedFidelity(cfg.fixed_scale)
+    else:
+        fidelity = LoadAdaptiveFidelity(cfg.fidelity)
+    if "growth" in cfg.ablate:
+        growth = NewSpaceSeeding(dataclasses.replace(cfg.seeding, dense=True), seed=cfg.seed)
+    else:
+        growth = TargetedGrowth(cfg.growth, probe, seed=cfg.seed)
     return views, fidelity, growth

@@ -1,0 +1,175 @@
+"""Targeted Geometry Growth (paper Sec. "Targeted Geometry Growth").
+
+Depth has two roles. It supervises the geometry that exists (the depth term of the loss, nothing here), and it is
+evidence for growing the representation, which this policy controls:
+- sparse structural support: space seen for the first time (voxels of the evidence store that no earlier view has
+  observed) that the map does not support gets a bounded set of sparse depth-derived Gaussians;
+- progressive growth: where an admitted view finds already-observed space unsupported (low rendered opacity) or
+  misplaced (rendered depth disagrees beyond a tolerance), its voxels collect one vote per *distinct* view; only
+  voxels with ``min_views`` votes receive finer Gaussians, and a view that finds a voxel explained takes a vote away;
+- population refinement: 3DGS-MCMC relocation of dead Gaussians, replacement and densification under the cap.
+
+The evidence store is a :class:`VoxelHash` (an Open3D hash map) with per-voxel votes and the last voting view.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from ..camera import Camera
+from ..frame import Frame
+from ..render import RenderOutput
+from .base import GrowthPolicy, MapContext
+from .mcmc import MCMCConfig, MCMCRefiner
+from .microcells import VoxelHash, grow
+from .seeding import seeds_from_depth
+from .support import SupportProbe
+
+
+@dataclass
+class GrowthConfig:
+    voxel_size: float = 0.05  # metres per evidence voxel (about 4x4 probe pixels of a 640x480 view at 2 m)
+    seed_stride: int = 4  # sparse support: one seed per 4x4 probe pixels (16x16 source pixels at probe scale 1/4)
+    max_seeds_per_frame: int = 1500  # bound on the sparse support one frame may add
+    insert_stride: int = 2  # evidence-gated insertion: one Gaussian per 2x2 probe pixels of a ready voxel
+    max_insert_per_frame: int = 2000  # bound on one frame's insertions
+    min_views: int = 2  # distinct views that must find a voxel unexplained before it grows
+    min_fraction: float = 0.5  # a view votes for a voxel when at least this share of its samples there are unexplained
+    init_opacity: float = 0.5  # opacity of inserted Gaussians (3DGS-MCMC initialises at 0.5)
+    mcmc: MCMCConfig = field(default_factory=MCMCConfig)
+
+
+class TargetedGrowth(GrowthPolicy):
+    """Sparse support for new space + evidence-gated insertion + 3DGS-MCMC refinement, under ``ctx.max_gaussians``."""
+
+    name = "targeted"
+
+    def __init__(self, cfg: GrowthConfig | None = None, probe: SupportProbe | None = None, seed: int = 0):
+        self.cfg = cfg or GrowthConfig()
+        self.probe = probe or SupportProbe()
+        self.voxels = VoxelHash(self.cfg.voxel_size)
+        self.votes = torch.zeros(0, dtype=torch.long)
+        self.last_view = torch.zeros(0, dtype=torch.long)
+        self.mcmc = MCMCRefiner(self.cfg.mcmc, seed=seed)
+        self.rng = torch.Generator().manual_seed(seed + 1)
+        self.counts = {"seeded": 0, "inserted": 0, "replaced": 0}
+
+    # ---- per released frame ---------------------------------------------------------------------------------
+    def on_frame(self, frame: Frame, admitted: bool, ctx: MapContext) -> int:
+        if not admitted:
+            return 0  # evidence comes from distinct (admitted) views only; near-duplicates would double count
+        sup = self.probe.check(frame, ctx)
+        vs, us = torch.nonzero(sup.valid, as_tuple=True)
+        if vs.numel() == 0:
+            return 0
+        pts = _world(sup.depth, sup.camera, frame.T_world_cam, vs, us)
+        ids, first_seen = self.voxels.lookup(pts)
+        n = len(self.voxels)
+        self.votes = grow(self.votes, n, 0)
+        self.last_view = grow(self.last_view, n, -1)
+        bad = (sup.unsupported | sup.misplaced)[vs, us]
+
+        # sparse structural support where space is seen for the first time and nothing renders there
+        new_space = first_seen & sup.unsupported[vs, us]
+        added = self._insert(sup, frame, vs[new_space], us[new_space], self.cfg.seed_stride,
+                             self.cfg.max_seeds_per_frame, ctx, "seeded")
+
+        # evidence: one vote per distinct view for known voxels it finds mostly unexplained; explained loses one
+        known = ~first_seen
+        ready = torch.zeros(0, dtype=torch.long)
+        if bool(known.any()):
+            cells, inv = torch.unique(ids[known], return_inverse=True)
+            total = torch.zeros(cells.numel()).index_add_(0, inv, torch.ones(inv.numel()))
+            unexplained = torch.zeros(cells.numel()).index_add_(0, inv, bad[known].float())
+            vote = unexplained / total >= self.cfg.min_fraction
+            fresh = self.last_view[cells] != frame.index
+            up = cells[vote & fresh]
+            down = cells[~vote & fresh]
+            self.votes[up] += 1
+            self.votes[down] = (self.votes[down] - 1).clamp_min(0)
+            self.last_view[cells[fresh]] = frame.index
+            ready = cells[self.votes[cells] >= self.cfg.min_views]
+        if ready.numel():
+            is_ready = torch.zeros(n, dtype=torch.bool)
+            is_ready[ready] = True
+            sel = known & bad & is_ready[ids]
+            added += self._insert(sup, frame, vs[sel], us[sel], self.cfg.insert_stride,
+                                  self.cfg.max_insert_per_frame, ctx, "inserted")
+            self.votes[ready] = 0  # grown: new evidence is needed before this voxel grows again
+        return added
+
+    def _insert(self, sup, frame: Frame, vs, us, stride: int, limit: int, ctx: MapContext, what: str) -> int:
+        """Gaussians at the given probe pixels on a ``stride`` grid: appended while under the cap, else written
+        over dead (low-opacity) Gaussians (MCMC-style replacement); never beyond ``ctx.max_gaussians``."""
+        if vs.numel() == 0:
+            return 0
+        mask = torch.zeros_like(sup.valid)
+        mask[vs, us] = True
+        room = max(0, ctx.max_gaussians - len(ctx.gmap))
+        dead = torch.zeros(0, dtype=torch.long)
+        if room < limit and len(ctx.gmap):
+            dead = torch.nonzero(ctx.gmap.opacities.detach().cpu() <= self.cfg.mcmc.min_opacity).squeeze(1)
+        budget = min(limit, room + dead.numel())
+        if budget <= 0:
+            return 0
+        means, rgbs, scales = seeds_from_depth(sup.color, sup.depth, sup.camera, frame.T_world_cam, mask, stride,
+                                               budget, self.rng)
+        m = means.shape[0]
+        if m == 0:
+            return 0
+        n_add = min(m, room)
+        if n_add:
+            ctx.gmap.add(means[:n_add], rgbs[:n_add], scales[:n_add], self.cfg.init_opacity)
+        if m > n_add:  # at the cap: replace dead Gaussians (their optimizer moments are reset)
+            idx = dead[: m - n_add].to(ctx.gmap.device)
+            k = idx.numel()
+            tmp = _raw_params(ctx.gmap, means[n_add:n_add + k], rgbs[n_add:n_add + k], scales[n_add:n_add + k],
+                              self.cfg.init_opacity)
+            ctx.gmap.assign(idx, tmp)
+            self.counts["replaced"] += k
+            m = n_add + k
+        self.counts[what] += m
+        return m
+
+    # ---- around every update --------------------------------------------------------------------------------
+    def pre_backward(self, out: RenderOutput, ctx: MapContext) -> torch.Tensor | None:
+        return self.mcmc.regulariser(ctx.gmap)
+
+    def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
+        self.mcmc.post_step(ctx.gmap, ctx.max_gaussians)
+
+    # ---- persistence ----------------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        n = len(self.voxels)
+        return {"voxels": self.voxels.state_dict(), "votes": self.votes[:n].clone(),
+                "last_view": self.last_view[:n].clone(), "mcmc": self.mcmc.state_dict(),
+                "rng": self.rng.get_state(), "counts": dict(self.counts)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.voxels.load_state_dict(state["voxels"])
+        self.votes, self.last_view = state["votes"].clone(), state["last_view"].clone()
+        self.mcmc.load_state_dict(state["mcmc"])
+        self.rng.set_state(state["rng"])
+        self.counts.update(state.get("counts", {}))
+
+
+def _world(depth: torch.Tensor, camera: Camera, T_world_cam, vs: torch.Tensor, us: torch.Tensor) -> torch.Tensor:
+    """World points [M, 3] of pixels (vs, us) of a depth image [h, w] (pixel centres at integers)."""
+    z = depth[vs, us]
+    pts = torch.stack([(us.float() - camera.cx) * z / camera.fx, (vs.float() - camera.cy) * z / camera.fy, z], -1)
+    T = torch.as_tensor(T_world_cam, dtype=torch.float32)
+    return pts @ T[:3, :3].T + T[:3, 3]
+
+
+def _raw_params(gmap, means, rgbs, scales, opacity: float) -> dict[str, torch.Tensor]:
+    """Raw parameters of new Gaussians (as :meth:`GaussianMap.add` would store them), for in-place replacement."""
+    from ..gaussians import rgb_to_sh0
+
+    m, dev = means.shape[0], gmap.device
+    quats = torch.zeros(m, 4, device=dev)
+    quats[:, 0] = 1.0
+    return {"means": means.to(dev), "scales": torch.log(scales.to(dev).clamp_min(1e-6))[:, None].expand(m, 3),
+            "quats": quats, "opacities": torch.logit(torch.full((m,), opacity, device=dev)),
+            "sh0": rgb_to_sh0(rgbs.to(dev))[:, None, :], "shN": torch.zeros(m, gmap.params["shN"].shape[1], 3, device=dev)}

@@ -1,0 +1,152 @@
+"""3DGS-MCMC population refinement (Kheradmand et al. 2024), in torch so that it runs on any device.
+
+The paper uses it as the population-update mechanism of Targeted Geometry Growth: dead (low-opacity) Gaussians are
+relocated onto live ones sampled in proportion to opacity, new Gaussians are added the same way up to the cap, and
+opacity/scale regularisers plus opacity-gated position noise keep the population exploring. gsplat's CUDA relocation
+kernel is replaced by the closed form: n copies of a Gaussian (opacity o, scale s) get
+
+    o_new = 1 - (1 - o)^(1/n),   s_new = s * o / D,   D = sum_{j=1..n} C(n, j) (-1)^(j-1) o_new^j / sqrt(j),
+
+so that n stacked copies composite to the original opacity (1 - (1 - o_new)^n = o) and the same footprint mass.
+D is an alternating sum that cancels badly for large n: it is evaluated in float64.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..gaussians import GaussianMap, sh0_to_rgb
+from ..render.projection import quat_to_rotmat
+
+
+@dataclass
+class MCMCConfig:
+    refine_start: int = 100  # updates before the first relocation/densification (gsplat: 500 of 30k iterations)
+    refine_every: int = 100  # updates between relocation/densification rounds (gsplat: 100)
+    min_opacity: float = 0.005  # dead below this (gsplat: 0.005)
+    growth_rate: float = 0.02  # densification adds this fraction of N per round, up to the cap (gsplat: 0.05)
+    n_max: int = 51  # copies per source are clamped here (gsplat: 51)
+    noise_lr: float = 5e5  # position noise = lr_means * noise_lr * covariance-shaped noise (gsplat: 5e5)
+    opacity_reg: float = 0.01  # loss += opacity_reg * mean(opacity) (gsplat default)
+    scale_reg: float = 0.01  # loss += scale_reg * mean(scale in metres) (gsplat default)
+
+
+def relocation_params(opacities: torch.Tensor, scales: torch.Tensor, ratios: torch.Tensor,
+                      n_max: int = 51) -> tuple[torch.Tensor, torch.Tensor]:
+    """Closed-form opacity [M] and scales [M, 3] of each of ``ratios`` [M] copies of a Gaussian.
+
+    opacities [M] in (0, 1), scales [M, 3] metres (activated). Computed in float64, returned in the input dtype.
+    """
+    n = ratios.to(torch.float64).clamp(1, n_max)  # [M]
+    o = opacities.to(torch.float64).clamp(1e-12, 1 - 1e-12)
+    o_new = 1.0 - torch.pow(1.0 - o, 1.0 / n)  # [M]
+    j = torch.arange(1, n_max + 1, dtype=torch.float64, device=o.device)  # [J]
+    log_binom = torch.lgamma(n[:, None] + 1) - torch.lgamma(j[None] + 1) - torch.lgamma((n[:, None] - j[None]).clamp_min(0) + 1)
+    binom = torch.where(j[None] <= n[:, None], torch.exp(log_binom).round(), torch.zeros_like(log_binom))  # C(n, j)
+    sign = torch.where(j % 2 == 1, 1.0, -1.0).to(torch.float64)  # (-1)^(j-1)
+    terms = binom * sign[None] * torch.pow(o_new[:, None], j[None]) / torch.sqrt(j[None])
+    denom = terms.sum(1)
+    new_scales = scales.to(torch.float64) * (o / denom)[:, None]
+    return o_new.to(opacities.dtype), new_scales.to(scales.dtype)
+
+
+def _sample(weights: torch.Tensor, n: int, generator: torch.Generator | None) -> torch.Tensor:
+    """n indices drawn with replacement in proportion to ``weights`` (on the CPU for a seeded generator)."""
+    w = weights.detach().double().cpu()
+    w = torch.where(torch.isfinite(w) & (w > 0), w, torch.zeros_like(w))
+    if float(w.sum()) <= 0:
+        w = torch.ones_like(w)
+    return torch.multinomial(w, n, replacement=True, generator=generator).to(weights.device)
+
+
+def _split(gmap: GaussianMap, sources: torch.Tensor, min_opacity: float, n_max: int) -> None:
+    """Give every sampled source the closed-form opacity/scale of its (copies + 1) share, moments reset."""
+    counts = torch.bincount(sources, minlength=len(gmap))
+    ratios = counts[sources] + 1
+    o_new, s_new = relocation_params(gmap.opacities.detach()[sources], gmap.scales.detach()[sources], ratios, n_max)
+    o_new = o_new.clamp(min_opacity, 1.0 - torch.finfo(torch.float32).eps)
+    gmap.assign(sources, {"opacities": torch.logit(o_new), "scales": torch.log(s_new)})
+
+
+def relocate(gmap: GaussianMap, dead: torch.Tensor, generator: torch.Generator | None = None,
+             min_opacity: float = 0.005, n_max: int = 51) -> int:
+    """Move the Gaussians where ``dead`` [N] is True onto live ones sampled by opacity; returns how many moved.
+
+    Source and copies share the closed-form opacity and scale; the Adam moments of both are reset.
+    """
+    dead_idx = torch.nonzero(dead).squeeze(1)
+    alive_idx = torch.nonzero(~dead).squeeze(1)
+    if dead_idx.numel() == 0 or alive_idx.numel() == 0:
+        return 0
+    sources = alive_idx[_sample(gmap.opacities.detach()[alive_idx], dead_idx.numel(), generator)]
+    _split(gmap, sources, min_opacity, n_max)
+    gmap.assign(dead_idx, {name: p.detach()[sources] for name, p in gmap.params.items()})
+    return int(dead_idx.numel())
+
+
+def sample_add(gmap: GaussianMap, n: int, cap: int, generator: torch.Generator | None = None,
+               min_opacity: float = 0.005, n_max: int = 51) -> int:
+    """Append up to ``n`` copies of live Gaussians sampled by opacity, never exceeding ``cap``; returns the count."""
+    n = min(int(n), cap - len(gmap))
+    if n <= 0 or len(gmap) == 0:
+        return 0
+    sources = _sample(gmap.opacities.detach(), n, generator)
+    _split(gmap, sources, min_opacity, n_max)
+    raw = {name: p.detach()[sources].clone() for name, p in gmap.params.items()}
+    idx = gmap.add(raw["means"], sh0_to_rgb(raw["sh0"][:, 0]), torch.exp(raw["scales"]),
+                   torch.sigmoid(raw["opacities"]), raw["quats"])
+    gmap.assign(idx, raw)  # exact raw copies (including higher SH bands)
+    return n
+
+
+@torch.no_grad()
+def inject_noise(gmap: GaussianMap, scaler: float, generator: torch.Generator | None = None) -> None:
+    """MCMC's exploration noise: covariance-shaped, gated to (nearly) transparent Gaussians
+    (sigmoid(100 * ((1 - o) - 0.995)) as in the paper's reference code), scaled by ``scaler`` = lr * noise_lr."""
+    if len(gmap) == 0:
+        return
+    o = gmap.opacities
+    gate = torch.sigmoid(100.0 * ((1.0 - o) - 0.995))  # [N]
+    R = quat_to_rotmat(gmap.quats)
+    M = R * gmap.scales[:, None, :]
+    cov = M @ M.transpose(1, 2)  # [N, 3, 3]
+    z = torch.randn(len(gmap), 3, generator=generator).to(o.device)
+    noise = torch.einsum("nij,nj->ni", cov, z) * (gate * scaler)[:, None]
+    gmap.params["means"].add_(noise)
+
+
+class MCMCRefiner:
+    """The 3DGS-MCMC hooks: regularisers before backward, relocation/densification/noise after the step."""
+
+    def __init__(self, cfg: MCMCConfig | None = None, seed: int = 0):
+        self.cfg = cfg or MCMCConfig()
+        self.rng = torch.Generator().manual_seed(seed)
+        self.steps = 0
+        self.counts = {"relocated": 0, "added": 0}
+
+    def regulariser(self, gmap: GaussianMap) -> torch.Tensor | None:
+        if len(gmap) == 0 or (self.cfg.opacity_reg <= 0 and self.cfg.scale_reg <= 0):
+            return None
+        return self.cfg.opacity_reg * gmap.opacities.mean() + self.cfg.scale_reg * gmap.scales.mean()
+
+    def post_step(self, gmap: GaussianMap, cap: int) -> None:
+        self.steps += 1
+        c = self.cfg
+        if self.steps >= c.refine_start and self.steps % c.refine_every == 0 and len(gmap):
+            dead = gmap.opacities.detach() <= c.min_opacity
+            self.counts["relocated"] += relocate(gmap, dead, self.rng, c.min_opacity, c.n_max)
+            self.counts["added"] += sample_add(gmap, math.ceil(c.growth_rate * len(gmap)), cap, self.rng,
+                                               c.min_opacity, c.n_max)
+        if c.noise_lr > 0:
+            inject_noise(gmap, gmap.lrs.means * c.noise_lr, self.rng)
+
+    def state_dict(self) -> dict:
+        return {"rng": self.rng.get_state(), "steps": self.steps, "counts": dict(self.counts)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.rng.set_state(state["rng"])
+        self.steps = int(state["steps"])
+        self.counts.update(state.get("counts", {}))

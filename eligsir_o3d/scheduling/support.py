@@ -1,0 +1,69 @@
+"""Where does the current map support a new observation? One low-resolution render, shared by admission
+(view overlap, Map-Guided View Scheduling) and growth (unsupported / misplaced depth, Targeted Geometry Growth)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..camera import Camera
+from ..frame import Frame
+from .base import MapContext
+
+
+@dataclass
+class ProbeConfig:
+    scale: float = 0.25  # render scale of the support check (160x120 for a 640x480 stream)
+    alpha_min: float = 0.5  # rendered opacity below this: the map does not support the pixel
+    depth_tol_m: float = 0.05  # rendered depth further than tol_m + tol_rel * z from the observation: misplaced
+    depth_tol_rel: float = 0.03  # (Kinect-class depth noise is ~1-3 cm at 2 m)
+
+
+@dataclass
+class Support:
+    """The probe render of one frame against the current map, at the probe's scale."""
+
+    color: torch.Tensor  # [h, w, 3] observed colour
+    depth: torch.Tensor  # [h, w] observed depth, metres (0 = none)
+    camera: Camera
+    unsupported: torch.Tensor  # [h, w] bool: valid depth where the rendered opacity is low
+    misplaced: torch.Tensor  # [h, w] bool: valid depth, opaque render, but rendered depth disagrees
+
+    @property
+    def valid(self) -> torch.Tensor:
+        return self.depth > 0
+
+    def novelty(self) -> float:
+        """Fraction of the valid depth pixels that the map does not explain (unsupported or misplaced)."""
+        v = self.valid
+        n = int(v.sum())
+        return float((self.unsupported | self.misplaced).sum()) / n if n else 0.0
+
+
+class SupportProbe:
+    """Renders a frame's view of the map at a low scale; the result is cached until the map changes."""
+
+    def __init__(self, cfg: ProbeConfig | None = None):
+        self.cfg = cfg or ProbeConfig()
+        self._key = None
+        self._value: Support | None = None
+
+    @torch.no_grad()
+    def check(self, frame: Frame, ctx: MapContext) -> Support:
+        key = (id(frame), frame.index, len(ctx.gmap), ctx.updates)
+        if key == self._key and self._value is not None:
+            return self._value
+        color, depth, cam = frame.at_scale(self.cfg.scale, "cpu")
+        valid = depth > 0
+        if len(ctx.gmap) == 0:
+            unsupported, misplaced = valid.clone(), torch.zeros_like(valid)
+        else:
+            out = ctx.render(cam, frame.T_world_cam)
+            alpha, rdepth = out.alpha.detach().cpu(), out.depth.detach().cpu()
+            opaque = alpha >= self.cfg.alpha_min
+            unsupported = valid & ~opaque
+            tol = self.cfg.depth_tol_m + self.cfg.depth_tol_rel * depth
+            misplaced = valid & opaque & ((rdepth - depth).abs() > tol)
+        self._key, self._value = key, Support(color, depth, cam, unsupported, misplaced)
+        return self._value

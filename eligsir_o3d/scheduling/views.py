@@ -1,0 +1,210 @@
+"""Map-Guided View Scheduling (paper Sec. "Map-Guided View Scheduling").
+
+Admission is separated from long-term priority:
+- admission: a pose pre-filter drops near-duplicates of retained views; the rest are compared with the current
+  map (the fraction of their depth the map does not explain, from one low-resolution render); a maximum-gap rule
+  admits the next non-redundant view when none was admitted for ``max_gap_s`` seconds.
+- supervision: every admitted view is retained; an *active set* of the ``active_size`` highest-priority views gets
+  most updates, the other retained views are replayed less often. Priorities follow the map: world-space microcells
+  accumulate the error of the training renders, and a view's priority is the supervision its cells still need
+  (weak or regressed cells raise it, well-reconstructed cells lower it) plus a bonus while the view is new.
+  Priorities are refreshed every few updates, so retained views move in and out of the active set.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from ..camera import Camera
+from ..frame import Frame
+from ..render import RenderOutput
+from .base import MapContext, ViewPolicy
+from .microcells import MicrocellConfig, Microcells
+from .support import SupportProbe
+
+
+@dataclass
+class ViewConfig:
+    min_translation_m: float = 0.05  # pose pre-filter: a candidate closer than this AND ...
+    min_rotation_deg: float = 5.0  # ... rotated less than this from some retained view is a near-duplicate
+    min_novelty: float = 0.10  # admit when at least this fraction of the frame's depth is not explained by the map
+    max_gap_s: float = 1.0  # admit the next non-redundant view when none was admitted for this long
+    active_size: int = 8  # views in the active supervision set
+    active_share: float = 0.75  # share of updates drawn from the active set (the rest replays retained views)
+    refresh_every: int = 10  # updates between priority refreshes
+    fresh_updates: int = 15  # a newly admitted view keeps a (linearly decaying) bonus for this many of its updates
+    fresh_bonus: float = 0.2  # priority bonus of a brand-new view (a cell at init_error gives need ~0.12)
+    good_error: float = 0.03  # photometric L1 below which a cell counts as well reconstructed
+    regress_gain: float = 2.0  # weight of a cell's rise above its best running error
+    regress_margin: float = 0.01  # rises smaller than this are noise, not regression
+    priority_floor: float = 0.005  # every retained view keeps a chance of replay
+    max_views: int = 400  # retained views in memory; beyond it the lowest-priority inactive view is evicted
+    cells: MicrocellConfig = field(default_factory=MicrocellConfig)
+
+
+@dataclass(eq=False)
+class _View:
+    frame: Frame
+    cells: torch.Tensor  # [C] microcell ids of the view's footprint
+    weights: torch.Tensor  # [C] share of the view's depth samples per cell
+    updates: int = 0
+    priority: float = 0.0
+    last_error: float = float("nan")
+    pixel_cells: dict = field(default_factory=dict)  # (h, w) -> (flat pixel idx [M], cell ids [M])
+
+
+class MapGuidedViews(ViewPolicy):
+    """Admission (pose pre-filter, map overlap, max-gap rule) + active/retained sets with map-driven priorities."""
+
+    name = "map_guided"
+
+    def __init__(self, cfg: ViewConfig | None = None, probe: SupportProbe | None = None,
+                 cells: Microcells | None = None):
+        self.cfg = cfg or ViewConfig()
+        self.probe = probe or SupportProbe()
+        self.cells = cells or Microcells(self.cfg.cells)
+        self._views: list[_View] = []
+        self._by_frame: dict[int, _View] = {}
+        self.active: list[int] = []  # positions in self._views
+        self._last_admit_ts: float | None = None
+        self._since_refresh = 0
+        self._flat = None  # (cells [F], weights [F], owner [F]) over all views; rebuilt when views change
+        self.counts = {"released": 0, "admitted": 0, "pose_filtered": 0, "low_novelty": 0, "max_gap": 0}
+
+    # ---- admission ------------------------------------------------------------------------------------------
+    def admit(self, frame: Frame, ctx: MapContext) -> bool:
+        self.counts["released"] += 1
+        if not self._views:
+            return self._admit(frame)
+        if self.is_redundant(frame.T_world_cam):
+            self.counts["pose_filtered"] += 1
+            return False
+        novelty = self.probe.check(frame, ctx).novelty()
+        if novelty >= self.cfg.min_novelty:
+            return self._admit(frame)
+        if self._last_admit_ts is not None and frame.timestamp - self._last_admit_ts >= self.cfg.max_gap_s:
+            self.counts["max_gap"] += 1
+            return self._admit(frame)
+        self.counts["low_novelty"] += 1
+        return False
+
+    def is_redundant(self, T_world_cam) -> bool:
+        """True if some retained view is within both the translation and the rotation threshold."""
+        if not self._views:
+            return False
+        T = np.asarray(T_world_cam)
+        poses = np.stack([v.frame.T_world_cam for v in self._views])  # [V, 4, 4]
+        dt = np.linalg.norm(poses[:, :3, 3] - T[:3, 3], axis=1)
+        # angle of R_v^T R: trace(R_v^T R) = sum of elementwise products
+        tr = np.einsum("vij,ij->v", poses[:, :3, :3], T[:3, :3])
+        ang = np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
+        return bool(np.any((dt < self.cfg.min_translation_m) & (ang < self.cfg.min_rotation_deg)))
+
+    def _admit(self, frame: Frame) -> bool:
+        cells, weights = self.cells.footprint(frame.depth, frame.camera, frame.T_world_cam)
+        self.cells.add_coverage(cells, 1)
+        view = _View(frame, cells, weights)
+        self._views.append(view)
+        self._by_frame[id(frame)] = view
+        self._last_admit_ts = frame.timestamp
+        self.counts["admitted"] += 1
+        if len(self._views) > self.cfg.max_views:
+            self._evict()
+        self._flat = None
+        self.refresh()
+        return True
+
+    def _evict(self) -> None:
+        active = set(self.active)
+        candidates = [i for i in range(len(self._views) - 1) if i not in active] or list(range(len(self._views) - 1))
+        worst = min(candidates, key=lambda i: self._views[i].priority)
+        view = self._views.pop(worst)
+        self.cells.add_coverage(view.cells, -1)
+        self._by_frame.pop(id(view.frame), None)
+        view.frame.drop_cache()
+
+    # ---- priorities -----------------------------------------------------------------------------------------
+    def refresh(self) -> None:
+        """Recompute every retained view's priority from its cells' need and rebuild the active set."""
+        self._since_refresh = 0
+        if not self._views:
+            self.active = []
+            return
+        if self._flat is None:
+            owner = torch.cat([torch.full((v.cells.numel(),), i, dtype=torch.long) for i, v in enumerate(self._views)])
+            self._flat = (torch.cat([v.cells for v in self._views]), torch.cat([v.weights for v in self._views]), owner)
+        cells, weights, owner = self._flat
+        c = self.cfg
+        need = self.cells.need(cells, c.good_error, c.regress_gain, c.regress_margin) * weights
+        per_view = torch.zeros(len(self._views)).index_add_(0, owner, need)
+        fresh = torch.tensor([max(0.0, 1.0 - v.updates / max(1, c.fresh_updates)) for v in self._views])
+        prio = c.priority_floor + per_view + c.fresh_bonus * fresh
+        for v, p in zip(self._views, prio.tolist()):
+            v.priority = p
+        k = min(c.active_size, len(self._views))
+        self.active = torch.topk(prio, k).indices.sort().values.tolist()
+
+    def priorities(self) -> list[float]:
+        return [v.priority for v in self._views]
+
+    def is_active(self, frame: Frame) -> bool:
+        view = self._by_frame.get(id(frame))
+        return view is not None and any(self._views[i] is view for i in self.active)
+
+    # ---- selection and feedback -----------------------------------------------------------------------------
+    def select(self, rng: torch.Generator) -> Frame:
+        if not self._views:
+            raise RuntimeError("no view has been admitted yet")
+        if self._since_refresh >= self.cfg.refresh_every:
+            self.refresh()
+        active = set(self.active)
+        retained = [i for i in range(len(self._views)) if i not in active]
+        pool = self.active
+        if retained and float(torch.rand((), generator=rng)) >= self.cfg.active_share:
+            pool = retained
+        p = torch.tensor([self._views[i].priority for i in pool], dtype=torch.float64)
+        pick = pool[int(torch.multinomial(p / p.sum(), 1, generator=rng))]
+        return self._views[pick].frame
+
+    def feedback(self, frame: Frame, out: RenderOutput, error: torch.Tensor, depth: torch.Tensor,
+                 camera: Camera) -> None:
+        """Splat the training render's per-pixel error [h, w] into the microcells its depth samples fall in."""
+        view = self._by_frame.get(id(frame))
+        if view is None:
+            return
+        key = (camera.height, camera.width)
+        if key not in view.pixel_cells:
+            view.pixel_cells[key] = self.cells.locate(depth, camera, frame.T_world_cam)
+        pix, ids = view.pixel_cells[key]
+        err = error.detach().reshape(-1).cpu()
+        self.cells.accumulate(ids, err[pix])
+        view.updates += 1
+        view.last_error = float(err.mean())
+        self._since_refresh += 1
+
+    @property
+    def views(self) -> list[Frame]:
+        return [v.frame for v in self._views]
+
+    # ---- persistence ----------------------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        views = [{"color": v.frame.color, "depth": v.frame.depth, "camera": v.frame.camera,
+                  "T_world_cam": v.frame.T_world_cam, "timestamp": v.frame.timestamp, "index": v.frame.index,
+                  "cells": v.cells, "weights": v.weights, "updates": v.updates} for v in self._views]
+        return {"views": views, "cells": self.cells.state_dict(), "last_admit_ts": self._last_admit_ts,
+                "counts": dict(self.counts)}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.cells.load_state_dict(state["cells"])
+        self._views, self._by_frame, self._flat = [], {}, None
+        for d in state["views"]:
+            frame = Frame(d["color"], d["depth"], d["camera"], d["T_world_cam"], d["timestamp"], d["index"])
+            view = _View(frame, d["cells"], d["weights"], d["updates"])
+            self._views.append(view)
+            self._by_frame[id(frame)] = view
+        self._last_admit_ts = state["last_admit_ts"]
+        self.counts.update(state.get("counts", {}))
+        self.refresh()

@@ -1,0 +1,163 @@
+"""The two clocks: real-time replay (wall clock, bounded drop-oldest queue) and the deterministic budget."""
+
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+import eligsir_o3d as eo3d
+from eligsir_o3d.clock import BudgetClock, ClockConfig, CostModel, RealtimeClock, get_clock
+from eligsir_o3d.frame import Frame, FrameError
+
+
+class StubMapper:
+    """The part of the Reconstructor a clock talks to; integrate/updates cost a fixed wall time."""
+
+    def __init__(self, frame_s=0.0, update_s=0.0, bad=()):
+        self.frame_s, self.update_s, self.bad = frame_s, update_s, set(bad)
+        self.backlog = 0
+        self.backlogs = []
+        self.integrated = []
+        self.stats = SimpleNamespace(updates=0, supervised_pixels=0)
+        self.gmap = [0] * 100
+        self.fidelity = SimpleNamespace(attach=lambda period, cost_fn=None: self.attached.append((period, cost_fn)))
+        self.attached = []
+        self.t0 = time.perf_counter()
+
+    def clock_now(self):
+        return time.perf_counter()
+
+    def integrate(self, frame, pose=None, timestamp=None, *, updates=None, deadline=None):
+        if frame.index in self.bad:
+            raise FrameError(f"frame {frame.index}: depth has no valid measurement")
+        self.backlogs.append(self.backlog)
+        self.integrated.append(frame.index)
+        time.sleep(self.frame_s)
+        self.optimize(updates, deadline)
+
+    def optimize(self, updates=None, deadline=None, scale=None):
+        done = 0
+        while (updates is None or done < updates) and (deadline is None or self.clock_now() < deadline):
+            if self.update_s:
+                time.sleep(self.update_s)
+            self.stats.updates += 1
+            self.stats.supervised_pixels += 1000
+            done += 1
+            if updates is None and deadline is None:
+                break
+        return done
+
+
+def _frames(n, fps=100.0):
+    cam = eo3d.Camera(8, 6, 5.0, 5.0, 3.5, 2.5)
+    color = np.zeros((6, 8, 3), np.float32)
+    depth = np.ones((6, 8), np.float32)
+    return [Frame.from_arrays(color, depth, cam, np.eye(4), timestamp=i / fps, index=i) for i in range(n)]
+
+
+def test_realtime_replay_drops_and_counts_frames_when_the_mapper_is_too_slow():
+    frames = _frames(30, fps=100.0)  # a frame every 10 ms, the mapper needs 35 ms per frame
+    rec = StubMapper(frame_s=0.035)
+    t0 = time.perf_counter()
+    report = RealtimeClock(queue_size=2).run(rec, frames)
+    wall = time.perf_counter() - t0
+    assert report.released == 30
+    assert report.dropped > 10 and report.integrated + report.dropped == 30
+    assert sorted(rec.integrated + report.dropped_indices) == list(range(30))
+    assert report.max_backlog <= 2 and max(rec.backlogs) >= 1  # the fidelity controller saw the backlog
+    assert rec.integrated[-1] == 29  # drop-oldest: the newest frame is always mapped
+    assert rec.backlog == 0
+    assert wall < report.stream_s + 3 * 0.035 + 0.05  # bounded lag: it finishes right after the stream
+    assert rec.attached and rec.attached[-1][0] == pytest.approx(0.01) and rec.attached[-1][1] is None
+
+
+def test_realtime_replay_keeps_up_and_optimises_between_frames():
+    frames = _frames(10, fps=50.0)
+    rec = StubMapper(frame_s=0.002, update_s=0.002)
+    report = RealtimeClock(speed=2.0).run(rec, frames)  # twice the recorded rate: a frame every 10 ms
+    assert report.dropped == 0 and report.integrated == 10
+    assert rec.stats.updates >= 10  # the time between releases went to optimisation
+    assert report.stream_s == pytest.approx(9 / 50.0 / 2.0)
+    assert rec.attached[-1][0] == pytest.approx(0.01)
+
+
+def test_budget_clock_replays_against_modelled_time_deterministically():
+    def run():
+        rec = StubMapper()
+        cost = CostModel(update_s=0.025, gaussian_s=0.0, pixel_s=0.0, pixel_gaussian_s=0.0, frame_s=0.004)
+        report = BudgetClock(cost=cost, queue_size=1).run(rec, _frames(20, fps=100.0))
+        return report, rec
+
+    (r1, m1), (r2, m2) = run(), run()
+    assert (r1.dropped, r1.dropped_indices, m1.stats.updates, m1.integrated) == \
+           (r2.dropped, r2.dropped_indices, m2.stats.updates, m2.integrated)
+    # a 4 ms frame + a 25 ms update (the first update overruns the deadline) per 10 ms period: most are dropped
+    assert r1.dropped > 5 and r1.integrated + r1.dropped == 20
+    assert r1.elapsed_s >= r1.stream_s
+    period, cost_fn = m1.attached[-1]
+    assert period == pytest.approx(0.01) and cost_fn(1000) == pytest.approx(0.025)
+
+
+def test_budget_clock_with_fixed_updates_integrates_every_frame():
+    rec = StubMapper()
+    report = BudgetClock(3).run(rec, _frames(5))
+    assert report.integrated == 5 and report.dropped == 0 and rec.stats.updates == 15
+
+
+@pytest.mark.parametrize("clock", [RealtimeClock(speed=10.0), BudgetClock(2), BudgetClock()])
+def test_bad_frames_are_skipped_or_stop_the_run(clock):
+    rec = StubMapper(bad={3})
+    report = clock.run(rec, _frames(6))
+    assert report.skipped_bad == ["frame 3: depth has no valid measurement"]
+    assert 3 not in rec.integrated and report.integrated == 5
+    clock.on_bad_frame = "stop"
+    with pytest.raises(FrameError, match="frame 3"):
+        clock.run(StubMapper(bad={3}), _frames(6))
+
+
+def test_a_failing_reader_is_skipped():
+    frames = _frames(4)
+
+    class Reader:
+        def __init__(self):
+            self.i = 0
+
+        def __iter__(self):
+            return self
+
+        def __next__(self):
+            self.i += 1
+            if self.i > 4:
+                raise StopIteration
+            if self.i == 2:
+                raise FrameError("frame 1: colour must be HxWx3")
+            return frames[self.i - 1]
+
+    report = BudgetClock(1).run(StubMapper(), Reader())
+    assert report.integrated == 3 and report.skipped_bad == ["frame 1: colour must be HxWx3"]
+
+
+def test_get_clock_from_config():
+    cfg = eo3d.Config()
+    assert isinstance(get_clock(cfg), BudgetClock) and get_clock(cfg).updates_per_frame is None
+    cfg.clock = ClockConfig(mode="budget", budget="updates")
+    assert get_clock(cfg).updates_per_frame == cfg.optim.updates_per_frame
+    cfg.clock = ClockConfig(mode="realtime", speed=0.5, queue_size=3)
+    clock = get_clock(cfg)
+    assert isinstance(clock, RealtimeClock) and clock.speed == 0.5 and clock.queue_size == 3
+    with pytest.raises(ValueError, match="on_bad_frame"):
+        RealtimeClock(on_bad_frame="ignore")
+
+
+def test_realtime_replay_with_the_reconstructor():
+    from eligsir_o3d.datasets import open_sequence
+
+    seq = open_sequence("synthetic", n_frames=12, width=64, height=48)
+    cfg = eo3d.Config(renderer="torch")
+    rec = eo3d.Reconstructor(seq.camera, config=cfg)
+    report = RealtimeClock(speed=0.5).run(rec, (seq.frame(i) for i in range(len(seq))))
+    assert report.released == 12 and report.integrated + report.dropped == 12
+    assert rec.stats.updates > 0 and len(rec.gmap) > 0 and rec.backlog == 0
+    assert rec.fidelity.period_s == pytest.approx(1 / 30 / 0.5)
+    assert rec.fidelity.trace and rec.fidelity.trace[-1]["update"] == rec.stats.updates
