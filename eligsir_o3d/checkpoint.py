@@ -1,0 +1,359 @@
+"""Checkpoints of the full mapper state, written atomically, so that a run killed at any moment resumes.
+
+    save_checkpoint(rec, "runs/kitchen/checkpoint.pt")            # every N frames
+    rec = load_checkpoint("runs/kitchen/checkpoint.pt")           # after a crash: same map, same policies
+
+What is saved: the config and camera, the Gaussians with their Adam moments, the state of the three policies
+(through their ``state_dict``/``load_state_dict``), the retained views, the mapping counters, the random
+generators (the Reconstructor's, torch's global one and the policies' own), an optional pose-source state and a
+caller's ``extra`` dict (a driver's progress: trajectory so far, skipped frames, evaluation curve).
+
+Retained views are stored once each, compactly and losslessly: colour as uint8 (or uint16) when that reproduces
+the float colour bit for bit (always so for 8-bit sources), depth as uint16 at the config's ``depth_scale`` when
+that reproduces it bit for bit (16-bit PNG depth), float32 otherwise. With ``sequence=`` a view that is frame
+``i`` of the sequence is stored as a reference (index, pose, timestamp, checksum) and re-read from the sequence
+on load. A policy state may hold a view's image tensors or the Frame itself; either is replaced by a reference
+to the one stored copy.
+
+The file is a ``torch.save`` archive loaded with ``weights_only=True`` (plain containers, numbers, strings and
+tensors only: loading a checkpoint cannot run code). It is written to a temporary file in the same folder,
+flushed and fsynced, then renamed over the previous checkpoint (``os.replace`` is atomic), so a crash or a
+SIGKILL in the middle of a write leaves the previous checkpoint intact and loadable.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from .camera import Camera
+from .frame import Frame
+
+FORMAT = "eligsir-checkpoint"
+VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be written or read (names the file and what is wrong)."""
+
+
+# ---- save --------------------------------------------------------------------------------------------------
+def save_checkpoint(rec, path: str | Path, *, extra: dict | None = None, sequence=None) -> Path:
+    """Write the full mapper state of Reconstructor ``rec`` to ``path`` (atomic replace). Returns the path.
+
+    extra: a caller's dict of plain values/tensors, handed back as ``rec.checkpoint_extra`` by
+    :func:`load_checkpoint`. sequence: the RGBDSequence the views came from; views that are unchanged frames of it
+    are stored as references instead of images (the same sequence must then be given to :func:`load_checkpoint`).
+    """
+    path = Path(path)
+    frames = _FrameTable(rec.config.depth_scale, sequence, rec.config.depth_max)
+    retained = list(rec.views.views)
+    for f in retained:
+        frames.add(f)
+    payload = {
+        "format": FORMAT,
+        "version": VERSION,
+        "saved_at": time.time(),
+        "config": rec.config.to_dict(),
+        "camera": dataclasses.asdict(rec.camera),
+        "device": str(rec.device),
+        "gmap": rec.gmap.state_dict(),
+        "policies": {name: {"class": type(p).__name__, "state": p.state_dict()}
+                     for name, p in (("views", rec.views), ("fidelity", rec.fidelity), ("growth", rec.growth))},
+        "retained": [{"index": int(f.index), "timestamp": float(f.timestamp)} for f in retained],
+        "stats": dataclasses.asdict(rec.stats),
+        "backlog": rec.backlog,
+        "rng": rec.rng.get_state(),
+        "torch_rng": torch.get_rng_state(),
+        "cuda_rng": torch.cuda.get_rng_state_all() if rec.device.type == "cuda" else None,
+        "pose_source": _state_of(rec.pose_source),
+        "extra": extra,
+    }
+    packed = _pack(payload, frames, "checkpoint")
+    packed["frames"] = frames.encoded()
+    _atomic_write(path, packed)
+    return path
+
+
+def _state_of(obj) -> dict | None:
+    fn = getattr(obj, "state_dict", None)
+    return fn() if callable(fn) else None
+
+
+def _serialize(payload: dict, f) -> None:
+    """Write ``payload`` to the open binary file ``f`` (a seam for the crash-mid-write test)."""
+    torch.save(payload, f)
+
+
+def _atomic_write(path: Path, payload: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for stale in path.parent.glob(f".{path.name}.*.tmp"):  # left by a writer that was killed
+        stale.unlink(missing_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            _serialize(payload, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    try:  # make the rename itself durable
+        fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError:
+        pass
+
+
+# ---- load --------------------------------------------------------------------------------------------------
+def read_checkpoint(path: str | Path, *, sequence=None) -> dict:
+    """The decoded payload of a checkpoint (config dict, stats, extra, policy states ...), without building a
+    Reconstructor. Views saved as sequence references decode to None unless ``sequence`` is given.
+    Raises :class:`CheckpointError` for a missing, truncated, corrupt or foreign file."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        raw = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # zip/pickle errors of a truncated or foreign file
+        raise CheckpointError(f"{path}: not a readable checkpoint (truncated or corrupt?): "
+                              f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}") from None
+    if not isinstance(raw, dict) or raw.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not an eligsir_o3d checkpoint")
+    if int(raw.get("version", 0)) > VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {raw['version']} is newer than this eligsir_o3d reads "
+                              f"({VERSION}); upgrade the package")
+    cfg = raw.get("config", {})
+    frames = _decode_frames(raw.get("frames", []), path, sequence, float(cfg.get("depth_max", 10.0)))
+    out = _unpack({k: v for k, v in raw.items() if k != "frames"}, frames)
+    out["path"] = str(path)
+    out["unresolved_views"] = sum(f is None for f in frames)
+    return out
+
+
+def load_checkpoint(path: str | Path, device: str | None = None, *, sequence=None, pose_source=None):
+    """A Reconstructor rebuilt from the checkpoint at ``path``: same config, map, optimizer and policy state, views,
+    counters and random state, so that it continues exactly where the saved one was.
+
+    device: where to put it (default: where it was saved; the renderer is re-chosen when the device type changes).
+    sequence: needed when the checkpoint was saved with ``sequence=``. pose_source: the pose source to attach
+    (its ``load_state_dict`` receives the saved state when it has one). The caller's ``extra`` dict is
+    ``rec.checkpoint_extra``.
+    """
+    from .config import Config
+    from .reconstructor import Reconstructor
+
+    path = Path(path)
+    ck = read_checkpoint(path, sequence=sequence)
+    if ck["unresolved_views"]:
+        raise CheckpointError(f"{path}: {ck['unresolved_views']} views were saved as references to a sequence; "
+                              f"pass sequence= (the one given to save_checkpoint) to load it")
+    cfg = Config.from_dict(ck["config"])
+    saved_dev = torch.device(ck["device"])
+    dev = torch.device(device) if device is not None else saved_dev
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise CheckpointError(f"{path}: saved on {saved_dev}, but CUDA is not available here; "
+                              f"pass device='cpu' to load it on the CPU")
+    if dev.type != saved_dev.type:
+        cfg.renderer = "auto"
+    rec = Reconstructor(Camera(**ck["camera"]), str(dev), cfg, pose_source=pose_source)
+    for name, policy in (("views", rec.views), ("fidelity", rec.fidelity), ("growth", rec.growth)):
+        saved = ck["policies"][name]
+        if type(policy).__name__ != saved["class"]:
+            raise CheckpointError(f"{path}: the {name} policy was {saved['class']} when saved but the config builds "
+                                  f"{type(policy).__name__} (was the policy replaced after construction?)")
+    rec.gmap.load_state_dict(ck["gmap"])
+    rec.ctx.gmap = rec.gmap
+    for name, policy in (("views", rec.views), ("fidelity", rec.fidelity), ("growth", rec.growth)):
+        policy.load_state_dict(ck["policies"][name]["state"])
+    restored = [(int(f.index), float(f.timestamp)) for f in rec.views.views]
+    expected = [(int(v["index"]), float(v["timestamp"])) for v in ck["retained"]]
+    if restored != expected:
+        raise CheckpointError(
+            f"{path}: the {ck['policies']['views']['class']} view policy restored {len(restored)} retained views "
+            f"but {len(expected)} were saved: its state_dict() must include its retained views (Frame objects or "
+            f"their tensors) and load_state_dict() must put them back")
+    known = {f.name for f in dataclasses.fields(rec.stats)}
+    for k, v in ck["stats"].items():
+        if k in known:
+            setattr(rec.stats, k, v)
+    rec.ctx.updates = rec.stats.updates
+    rec.ctx.frames_released = rec.stats.frames_released
+    rec.backlog = ck.get("backlog", 0)
+    rec.rng.set_state(ck["rng"])
+    torch.set_rng_state(ck["torch_rng"])
+    if ck.get("cuda_rng") is not None and dev.type == "cuda":
+        torch.cuda.set_rng_state_all(ck["cuda_rng"])
+    if pose_source is not None and ck.get("pose_source") is not None and hasattr(pose_source, "load_state_dict"):
+        pose_source.load_state_dict(ck["pose_source"])
+    rec.checkpoint_extra = ck.get("extra")
+    return rec
+
+
+# ---- retained views, stored once each ----------------------------------------------------------------------
+class _FrameTable:
+    """The distinct Frames met while packing, encoded compactly or as sequence references."""
+
+    def __init__(self, depth_scale: float, sequence, depth_max: float):
+        self.depth_scale, self.sequence, self.depth_max = float(depth_scale), sequence, float(depth_max)
+        self.frames: list[Frame] = []
+        self._by_id: dict[int, int] = {}  # id(frame) -> k
+        self._tensors: dict[int, tuple[int, str]] = {}  # id(tensor) -> (k, "color" | "depth")
+
+    def add(self, frame: Frame) -> int:
+        k = self._by_id.get(id(frame))
+        if k is None:
+            k = len(self.frames)
+            self.frames.append(frame)
+            self._by_id[id(frame)] = k
+            self._tensors[id(frame.color)] = (k, "color")
+            self._tensors[id(frame.depth)] = (k, "depth")
+        return k
+
+    def tensor_ref(self, t: torch.Tensor) -> tuple[int, str] | None:
+        return self._tensors.get(id(t))
+
+    def encoded(self) -> list[dict]:
+        return [self._encode(f) for f in self.frames]
+
+    def _encode(self, f: Frame) -> dict:
+        head = {"camera": dataclasses.asdict(f.camera), "T_world_cam": torch.from_numpy(np.array(f.T_world_cam)),
+                "timestamp": float(f.timestamp), "index": int(f.index),
+                "checksum": _checksum(f.color, f.depth)}
+        if self.sequence is not None and self._matches_sequence(f, head["checksum"]):
+            return {**head, "ref": "sequence"}
+        return {**head, "color": _encode_color(f.color), "depth": _encode_depth(f.depth, self.depth_scale)}
+
+    def _matches_sequence(self, f: Frame, checksum: list[float]) -> bool:
+        if not 0 <= f.index < len(self.sequence):
+            return False
+        try:
+            g = self.sequence.frame(f.index, depth_max=self.depth_max, T_world_cam=f.T_world_cam)
+        except (ValueError, OSError):
+            return False
+        return g.color.shape == f.color.shape and _checksum(g.color, g.depth) == checksum
+
+
+def _checksum(color: torch.Tensor, depth: torch.Tensor) -> list[float]:
+    return [float(color.double().sum()), float(depth.double().sum())]
+
+
+def _encode_color(c: torch.Tensor) -> dict:
+    c = c.detach().cpu()
+    for dtype, top in ((np.uint8, 255.0), (np.uint16, 65535.0)):
+        q = np.clip(np.round(c.numpy().astype(np.float64) * top), 0, top).astype(dtype)
+        e = {"q": torch.from_numpy(q), "top": top}
+        if torch.equal(_decode_color(e), c):  # bit-exact, or not at all
+            return e
+    return {"raw": c.clone()}
+
+
+def _encode_depth(d: torch.Tensor, depth_scale: float) -> dict:
+    d = d.detach().cpu()
+    q = np.round(d.numpy().astype(np.float64) * depth_scale)
+    if q.size and q.min() >= 0 and q.max() <= 65535:
+        e = {"q": torch.from_numpy(q.astype(np.uint16)), "scale": float(depth_scale)}
+        if torch.equal(_decode_depth(e), d):  # bit-exact, or not at all
+            return e
+    return {"raw": d.clone()}
+
+
+def _decode_color(e: dict) -> torch.Tensor:
+    if "raw" in e:
+        return e["raw"].float()
+    return torch.from_numpy(e["q"].numpy().astype(np.float32) / e["top"])  # as Frame.from_arrays
+
+
+def _decode_depth(e: dict) -> torch.Tensor:
+    if "raw" in e:
+        return e["raw"].float()
+    return torch.from_numpy(e["q"].numpy().astype(np.float32) / float(e["scale"]))  # as Frame.from_arrays
+
+
+def _decode_frames(entries: list, path: Path, sequence, depth_max: float) -> list[Frame | None]:
+    frames = []
+    for e in entries:
+        cam = Camera(**e["camera"])
+        T = e["T_world_cam"].numpy().astype(np.float64)
+        if e.get("ref") == "sequence":
+            if sequence is None:
+                frames.append(None)
+                continue
+            try:
+                f = sequence.frame(int(e["index"]), depth_max=depth_max, T_world_cam=T)
+            except (ValueError, OSError) as err:
+                raise CheckpointError(f"{path}: cannot re-read retained view {e['index']} from the sequence: "
+                                      f"{err}") from None
+            if _checksum(f.color, f.depth) != e["checksum"]:
+                raise CheckpointError(f"{path}: frame {e['index']} of the sequence differs from the retained view "
+                                      f"that was checkpointed (a different sequence or depth_max?)")
+            color, depth = f.color, f.depth
+        else:
+            color, depth = _decode_color(e["color"]), _decode_depth(e["depth"])
+        frames.append(Frame(color, depth, cam, T, float(e["timestamp"]), int(e["index"])))
+    return frames
+
+
+# ---- packing: only what torch.load(weights_only=True) reads back -------------------------------------------
+_PLAIN = (str, int, float, bool, type(None), torch.dtype, torch.device, torch.Size)
+
+
+def _pack(obj: Any, frames: _FrameTable, where: str) -> Any:
+    if isinstance(obj, torch.Tensor):
+        ref = frames.tensor_ref(obj)
+        if ref is not None:
+            return {"__view_tensor__": ref[0], "field": ref[1]}
+        t = obj.detach().cpu()
+        if t.untyped_storage().nbytes() != t.numel() * t.element_size():
+            t = t.clone()  # a slice would drag its whole storage into the file
+        return t
+    if isinstance(obj, _PLAIN):
+        return obj
+    if isinstance(obj, Frame):
+        return {"__frame__": frames.add(obj)}
+    if isinstance(obj, Camera):
+        return {"__camera__": dataclasses.asdict(obj)}
+    if isinstance(obj, np.ndarray):
+        return {"__ndarray__": torch.from_numpy(np.ascontiguousarray(obj).copy())}
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, dict):
+        for k in obj:
+            if not isinstance(k, (str, int, float, bool)):
+                raise CheckpointError(f"cannot checkpoint {where}: key {k!r} of type {type(k).__name__}")
+        return {k: _pack(v, frames, f"{where}.{k}") for k, v in obj.items()}
+    if isinstance(obj, tuple):
+        return {"__tuple__": [_pack(v, frames, f"{where}[{i}]") for i, v in enumerate(obj)]}
+    if isinstance(obj, list):
+        return [_pack(v, frames, f"{where}[{i}]") for i, v in enumerate(obj)]
+    raise CheckpointError(f"cannot checkpoint {where}: a {type(obj).__module__}.{type(obj).__name__} (state_dict() "
+                          f"must hold only containers, numbers, strings, tensors, numpy arrays, Frames and Cameras)")
+
+
+def _unpack(obj: Any, frames: list[Frame]) -> Any:
+    if isinstance(obj, dict):
+        if "__view_tensor__" in obj:
+            f = frames[obj["__view_tensor__"]]
+            return None if f is None else f.color if obj["field"] == "color" else f.depth
+        if "__frame__" in obj:
+            return frames[obj["__frame__"]]
+        if "__camera__" in obj:
+            return Camera(**obj["__camera__"])
+        if "__ndarray__" in obj:
+            return obj["__ndarray__"].numpy()
+        if "__tuple__" in obj:
+            return tuple(_unpack(v, frames) for v in obj["__tuple__"])
+        return {k: _unpack(v, frames) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_unpack(v, frames) for v in obj]
+    return obj
