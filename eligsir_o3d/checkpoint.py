@@ -27,7 +27,7 @@ import dataclasses
 import os
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -141,14 +141,16 @@ def read_checkpoint(path: str | Path, *, sequence=None) -> dict:
     return out
 
 
-def load_checkpoint(path: str | Path, device: str | None = None, *, sequence=None, pose_source=None):
+def load_checkpoint(path: str | Path, device: str | None = None, *, sequence=None, pose_source=None,
+                    setup: Callable[[Any], None] | None = None):
     """A Reconstructor rebuilt from the checkpoint at ``path``: same config, map, optimizer and policy state, views,
     counters and random state, so that it continues exactly where the saved one was.
 
     device: where to put it (default: where it was saved; the renderer is re-chosen when the device type changes).
     sequence: needed when the checkpoint was saved with ``sequence=``. pose_source: the pose source to attach
-    (its ``load_state_dict`` receives the saved state when it has one). The caller's ``extra`` dict is
-    ``rec.checkpoint_extra``.
+    (its ``load_state_dict`` receives the saved state when it has one). setup: called with the fresh
+    Reconstructor before any state is restored, for a driver that replaces policies after construction (the
+    offline reference does) to do the same again. The caller's ``extra`` dict is ``rec.checkpoint_extra``.
     """
     from .config import Config
     from .reconstructor import Reconstructor
@@ -167,11 +169,14 @@ def load_checkpoint(path: str | Path, device: str | None = None, *, sequence=Non
     if dev.type != saved_dev.type:
         cfg.renderer = "auto"
     rec = Reconstructor(Camera(**ck["camera"]), str(dev), cfg, pose_source=pose_source)
+    if setup is not None:
+        setup(rec)
     for name, policy in (("views", rec.views), ("fidelity", rec.fidelity), ("growth", rec.growth)):
         saved = ck["policies"][name]
         if type(policy).__name__ != saved["class"]:
             raise CheckpointError(f"{path}: the {name} policy was {saved['class']} when saved but the config builds "
-                                  f"{type(policy).__name__} (was the policy replaced after construction?)")
+                                  f"{type(policy).__name__} (a policy replaced after construction must be replaced "
+                                  f"again: load_checkpoint(..., setup=fn))")
     rec.gmap.load_state_dict(ck["gmap"])
     rec.ctx.gmap = rec.gmap
     for name, policy in (("views", rec.views), ("fidelity", rec.fidelity), ("growth", rec.growth)):

@@ -252,3 +252,17 @@ def test_resume_after_sigkill(tmp_path):
     resumed = torch.load(tmp_path / "resumed.pt", weights_only=True)
     for name, p in ref.gmap.params.items():
         torch.testing.assert_close(resumed[name], p.detach(), rtol=0, atol=0)
+
+
+def test_policies_replaced_after_construction_must_be_replaced_again(tmp_path, seq, frames):
+    from eligsir_o3d.scheduling.plain import FixedFidelity
+
+    rec = _rec(seq)
+    rec.fidelity = FixedFidelity(0.5)  # as a driver's special mode might
+    rec.integrate(frames[0], updates=1)
+    path = save_checkpoint(rec, tmp_path / "ck.pt")
+    with pytest.raises(CheckpointError, match="fidelity policy was FixedFidelity when saved.*setup="):
+        load_checkpoint(path)
+    back = load_checkpoint(path, setup=lambda r: setattr(r, "fidelity", FixedFidelity(0.5)))
+    assert back.fidelity.scale() == 0.5
+    _assert_same_state(rec, back)

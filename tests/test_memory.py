@@ -6,7 +6,7 @@ import eligsir_o3d as eo3d
 from eligsir_o3d.datasets import open_sequence
 from eligsir_o3d.memory import current_rss_mb, map_memory_mb, memory_report, peak_rss_mb, views_memory_mb
 
-CAP, MAX_VIEWS, FRAMES = 120, 3, 36
+CAP, MAX_VIEWS, FRAMES = 120, 3, 24
 
 
 @pytest.fixture(scope="module")
