@@ -54,6 +54,8 @@ def map_cmd(
     offline_reference: bool = typer.Option(False, "--offline-reference", help="Offline reference: all frames at once, long full-res schedule."),
     eval_every: int = typer.Option(100, help="Held-out checkpoint every N updates (0: only at the end)."),
     on_bad_frame: BadFrame = typer.Option(BadFrame.skip, help="What to do with a frame that cannot be read or used."),
+    checkpoint_every: int = typer.Option(0, help="Write OUT/checkpoint.pt every N source frames (atomic)."),
+    resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoint.pt of an interrupted run."),
     config: Optional[Path] = typer.Option(None, help="config.json to start from (e.g. one written by an earlier run)."),
     seed: int = typer.Option(0, help="Random seed."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
@@ -71,7 +73,8 @@ def map_cmd(
     opts = RunOptions(max_frames=max_frames, holdout_every=holdout_every,
                       holdout_list=str(holdout_list) if holdout_list else None, pose=pose, realtime=realtime,
                       speed=speed, eval_every=eval_every, refine=refine, offline_reference=offline_reference,
-                      on_bad_frame=on_bad_frame.value, progress=not quiet)
+                      on_bad_frame=on_bad_frame.value, checkpoint_every=checkpoint_every, resume=resume,
+                      progress=not quiet)
     try:
         m = run_mapping(path, out, cfg, opts)
     except (ValueError, OSError, RuntimeError) as e:
@@ -108,6 +111,31 @@ def demo(
     m = run_mapping("synthetic", out, cfg, RunOptions(max_frames=frames, eval_every=200,
                                                       sequence_options={"n_frames": frames}))
     _summary(m, out)
+
+
+@app.command()
+def export(
+    map_ply: Path = typer.Argument(..., help="A 3DGS PLY (e.g. runs/kitchen/map.ply)."),
+    mesh: Optional[Path] = typer.Option(None, help="Write a TSDF mesh of the map's rendered depth here (.ply/.obj)."),
+    point_cloud: Optional[Path] = typer.Option(None, "--point-cloud", help="Write the Gaussian centres here (.ply/.pcd)."),
+    poses: Optional[Path] = typer.Option(None, help="TUM trajectory of mesh viewpoints (default: trajectory.txt beside the map)."),
+    voxel_size: float = typer.Option(0.02, help="TSDF voxel size in metres."),
+    depth_max: float = typer.Option(5.0, help="Ignore rendered depth beyond this (metres)."),
+    min_opacity: float = typer.Option(0.1, help="Point cloud: drop Gaussians below this opacity."),
+    device: str = typer.Option("cpu"),
+) -> None:
+    """Export a saved map as an Open3D triangle mesh and/or point cloud."""
+    from .export import export_from_ply
+
+    if mesh is None and point_cloud is None:
+        _fail("nothing to do: give --mesh and/or --point-cloud")
+    try:
+        summary = export_from_ply(map_ply, mesh, point_cloud, poses=poses, voxel_size=voxel_size,
+                                  depth_max=depth_max, min_opacity=min_opacity, device=device)
+    except (ValueError, OSError) as e:
+        _fail(str(e))
+    for k, v in summary.items():
+        typer.echo(f"{k}: {v}")
 
 
 @app.command("eval")

@@ -90,7 +90,25 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
     heldout_frames = [seq.frame(i, depth_max=config.depth_max) for i in held]
     evaluator = HeldoutEvaluator(heldout_frames, sample_stride=opts.eval_sample_stride,
                                  checkpoint_ssim=opts.eval_ssim_at_checkpoints)
-    rec = Reconstructor(seq.camera, config.device, config)
+    ck_path = out / "checkpoint.pt"
+    start, trajectory, skipped = 0, {}, []
+    if opts.resume and ck_path.is_file():
+        from .checkpoint import load_checkpoint
+
+        rec = load_checkpoint(ck_path, config.device, sequence=seq, pose_source=pose_source)
+        extra = rec.checkpoint_extra or {}
+        start = int(extra.get("next_source", 0))
+        trajectory = {int(i): (float(ts), np.asarray(T, dtype=np.float64).reshape(4, 4))
+                      for i, ts, T in extra.get("trajectory", [])}
+        skipped = list(extra.get("skipped", []))
+        evaluator.curve = list(extra.get("curve", []))
+        log.info("resuming %s at source frame %d of %d", ck_path, start, len(source))
+        for i in source[:start]:  # eligibility depends on the released source views, not on the mapper
+            if i in trajectory:
+                evaluator.observe_source(seq.frame(i, T_world_cam=trajectory[i][1], depth_max=config.depth_max))
+    else:
+        rec = Reconstructor(seq.camera, config.device, config)
+    config = rec.config
     if opts.offline_reference:
         _offline_setup(rec, opts, len(source))
 
@@ -106,10 +124,19 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
             checkpoint(r)
 
     rec.callbacks.append(maybe_checkpoint)
-    trajectory: dict[int, tuple[float, np.ndarray]] = {}
+
+    def save_state(next_source: int) -> None:
+        t0 = time.perf_counter()
+        extra = {"next_source": next_source, "skipped": skipped, "curve": evaluator.curve,
+                 "trajectory": [[i, ts, T.reshape(-1).tolist()] for i, (ts, T) in sorted(trajectory.items())]}
+        rec.save(ck_path, extra=extra, sequence=seq)
+        rec.stats.excluded_s += time.perf_counter() - t0  # checkpoint I/O is not mapping time
 
     def frames() -> Iterator[Frame]:
-        for i in _progress(source, opts.progress, "mapping"):
+        for k in _progress(range(start, len(source)), opts.progress, "mapping", len(source), start):
+            if opts.checkpoint_every and k > start and k % opts.checkpoint_every == 0:
+                save_state(k)  # every frame before k has been integrated by now
+            i = source[k]
             try:
                 frame = seq.frame(i, depth_max=config.depth_max)
                 if pose_source is not None:
@@ -125,8 +152,7 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
             trajectory[i] = (frame.timestamp, frame.T_world_cam)
             yield frame
 
-    skipped: list[str] = []
-    clock = _clock(rec, opts, config)
+    clock = _clock(opts, config)
     wall0 = time.perf_counter()
     report = clock.run(rec, frames(), on_release=evaluator.observe_source)
     if opts.offline_reference:
@@ -147,7 +173,10 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
     _write_trajectory(out / "trajectory.txt", trajectory)
     config.save(out / "config.json")
     acq = _acquisition_time(seq, n)
-    mapping_s = rec.stats.mapping_s + (rec.stats.tracking_s if pose_source is not None else 0.0)
+    if clock.name == "realtime":
+        mapping_s = wall_s  # the mapper's elapsed time against the wall clock (tracking and decoding included)
+    else:
+        mapping_s = rec.stats.mapping_s + (rec.stats.tracking_s if pose_source is not None else 0.0)
     metrics = {
         "dataset": str(path),
         "frames_total": n,
@@ -165,6 +194,7 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
         "mapping_time_s": mapping_s,
         "tracking_time_s": rec.stats.tracking_s,
         "wall_time_s": wall_s,
+        "modelled_time_s": report.elapsed_s if clock.name == "budget" else None,
         "eval_time_s": evaluator.eval_seconds,
         "acquisition_time_s": acq,
         "rtf": mapping_s / acq if acq > 0 else None,
@@ -201,14 +231,17 @@ def _pose_source(spec: str, seq):
     return src
 
 
-def _clock(rec, opts: RunOptions, config: Config):
-    from . import clock as clocks
+def _clock(opts: RunOptions, config: Config):
+    """The clock of this run: real-time replay, or the deterministic budget (config.clock)."""
+    from .clock import BudgetClock, get_clock
 
-    if opts.realtime:
-        return clocks.RealtimeClock(speed=opts.speed, on_bad_frame=opts.on_bad_frame)
     if opts.offline_reference:
-        return clocks.BudgetClock(0)
-    return clocks.BudgetClock(config.optim.updates_per_frame)
+        return BudgetClock(0)
+    config.clock.on_bad_frame = opts.on_bad_frame
+    if opts.realtime:
+        config.clock.mode = "realtime"
+        config.clock.speed = opts.speed
+    return get_clock(config)
 
 
 def _offline_setup(rec, opts: RunOptions, n_source: int) -> None:
@@ -244,12 +277,12 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
 
 
-def _progress(items, enabled: bool, desc: str):
+def _progress(items, enabled: bool, desc: str, total: int | None = None, initial: int = 0):
     if not enabled:
         return items
     from tqdm import tqdm
 
-    return tqdm(items, desc=desc, unit="frame", dynamic_ncols=True)
+    return tqdm(items, desc=desc, unit="frame", dynamic_ncols=True, total=total, initial=initial)
 
 
 def _jsonable(x):

@@ -207,6 +207,38 @@ class Reconstructor:
         self.ctx.gmap = gmap
         self.config.sh_degree = gmap.sh_degree
 
+    def save(self, path: str | Path, **kw) -> Path:
+        """Checkpoint the full mapper state (map, Adam moments, policies, views, counters, RNG), atomically."""
+        from .checkpoint import save_checkpoint
+
+        return save_checkpoint(self, path, **kw)
+
+    @classmethod
+    def load(cls, path: str | Path, device: str | None = None, **kw) -> "Reconstructor":
+        """A Reconstructor restored from :meth:`save`'s checkpoint; it continues where the saved one stopped."""
+        from .checkpoint import load_checkpoint
+
+        return load_checkpoint(path, device, **kw)
+
+    # ---- geometry export -------------------------------------------------------------------------------
+    def extract_point_cloud(self, min_opacity: float = 0.1, **kw) -> o3d.geometry.PointCloud:
+        """Gaussian centres with SH-DC colour and normals (oriented toward the retained views' cameras)."""
+        from .export import extract_point_cloud
+
+        kw.setdefault("poses", [f.T_world_cam for f in self.views.views])
+        return extract_point_cloud(self.gmap, min_opacity, **kw)
+
+    def extract_triangle_mesh(self, poses=None, voxel_size: float = 0.02, depth_max: float = 5.0,
+                              scale: float = 0.5, **kw) -> o3d.geometry.TriangleMesh:
+        """TSDF mesh (Open3D VoxelBlockGrid) of depth and colour rendered from the map at ``poses``
+        (default: the retained views' poses), rendered at ``scale`` of the camera."""
+        from .export import extract_triangle_mesh
+
+        poses = [f.T_world_cam for f in self.views.views] if poses is None else list(poses)
+        with torch.no_grad():
+            return extract_triangle_mesh(self._render, poses, self.camera.scaled(scale), voxel_size=voxel_size,
+                                         depth_max=depth_max, **kw)
+
     def __repr__(self) -> str:
         return (f"Reconstructor({self.camera.width}x{self.camera.height}, device={self.device}, "
                 f"renderer={self.config.renderer}, gaussians={len(self.gmap)}, updates={self.stats.updates})")

@@ -13,6 +13,7 @@ def _cfg():
     cfg = Config(renderer="cpu")
     cfg.optim.updates_per_frame = 3
     cfg.optim.drain_updates = 10
+    cfg.clock.budget = "updates"  # a fixed number of updates per frame, so counts are exact
     return cfg
 
 
