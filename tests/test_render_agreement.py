@@ -179,6 +179,13 @@ def test_cpu_renders_empty_and_fully_culled_scenes():
     assert float(ps["means"].grad.abs().sum()) == 0.0
 
 
+def test_cpu_rejects_bad_shapes_with_a_clear_error():
+    params, T = edge_case_scene(n=10)
+    params["opacities"] = params["opacities"][:, None]  # [N, 1] instead of [N]
+    with pytest.raises(ValueError, match="opacities must be"):
+        CpuRenderer().render(**params, camera=CAMERAS[0], T_world_cam=T)
+
+
 def test_cpu_kernels_are_loaded_lazily():
     """``import eligsir_o3d.render`` must not import numba or compile anything."""
     import subprocess

@@ -1,10 +1,14 @@
-"""``cpu`` renderer: the reference's projection and tile binning in torch, compositing in compiled numba kernels.
+"""``cpu`` renderer: the reference's projection in torch, its tile binning and compositing in compiled numba kernels.
 
-Projection (EWA covariance, culling) stays in differentiable torch - it is O(N) and cheap. Compositing, the
-O(pixels x Gaussians per tile) part, runs as a ``torch.autograd.Function`` whose forward and backward are the
-kernels in :mod:`._cpu_kernels`, parallel over tiles on all cores numba is allowed to use
-(``NUMBA_NUM_THREADS`` / ``numba.set_num_threads``). Float32 throughout; inputs of other dtypes are cast and the
-gradients cast back.
+Projection (EWA covariance, culling) stays in differentiable torch: it is O(N) and shared with the reference, so
+both backends see identical screen-space Gaussians. Tile binning is a serial kernel that produces the reference's
+per-tile lists (compressed instead of padded). Compositing, the O(pixels x Gaussians per tile) part, runs as a
+``torch.autograd.Function`` whose forward and backward are the kernels in :mod:`._cpu_kernels`, parallel over tiles
+on the threads numba may use (``NUMBA_NUM_THREADS`` / ``numba.set_num_threads``). Float32 throughout; inputs of
+other dtypes are cast and the gradients cast back.
+
+The first use in a process loads the compiled kernels from numba's on-disk cache (~0.6 s), or compiles them when
+there is none yet (~11 s on a 2-core machine); :func:`warmup` does this explicitly and reports the time.
 """
 
 from __future__ import annotations
@@ -48,10 +52,11 @@ def warmup() -> float:
         out_f, out_a = np.empty((h, w, 4), f32), np.empty((h, w), f32)
         out_T, out_last = np.empty((h, w), f32), np.empty((h, w), np.int32)
         k.bin_tiles_csr(means2d, np.array([2], np.int32), np.ones(1, f32), 1, 1)
-        k.run(k.composite_forward, means2d, conics, opac, feats, offsets, ids, order, 1, w, h, out_f, out_a, out_T, out_last)
+        k.run(k.composite_forward, means2d, conics, opac, feats, offsets, ids, order, 1, w, h,
+              out_f, out_a, out_T, out_last)
         v = np.empty((1, 10), f32)
         k.run(k.composite_backward, means2d, conics, opac, feats, offsets, ids, order, 1, w, h, out_T, out_last,
-                             np.ones((h, w, 4), f32), np.ones((h, w), f32), v)
+              np.ones((h, w, 4), f32), np.ones((h, w), f32), v)
         _warm_seconds = time.perf_counter() - t0
     return _warm_seconds
 
@@ -73,8 +78,8 @@ class _Composite(torch.autograd.Function):
         out_T = torch.empty(height, width, dtype=torch.float32)
         out_last = torch.empty(height, width, dtype=torch.int32)
         k.run(k.composite_forward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), offsets.numpy(), flat_ids.numpy(),
-                            order.numpy(), tiles_x, width, height,
-                            out_feats.numpy(), out_alpha.numpy(), out_T.numpy(), out_last.numpy())
+              order.numpy(), tiles_x, width, height,
+              out_feats.numpy(), out_alpha.numpy(), out_T.numpy(), out_last.numpy())
         ctx.save_for_backward(m, c, o, f, offsets, flat_ids, order, out_T, out_last)
         ctx.meta = (tiles_x, width, height, [means2d.dtype, conics.dtype, opacities.dtype, feats.dtype])
         return out_feats.to(feats.dtype), out_alpha.to(feats.dtype)
@@ -91,8 +96,8 @@ class _Composite(torch.autograd.Function):
             grad_alpha = torch.zeros(height, width)
         v_isect = torch.empty(flat_ids.shape[0], 6 + n_feat, dtype=torch.float32)
         k.run(k.composite_backward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), offsets.numpy(), flat_ids.numpy(),
-                             order.numpy(), tiles_x, width, height, out_T.numpy(), out_last.numpy(),
-                             _f32(grad_feats).numpy(), _f32(grad_alpha).numpy(), v_isect.numpy())
+              order.numpy(), tiles_x, width, height, out_T.numpy(), out_last.numpy(),
+              _f32(grad_feats).numpy(), _f32(grad_alpha).numpy(), v_isect.numpy())
         v = torch.zeros(n, 6 + n_feat, dtype=torch.float32).index_add_(0, flat_ids, v_isect)
         grads = (v[:, 0:2], v[:, 2:5], v[:, 5], v[:, 6:])
         grads = tuple(g.to(dt) for g, dt in zip(grads, dtypes))
@@ -111,9 +116,20 @@ def tile_lists(bins: TileBins) -> tuple[torch.Tensor, torch.Tensor]:
 def bin_tiles_csr(proj: Projection, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor, int]:
     """:func:`.projection.bin_tiles` in compiled code, as (offsets [T + 1], flat ids [M], tiles_x); same lists."""
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    offsets, flat = _kernels().bin_tiles_csr(_f32(proj.means2d).numpy(), proj.radii.to(torch.int32).contiguous().numpy(),
-                                             _f32(proj.depths).numpy(), tiles_x, tiles_y)
+    radii = proj.radii.to(torch.int32).contiguous()
+    offsets, flat = _kernels().bin_tiles_csr(_f32(proj.means2d).numpy(), radii.numpy(), _f32(proj.depths).numpy(),
+                                             tiles_x, tiles_y)
     return torch.from_numpy(offsets), torch.from_numpy(flat), tiles_x
+
+
+def _check_shapes(means, quats, scales, opacities, colors) -> None:
+    n = means.shape[0] if means.dim() == 2 else -1
+    want = {"means": (means, (n, 3)), "quats": (quats, (n, 4)), "scales": (scales, (n, 3)),
+            "opacities": (opacities, (n,)), "colors": (colors, (n, 3))}
+    for name, (t, shape) in want.items():
+        if tuple(t.shape) != shape or t.device.type != "cpu":
+            raise ValueError(f"cpu renderer: {name} must be a CPU tensor of shape {list(shape)} with N = "
+                             f"{n} (from means), got {list(t.shape)} on {t.device}")
 
 
 class CpuRenderer(TileRenderer):
@@ -129,6 +145,7 @@ class CpuRenderer(TileRenderer):
     def render(self, means, quats, scales, opacities, colors, camera: Camera, T_world_cam,
                background: torch.Tensor | None = None) -> RenderOutput:
         """means [N, 3], quats [N, 4] wxyz, scales [N, 3] metres, opacities [N] in (0, 1), colors [N, 3]."""
+        _check_shapes(means, quats, scales, opacities, colors)
         warmup()
         proj = project(means, quats, scales, camera, T_world_cam)
         offsets, flat, tiles_x = bin_tiles_csr(proj, camera.width, camera.height)
