@@ -180,7 +180,7 @@ def test_cpu_renders_empty_and_fully_culled_scenes():
 
 
 def test_cpu_rejects_bad_shapes_with_a_clear_error():
-    params, T = edge_case_scene(n=10)
+    params, T = edge_case_scene(n=120)
     params["opacities"] = params["opacities"][:, None]  # [N, 1] instead of [N]
     with pytest.raises(ValueError, match="opacities must be"):
         CpuRenderer().render(**params, camera=CAMERAS[0], T_world_cam=T)
