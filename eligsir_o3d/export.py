@@ -150,6 +150,8 @@ def extract_triangle_mesh(render_fn: Callable, poses: Sequence[np.ndarray], came
                     alpha_min, len(poses))
         return o3d.geometry.TriangleMesh()
     mesh = vbg.extract_triangle_mesh(weight_threshold=float(weight_threshold)).to_legacy()
+    if mesh.has_vertex_colors():  # a weighted mean of colours in [0, 1] can round a hair past 1
+        mesh.vertex_colors = o3d.utility.Vector3dVector(np.clip(np.asarray(mesh.vertex_colors), 0.0, 1.0))
     mesh.compute_vertex_normals()
     return mesh
 
@@ -242,8 +244,8 @@ def export_from_ply(map_ply: str | Path, mesh_path: str | Path | None = None, cl
     camera = camera or _camera_next_to(map_ply) or DEFAULT_CAMERA
     source = "given"
     if isinstance(poses, (str, Path)):
-        _, poses = read_tum_trajectory(Path(poses))
         source = str(poses)
+        _, poses = read_tum_trajectory(Path(poses))
     if poses is None and views != "sphere" and (map_ply.parent / "trajectory.txt").is_file():
         _, poses = read_tum_trajectory(map_ply.parent / "trajectory.txt")
         source = str(map_ply.parent / "trajectory.txt")

@@ -214,6 +214,9 @@ def test_export_from_ply_with_trajectory_and_sphere_views(tmp_path, scene, rec):
     assert cloud.has_normals() and cloud.has_colors()
     assert not list((tmp_path / "out").glob(".*tmp*"))
 
+    s = export_from_ply(folder / "map.ply", cloud_path=tmp_path / "given.ply", poses=folder / "trajectory.txt")
+    assert s["view_source"] == str(folder / "trajectory.txt") and s["views"] == N_FRAMES // 2
+
     poses, depth_needed = sphere_poses(np.asarray(cloud.points), c, n_views=6)
     assert len(poses) == 6 and depth_needed > 0
     s = export_from_ply(folder / "map.ply", cloud_path=tmp_path / "sphere.ply", views="sphere")
