@@ -209,6 +209,43 @@ def _to(params, device):
     return {k: v.to(device) for k, v in params.items()}
 
 
+def test_gsplat_conventions_with_a_cpu_stand_in():
+    """Runs without CUDA: GsplatRenderer's conversions (pose -> world-to-camera ``viewmats``, ``Ks`` with +0.5 pixel
+    centres, per-axis radii, ``means2d`` back to integer centres, background and depth normalisation) checked by a
+    stand-in for ``gsplat.rasterization`` that follows gsplat's documented conventions and composites like the
+    reference. A convention slip (camera-to-world passed as viewmat, a missing half pixel) changes the image."""
+    from eligsir_o3d.render.gsplat_backend import GsplatRenderer
+    from eligsir_o3d.render.projection import bin_tiles, project
+    from eligsir_o3d.render.torch_backend import TorchRenderer
+
+    def rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **kw):
+        assert kw["render_mode"] == "RGB+D" and kw["packed"] is False and kw["rasterize_mode"] == "classic"
+        assert kw["near_plane"] == 0.01 and kw["eps2d"] == 0.3 and kw["tile_size"] == 16
+        V, K = viewmats[0].double(), Ks[0].double()  # world-to-camera; gsplat's pixel centres at +0.5
+        cam = Camera(width, height, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]) - 0.5, float(K[1, 2]) - 0.5)
+        proj = project(means, quats, scales, cam, torch.linalg.inv(V).numpy())
+        bins = bin_tiles(proj, width, height)
+        c, d, a = TorchRenderer().composite(proj, opacities, colors, bins, width, height)
+        p = means.double() @ V[:3, :3].T + V[:3, 3]
+        means2d = torch.stack([K[0, 0] * p[:, 0] / p[:, 2] + K[0, 2], K[1, 1] * p[:, 1] / p[:, 2] + K[1, 2]], -1)
+        radii = torch.stack([proj.radii, (proj.radii - 1).clamp_min(0)], -1)  # per axis; the larger one is ours
+        meta = {"radii": radii[None], "means2d": means2d.float()[None]}
+        return torch.cat([c, d[..., None]], -1)[None], a[None, ..., None], meta
+
+    renderer = GsplatRenderer.__new__(GsplatRenderer)  # skip the CUDA check: the stand-in runs on the CPU
+    renderer.device, renderer._rasterization = torch.device("cpu"), rasterization
+    params, _ = edge_case_scene(n=200, seed=6)
+    T = look_at_pose([0.4, -0.3, -2.5], target=[0.1, 0.05, 0.0])
+    bg = torch.tensor([0.2, 0.4, 0.6])
+    ref = get_renderer("torch").render(**params, camera=CAMERAS[1], T_world_cam=T, background=bg)
+    out = renderer.render(**params, camera=CAMERAS[1], T_world_cam=T, background=bg)
+    for name in ("color", "depth", "alpha"):
+        torch.testing.assert_close(getattr(out, name), getattr(ref, name), atol=1e-6, rtol=1e-5)
+    assert torch.equal(out.radii, ref.radii) and out.radii.dtype == torch.int32
+    vis = ref.radii > 0
+    torch.testing.assert_close(out.means2d[vis], ref.means2d[vis], atol=1e-3, rtol=1e-5)
+
+
 @needs_cuda
 @pytest.mark.cuda
 def test_gsplat_matches_reference_low_opacity():
