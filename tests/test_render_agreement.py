@@ -42,7 +42,7 @@ def edge_case_scene(n: int = 400, seed: int = 0, max_opacity: float = 0.99):
 
     Hard cases: behind the camera and inside the near plane, centres off-screen with their tails on it, very small
     (1e-4 m, the 0.3 px^2 low-pass dominates) and very large (2 m, covering the whole image), nearly transparent
-    (opacity around the 1/255 skip threshold), and a stack of opaque Gaussians in front of everything so that
+    (opacity around the 1/255 skip threshold), needles (300:1, where float32 rounding of sigma is worst), and a stack of opaque Gaussians in front of everything so that
     compositing stops early (transmittance below 1e-4).
     """
     g = torch.Generator().manual_seed(seed)
@@ -58,6 +58,7 @@ def edge_case_scene(n: int = 400, seed: int = 0, max_opacity: float = 0.99):
     scales[4 * m:4 * m + 3] = 2.0  # huge
     opac[4 * m:4 * m + 3] = torch.minimum(torch.tensor(0.3), opac[4 * m:4 * m + 3])
     opac[5 * m:6 * m] = torch.empty(m).uniform_(0.002, 0.006, generator=g)  # around alpha 1/255
+    scales[7 * m:8 * m] = torch.tensor([0.6, 0.002, 0.002])  # needles, in random orientations
     # opaque stack right in front of the image centre: transmittance falls below 1e-4 there
     means[6 * m:6 * m + 12] = torch.tensor([0.0, 0.0, -1.5]) + 0.05 * torch.randn(12, 3, generator=g)
     scales[6 * m:6 * m + 12] = 0.15
@@ -240,8 +241,10 @@ def test_gsplat_conventions_with_a_cpu_stand_in():
     ref = get_renderer("torch").render(**params, camera=CAMERAS[1], T_world_cam=T, background=bg)
     out = renderer.render(**params, camera=CAMERAS[1], T_world_cam=T, background=bg)
     for name in ("color", "depth", "alpha"):
-        torch.testing.assert_close(getattr(out, name), getattr(ref, name), atol=1e-6, rtol=1e-5)
-    assert torch.equal(out.radii, ref.radii) and out.radii.dtype == torch.int32
+        # float32 viewmats round-tripped through an inverse: ~1e-6 relative in the projection, so no exact match;
+        # a slipped convention (a half pixel, an inverted pose) errs by > 1e-2
+        torch.testing.assert_close(getattr(out, name), getattr(ref, name), atol=3e-4, rtol=1e-4)
+    assert out.radii.dtype == torch.int32 and float((out.radii != ref.radii).float().mean()) < 0.02
     vis = ref.radii > 0
     torch.testing.assert_close(out.means2d[vis], ref.means2d[vis], atol=1e-3, rtol=1e-5)
 

@@ -82,8 +82,9 @@ def _gather_tile(means2d, conics, opacities, feats, flat_ids, s, n, x0, y0):
     Returns gp [7, n] (mean x, mean y, conic a, b, c, opacity, sigma bound), gf [n, 4] and, per sub-block,
     the depth-ordered local indices of the Gaussians that can reach it: sub_ids [NSUB * NSUB, n], sub_n [NSUB * NSUB].
     Culling is conservative, so it changes no result: a Gaussian contributes to a pixel only if
-    ``o exp(-sigma) >= 1/255``, i.e. ``sigma <= log(255 o)``; the bound keeps a margin of 1e-3 above that, and the
-    block test uses the ellipse's bounding box at that level widened by 1e-4 relative + 1e-3 px.
+    ``o exp(-sigma) >= 1/255``, i.e. ``sigma <= log(255 o)``; the bound keeps a margin of 1e-3 above that (float32
+    exp and products err by ~1e-7), and the block test uses the bounding box of the ellipse at that level, widened
+    for the float32 rounding of sigma (see below) and by 1e-3 px.
     """
     n_feat = feats.shape[1]
     gp = np.empty((7, n), np.float32)
@@ -117,8 +118,11 @@ def _gather_tile(means2d, conics, opacities, feats, flat_ids, s, n, x0, y0):
         det = a64 * c64 - b64 * b64
         sx0, sx1, sy0, sy1 = 0, NSUB - 1, 0, NSUB - 1
         if det > 0.0 and a64 > 0.0 and smax == smax:
-            rx = math.sqrt(2.0 * smax * c64 / det) * 1.0001 + 1e-3
-            ry = math.sqrt(2.0 * smax * a64 / det) * 1.0001 + 1e-3
+            # The kernels evaluate sigma in float32, whose error grows with the conic's condition: at most about
+            # 1e-6 * kappa * sigma with kappa = (a + c)^2 / det (~4 for round Gaussians, 1e5 for 300:1 needles).
+            s_box = smax * (1.0 + 1e-3 + 2e-6 * (a64 + c64) * (a64 + c64) / det)
+            rx = math.sqrt(2.0 * s_box * c64 / det) + 1e-3
+            ry = math.sqrt(2.0 * s_box * a64 / det) + 1e-3
             lo_x = (np.float64(mx) - rx - x0) / SUB
             hi_x = (np.float64(mx) + rx - x0) / SUB
             lo_y = (np.float64(my) - ry - y0) / SUB
