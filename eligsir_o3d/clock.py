@@ -142,7 +142,8 @@ class _Replay:
                 report.released += 1
                 stamp = _stamp(pending, k - 1)
                 if stamp > last_stamp:
-                    period = (stamp - last_stamp) / self.speed
+                    # the mean frame period so far: gaps (held-out frames, hiccups) must not look like spare time
+                    period = (stamp - t_first) / max(1, report.released - 1) / self.speed
                     last_stamp = stamp
                 if on_release is not None:
                     on_release(pending)
@@ -258,8 +259,8 @@ class BudgetClock(_Replay):
                 break
             report.released += 1
             stamps.append(_stamp(item, k - 1))
-            if len(stamps) > 1 and stamps[-1] > stamps[-2]:
-                self.attach(rec, (stamps[-1] - stamps[-2]) / self.speed)
+            if len(stamps) > 1 and stamps[-1] > stamps[0]:
+                self.attach(rec, (stamps[-1] - stamps[0]) / (len(stamps) - 1) / self.speed)
             if on_release is not None:
                 on_release(item)
             try:

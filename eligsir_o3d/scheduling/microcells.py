@@ -169,16 +169,6 @@ class Microcells:
     def add_coverage(self, cells: torch.Tensor, delta: int = 1) -> None:
         self.coverage[cells] += delta
 
-    def novel_fraction(self, depth: torch.Tensor, camera: Camera, T_world_cam) -> float:
-        """Fraction of a view's depth samples in cells no retained view covers yet (no insertion)."""
-        _, ids = self.locate(depth, camera, T_world_cam, insert=False)
-        if ids.numel() == 0:
-            return 0.0
-        known = ids >= 0
-        covered = torch.zeros_like(known)
-        covered[known] = self.coverage[ids[known]] > 0
-        return float((~covered).float().mean())
-
     def accumulate(self, ids: torch.Tensor, errors: torch.Tensor) -> torch.Tensor:
         """Fold per-sample errors [M] into their cells' running error; returns the cells touched."""
         keep = ids >= 0

@@ -1,0 +1,199 @@
+#!/usr/bin/env python
+"""The paper's Table III for one sequence: the full method and each ablation under the same held-out split and
+the same budget, plus the Load-Adaptive Fidelity trace (the paper's Fig. 6).
+
+    python tools/ablation.py ../shared/data/7scenes_redkitchen_jpg1000 --max-frames 300 --out runs/ablation
+
+Variants: ``full`` (EliGSiR), ``fidelity`` (fixed native resolution), ``growth`` (dense per-frame depth insertion),
+``scheduling`` (fixed-stride keyframes, uniform replay). Every variant is a separate ``run_mapping`` into
+``OUT/<variant>``; the table is printed and written to ``OUT/table.md`` and ``OUT/table.json``, the trace plot to
+``OUT/fidelity_trace.png``.
+
+Budget: by default the deterministic cost-model clock (``--budget cost``): frames are released at their
+timestamps divided by ``--speed`` against *modelled* time (``CostModel``: seconds per update from supervised
+pixels and Gaussians, seconds per frame), so every variant gets the same compute budget, reproducibly, and a variant
+whose updates cost more gets fewer of them (and drops frames once its queue is full). ``--budget updates`` grants
+every variant the same number of updates per frame instead; ``--realtime`` replays against the wall clock.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+VARIANTS = {"full": (), "fidelity": ("fidelity",), "growth": ("growth",), "scheduling": ("scheduling",)}
+LABELS = {"full": "EliGSiR", "fidelity": "w/o adaptive fidelity", "growth": "w/o targeted growth",
+          "scheduling": "w/o view scheduling"}
+COLUMNS = [("PSNR", "psnr", "{:.2f}"), ("CVQ-AUC", "cvq_auc", "{:.2f}"), ("CUC@20 [%]", "cuc20", "{:.1f}"),
+           ("Sup. px [M]", "supervised_mpix", "{:.1f}"), ("Gaus. [k]", "gaussians_k", "{:.1f}"),
+           ("Map. time [s]", "mapping_time_s", "{:.1f}"), ("updates", "updates", "{:d}"),
+           ("admitted", "frames_admitted", "{:d}"), ("dropped", "dropped_frames", "{:d}")]
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("path", nargs="?", default="../shared/data/7scenes_redkitchen_jpg1000")
+    p.add_argument("--out", default="runs/ablation")
+    p.add_argument("--max-frames", type=int, default=300)
+    p.add_argument("--holdout-every", type=int, default=8)
+    p.add_argument("--variants", default="full,fidelity,growth,scheduling",
+                   help="comma-separated subset of: " + ", ".join(VARIANTS))
+    p.add_argument("--budget", choices=["cost", "updates"], default="cost")
+    p.add_argument("--speed", type=float, default=0.1, help="replay speed (0.1: a 30 Hz stream released at 3 Hz)")
+    p.add_argument("--updates-per-frame", type=int, default=None, help="--budget updates: updates per frame")
+    p.add_argument("--realtime", action="store_true", help="replay against the wall clock instead")
+    p.add_argument("--renderer", default="auto")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--eval-every", type=int, default=200, help="held-out checkpoint every N updates")
+    p.add_argument("--drain", type=int, default=None, help="updates of the bounded drain (default: config's)")
+    p.add_argument("--threads", type=int, default=None, help="torch/numba threads (1 is fastest on a busy CPU)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override for every variant, e.g. --set growth.min_views=3 (repeatable)")
+    p.add_argument("--table-only", action="store_true", help="re-print the table from OUT/*/metrics.json")
+    return p.parse_args(argv)
+
+
+def make_config(args, variant: str):
+    from eligsir_o3d import Config
+
+    cfg = Config(renderer=args.renderer, device=args.device, seed=args.seed, ablate=VARIANTS[variant])
+    cfg.clock.mode = "realtime" if args.realtime else "budget"
+    cfg.clock.budget = args.budget
+    cfg.clock.speed = args.speed
+    if args.updates_per_frame is not None:
+        cfg.optim.updates_per_frame = args.updates_per_frame
+    if args.drain is not None:
+        cfg.optim.drain_updates = args.drain
+    for item in args.set:
+        apply_override(cfg, item)
+    return cfg
+
+
+def apply_override(cfg, item: str) -> None:
+    """``a.b.c=value`` on a nested dataclass config; the value is parsed as JSON when it can be."""
+    key, _, raw = item.partition("=")
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    *path, last = key.strip().split(".")
+    obj = cfg
+    for name in path:
+        obj = getattr(obj, name)
+    if not hasattr(obj, last):
+        raise SystemExit(f"--set {item}: no config field {key!r}")
+    old = getattr(obj, last)
+    setattr(obj, last, tuple(value) if isinstance(old, tuple) and isinstance(value, list) else value)
+
+
+def run_variant(args, variant: str) -> dict:
+    from eligsir_o3d.pipeline import run_mapping
+
+    cfg = make_config(args, variant)
+    out = Path(args.out) / variant
+    t0 = time.perf_counter()
+    metrics = run_mapping(args.path, out, cfg, max_frames=args.max_frames, holdout_every=args.holdout_every,
+                          eval_every=args.eval_every, realtime=args.realtime, speed=args.speed, progress=False)
+    print(f"[{variant}] done in {time.perf_counter() - t0:.0f} s wall", flush=True)
+    return metrics
+
+
+def row(metrics: dict) -> dict:
+    held = metrics.get("heldout") or {}
+    cuc = metrics.get("cuc20_final")
+    return {"psnr": held.get("psnr"), "cvq_auc": metrics.get("cvq_auc"), "cuc20": None if cuc is None else 100 * cuc,
+            "supervised_mpix": metrics.get("supervised_mpix"), "gaussians_k": metrics.get("gaussians", 0) / 1e3,
+            "mapping_time_s": metrics.get("mapping_time_s"), "updates": metrics.get("updates"),
+            "frames_admitted": metrics.get("frames_admitted"), "dropped_frames": metrics.get("dropped_frames")}
+
+
+def format_table(rows: dict[str, dict]) -> str:
+    head = "| Variant | " + " | ".join(c[0] for c in COLUMNS) + " |"
+    lines = [head, "|" + "---|" * (len(COLUMNS) + 1)]
+    for variant, r in rows.items():
+        cells = []
+        for _, key, fmt in COLUMNS:
+            v = r.get(key)
+            cells.append("-" if v is None else fmt.format(int(v) if fmt == "{:d}" else float(v)))
+        lines.append(f"| {LABELS.get(variant, variant)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot_fidelity_trace(results: dict[str, dict], path: Path) -> Path | None:
+    """Backlog, chosen scale and cumulative supervised pixels over updates (the paper's Fig. 6)."""
+    full = results.get("full") or {}
+    trace = full.get("fidelity_trace")
+    if not trace:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    u = [d["update"] for d in trace]
+    fig, axes = plt.subplots(3, 1, figsize=(7, 6.5), sharex=True)
+    axes[0].plot(u, [d["backlog"] for d in trace], lw=0.6, color="0.6", label="backlog")
+    axes[0].plot(u, [d["backlog_ema"] for d in trace], lw=1.2, color="tab:red", label="smoothed")
+    axes[0].set_ylabel("backlog [frames]")
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[1].step(u, [d["scale"] for d in trace], where="post", color="tab:blue")
+    axes[1].set_yscale("log", base=2)
+    axes[1].set_yticks([0.125, 0.25, 0.5, 1.0], ["1/8", "1/4", "1/2", "1"])
+    axes[1].set_ylabel("supervision scale")
+    axes[2].plot(u, [d["supervised_mpix"] for d in trace], color="tab:blue", label="EliGSiR")
+    fixed = (results.get("fidelity") or {}).get("curve") or []
+    pts = [(r["updates"], r["supervised_mpix"]) for r in fixed if r.get("supervised_mpix") is not None]
+    if pts:
+        axes[2].plot(*zip(*pts), "--", color="tab:orange", label="w/o adaptive fidelity")
+    axes[2].set_ylabel("supervised pixels [MPix]")
+    axes[2].set_xlabel("optimisation update")
+    axes[2].legend(loc="upper left", fontsize=8)
+    fig.suptitle("Load-Adaptive Fidelity: backlog, scale and cumulative supervision")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    if args.threads:
+        os.environ.setdefault("NUMBA_NUM_THREADS", str(args.threads))
+        import torch
+
+        torch.set_num_threads(args.threads)
+    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
+    unknown = [v for v in variants if v not in VARIANTS]
+    if unknown:
+        print(f"unknown variant(s) {unknown}; choose from {', '.join(VARIANTS)}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results: dict[str, dict] = {}
+    if args.table_only:
+        for v in variants:
+            f = out / v / "metrics.json"
+            if f.is_file():
+                results[v] = json.loads(f.read_text())
+    else:
+        for v in variants:
+            results[v] = run_variant(args, v)
+    rows = {v: row(m) for v, m in results.items()}
+    table = format_table(rows)
+    cmd = "python tools/ablation.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    (out / "table.md").write_text(f"{cmd}\n\n{table}\n")
+    (out / "table.json").write_text(json.dumps({"command": cmd, "rows": rows}, indent=1))
+    fig = plot_fidelity_trace(results, out / "fidelity_trace.png")
+    print(table)
+    if fig:
+        print(f"fidelity trace: {fig}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
