@@ -7,9 +7,12 @@ Gaussian whose blending would take its transmittance to ``<= 1e-4``. The backwar
 ``rasterize_to_pixels`` backward: it starts from the stored final transmittance and the number of Gaussians the
 forward pass walked through, and recovers each Gaussian's transmittance by dividing by ``1 - alpha``.
 
-Work: a pixel walks only the part of its tile's list that can reach its 2x2 pixel block: each tile's list is culled
-per block by the bounding box of the ellipse where ``o exp(-sigma) >= 1/255`` (conservatively, so the result is the
-same as walking the whole list). On a real scene this cuts the walk from ~540 to ~50 Gaussians per pixel at 160x120.
+Work: pixels run in 4x4 blocks, and a block walks only the part of its tile's list that can reach it: each tile's
+list is culled per block by the bounding box of the ellipse where ``o exp(-sigma) >= 1/255`` (conservatively, so
+the result is the same as walking the whole list; on a real scene this cuts the walk from ~540 to ~80 Gaussians per
+pixel at 160x120). The 16 pixels of a block are processed together without branches, which LLVM turns into SIMD
+code; exp is a branch-free polynomial within 2 ulp of float32 exp (the reference's exp differs from it by rounding
+only, so images agree to ~1e-6).
 
 Parallelism: one tile per task (``prange``), heaviest tiles first, in chunks of one so that the cores share uneven
 tiles dynamically. Tiles never write to the same memory: the backward pass writes one gradient row per
@@ -71,63 +74,101 @@ _jit = _compile(parallel=True)
 _jit_serial = _compile(parallel=False)
 
 
-SUB = 2  # side of the pixel sub-blocks that get their own culled Gaussian lists
+SUB = 4  # pixel blocks of SUB x SUB: one SIMD batch of pixels, each with its own culled Gaussian list
 NSUB = TILE // SUB
+NP = SUB * SUB
+
+# exp(-s), float32, branch-free so that loops over a block's 16 pixels vectorise: s = n ln2 + r (Cody-Waite),
+# exp(-r) by its degree-9 Taylor polynomial on [0, ln2) (truncation < 1e-8), 2^-n by selects. Within 2 ulp of
+# float32 exp over [0, 16]; beyond 16 (alpha below 1/255 for any opacity up to 3e4) the value is not used.
+SIG_CLAMP = np.float32(16.0)
+LOG2E = np.float32(1.4426950408889634)
+LN2_HI = np.float32(0.693145751953125)
+LN2_LO = np.float32(1.4286068203094173e-06)
+E0, E1, E2, E3, E4, E5, E6, E7, E8, E9 = (np.float32((-1.0) ** i / math.factorial(i)) for i in range(10))
+
+
+@numba.njit(inline="always", fastmath=False)
+def exp_neg(s):
+    s = min(max(s, ZERO), SIG_CLAMP)
+    n = np.int32(s * LOG2E)  # floor: s >= 0
+    fn = np.float32(n)
+    r = (s - fn * LN2_HI) - fn * LN2_LO
+    p = ((((((((E9 * r + E8) * r + E7) * r + E6) * r + E5) * r + E4) * r + E3) * r + E2) * r + E1) * r + E0
+    p = p * (np.float32(0.5) if n & 1 else ONE)
+    p = p * (np.float32(0.25) if n & 2 else ONE)
+    p = p * (np.float32(2.0 ** -4) if n & 4 else ONE)
+    p = p * (np.float32(2.0 ** -8) if n & 8 else ONE)
+    return p * (np.float32(2.0 ** -16) if n & 16 else ONE)
+
+
+@_jit
+def cull_bounds(conics, opacities, out):
+    """Per Gaussian: out[g] = (sigma bound, x half-width, y half-width) of the region it can reach.
+
+    A Gaussian contributes to a pixel only if ``o exp(-sigma) >= 1/255``, i.e. ``sigma <= log(255 o)``; the bound
+    keeps a margin of 1e-3 above that (float32 exp and products err by ~1e-7; -1 where ``o < 1/255``: never). The
+    half-widths bound the ellipse at that level, widened for the float32 rounding of sigma in the kernels, which
+    grows with the conic's condition (at most ~1e-6 * kappa * sigma with kappa = (a + c)^2 / det: ~4 for round
+    Gaussians, 1e5 for 300:1 needles), and by 1e-3 px; -1 = no box (degenerate conic or NaN: never culled).
+    Culling is conservative, so it changes no result.
+    """
+    for g in prange(opacities.shape[0]):
+        o = np.float64(opacities[g])
+        out[g, 1] = -1.0
+        out[g, 2] = -1.0
+        if o != o:  # NaN: leave it to the per-pixel tests
+            out[g, 0] = np.inf
+            continue
+        if o * 255.0 < 1.0:
+            out[g, 0] = -1.0
+            continue
+        smax = math.log(o * 255.0) + 1e-3
+        out[g, 0] = smax
+        a, b, c = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
+        det = a * c - b * b
+        if det > 0.0 and a > 0.0:
+            s_box = smax * (1.0 + 1e-3 + 2e-6 * (a + c) * (a + c) / det)
+            out[g, 1] = math.sqrt(2.0 * s_box * c / det) + 1e-3
+            out[g, 2] = math.sqrt(2.0 * s_box * a / det) + 1e-3
 
 
 @_jit_serial
-def _gather_tile(means2d, conics, opacities, feats, flat_ids, s, n, x0, y0):
-    """Copy tile Gaussians ``flat_ids[s:s + n]`` into contiguous arrays and cull them per SUB x SUB pixel block.
+def _gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, y0):
+    """Copy tile Gaussians ``flat_ids[s:s + n]`` into contiguous arrays and cull them per pixel block.
 
-    Returns gp [7, n] (mean x, mean y, conic a, b, c, opacity, sigma bound), gf [n, 4] and, per sub-block,
-    the depth-ordered local indices of the Gaussians that can reach it: sub_ids [NSUB * NSUB, n], sub_n [NSUB * NSUB].
-    Culling is conservative, so it changes no result: a Gaussian contributes to a pixel only if
-    ``o exp(-sigma) >= 1/255``, i.e. ``sigma <= log(255 o)``; the bound keeps a margin of 1e-3 above that (float32
-    exp and products err by ~1e-7), and the block test uses the bounding box of the ellipse at that level, widened
-    for the float32 rounding of sigma (see below) and by 1e-3 px.
+    Returns gp [7, n] (mean x, mean y, conic a, b, c, opacity, sigma bound), gf [n, 4] and, per block, the
+    depth-ordered local indices of the Gaussians whose box (:func:`cull_bounds`) reaches it: sub_ids [NSUB^2, n],
+    sub_n [NSUB^2].
     """
-    n_feat = feats.shape[1]
     gp = np.empty((7, n), np.float32)
-    gf = np.empty((n, n_feat), np.float32)
+    gf = np.empty((n, 4), np.float32)
     sub_ids = np.empty((NSUB * NSUB, n), np.int32)
     sub_n = np.zeros(NSUB * NSUB, np.int64)
     for k in range(n):
         g = flat_ids[s + k]
         mx = means2d[g, 0]
         my = means2d[g, 1]
-        a = conics[g, 0]
-        b = conics[g, 1]
-        c = conics[g, 2]
-        o = opacities[g]
         gp[0, k] = mx
         gp[1, k] = my
-        gp[2, k] = a
-        gp[3, k] = b
-        gp[4, k] = c
-        gp[5, k] = o
-        for f in range(n_feat):
+        gp[2, k] = conics[g, 0]
+        gp[3, k] = conics[g, 1]
+        gp[4, k] = conics[g, 2]
+        gp[5, k] = opacities[g]
+        gp[6, k] = bounds[g, 0]
+        for f in range(4):
             gf[k, f] = feats[g, f]
-        o64 = np.float64(o)
-        if not (o64 * 255.0 >= 1.0):  # never reaches alpha 1/255 (NaN-safe: NaN opacities are not culled here)
-            if o64 == o64:
-                gp[6, k] = np.float32(-1.0)
-                continue
-        smax = math.log(max(o64 * 255.0, 1.0)) + 1e-3
-        gp[6, k] = np.float32(smax) if o64 == o64 else np.float32(np.inf)
-        a64, b64, c64 = np.float64(a), np.float64(b), np.float64(c)
-        det = a64 * c64 - b64 * b64
+        if bounds[g, 0] < 0.0:
+            continue
+        rx = np.float64(bounds[g, 1])
+        ry = np.float64(bounds[g, 2])
         sx0, sx1, sy0, sy1 = 0, NSUB - 1, 0, NSUB - 1
-        if det > 0.0 and a64 > 0.0 and smax == smax:
-            # The kernels evaluate sigma in float32, whose error grows with the conic's condition: at most about
-            # 1e-6 * kappa * sigma with kappa = (a + c)^2 / det (~4 for round Gaussians, 1e5 for 300:1 needles).
-            s_box = smax * (1.0 + 1e-3 + 2e-6 * (a64 + c64) * (a64 + c64) / det)
-            rx = math.sqrt(2.0 * s_box * c64 / det) + 1e-3
-            ry = math.sqrt(2.0 * s_box * a64 / det) + 1e-3
+        if rx >= 0.0:
+            # block j spans pixel centres [x0 + SUB j, x0 + SUB j + SUB - 1]
             lo_x = (np.float64(mx) - rx - x0) / SUB
             hi_x = (np.float64(mx) + rx - x0) / SUB
             lo_y = (np.float64(my) - ry - y0) / SUB
             hi_y = (np.float64(my) + ry - y0) / SUB
-            # a block spans pixel centres [x0 + SUB j, x0 + SUB j + SUB - 1]
             sx0 = max(0, int(math.ceil(lo_x - (SUB - 1.0) / SUB))) if lo_x > -1.0 else 0
             sx1 = min(NSUB - 1, int(math.floor(hi_x))) if hi_x < NSUB else NSUB - 1
             sy0 = max(0, int(math.ceil(lo_y - (SUB - 1.0) / SUB))) if lo_y > -1.0 else 0
@@ -141,78 +182,110 @@ def _gather_tile(means2d, conics, opacities, feats, flat_ids, s, n, x0, y0):
 
 
 @_jit
-def composite_forward(means2d, conics, opacities, feats, offsets, flat_ids, order, tiles_x, width, height,
+def composite_forward(means2d, conics, opacities, feats, bounds, offsets, flat_ids, order, tiles_x, width, height,
                       out_feats, out_alpha, out_T, out_last):
     """Blend every tile front to back.
 
-    means2d [N, 2], conics [N, 3], opacities [N], feats [N, 4] (r, g, b, depth; float32); offsets [T + 1] and
-    flat_ids [M] (int64): tile t's depth-sorted Gaussians are ``flat_ids[offsets[t]:offsets[t + 1]]``; order [T]: the
-    tiles to run, heaviest first. Writes out_feats [H, W, 4] (accumulated features), out_alpha [H, W] (accumulated opacity), out_T [H, W]
-    (final transmittance) and out_last [H, W] int32 (how far the pixel walked through its sub-block's list).
+    means2d [N, 2], conics [N, 3], opacities [N], feats [N, 4] (r, g, b, depth), bounds [N, 3] (:func:`cull_bounds`),
+    all float32; offsets [T + 1] and flat_ids [M] (int64): tile t's depth-sorted Gaussians are
+    ``flat_ids[offsets[t]:offsets[t + 1]]``; order [T]: the tiles to run, heaviest first. Writes out_feats [H, W, 4]
+    (accumulated features), out_alpha [H, W] (accumulated opacity), out_T [H, W] (final transmittance) and out_last
+    [H, W] int32 (how far the pixel walked through its block's list).
+
+    The 16 pixels of a block advance through the block's list together, branch-free (one SIMD batch); a pixel
+    whose compositing has stopped is masked out, and the block stops when all its pixels have.
     """
     for i in prange(order.shape[0]):
         t = order[i]
         ty = t // tiles_x
         tx = t - ty * tiles_x
         s = offsets[t]
-        n = offsets[t + 1] - s
-        gp, gf, sub_ids, sub_n = _gather_tile(means2d, conics, opacities, feats, flat_ids, s, n,
-                                              tx * TILE, ty * TILE)
-        for py in range(TILE):
-            y = ty * TILE + py
-            if y >= height:
-                break
-            fy = np.float32(y)
-            for px in range(TILE):
-                x = tx * TILE + px
-                if x >= width:
+        gp, gf, sub_ids, sub_n = _gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s,
+                                              offsets[t + 1] - s, tx * TILE, ty * TILE)
+        lx = np.empty(NP, np.float32)
+        ly = np.empty(NP, np.float32)
+        live = np.empty(NP, np.bool_)
+        T = np.empty(NP, np.float32)
+        a0 = np.empty(NP, np.float32)
+        a1 = np.empty(NP, np.float32)
+        a2 = np.empty(NP, np.float32)
+        a3 = np.empty(NP, np.float32)
+        wsum = np.empty(NP, np.float32)
+        walked = np.empty(NP, np.int32)
+        for sb in range(NSUB * NSUB):
+            bx0 = tx * TILE + (sb % NSUB) * SUB
+            by0 = ty * TILE + (sb // NSUB) * SUB
+            n_live = 0
+            for p in range(NP):
+                x = bx0 + p % SUB
+                y = by0 + p // SUB
+                lx[p] = np.float32(x)
+                ly[p] = np.float32(y)
+                live[p] = x < width and y < height
+                n_live += 1 if live[p] else 0
+                T[p] = ONE
+                a0[p] = ZERO
+                a1[p] = ZERO
+                a2[p] = ZERO
+                a3[p] = ZERO
+                wsum[p] = ZERO
+                walked[p] = 0
+            if n_live == 0:
+                continue
+            for j in range(sub_n[sb]):
+                k = sub_ids[sb, j]
+                mx, my, ca, cb, cc = gp[0, k], gp[1, k], gp[2, k], gp[3, k], gp[4, k]
+                o, smax = gp[5, k], gp[6, k]
+                f0, f1, f2, f3 = gf[k, 0], gf[k, 1], gf[k, 2], gf[k, 3]
+                stopped = 0
+                for p in range(NP):
+                    dx = lx[p] - mx
+                    dy = ly[p] - my
+                    sigma = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    alpha = min(ALPHA_MAX, o * exp_neg(sigma))
+                    Tp = T[p]
+                    next_T = Tp * (ONE - alpha)
+                    use = live[p] & (sigma >= ZERO) & (sigma <= smax) & (alpha >= ALPHA_MIN)
+                    stop = use & (next_T <= T_MIN)  # this Gaussian is not blended, and nothing after it
+                    blend = use & (next_T > T_MIN)
+                    w = alpha * Tp if blend else ZERO
+                    a0[p] += w * f0
+                    a1[p] += w * f1
+                    a2[p] += w * f2
+                    a3[p] += w * f3
+                    wsum[p] += w
+                    T[p] = next_T if blend else Tp
+                    walked[p] = np.int32(j + 1) if blend else walked[p]
+                    live[p] = live[p] & ~stop
+                    stopped += 1 if stop else 0
+                n_live -= stopped
+                if n_live == 0:
                     break
-                fx = np.float32(x)
-                sb = (py // SUB) * NSUB + px // SUB
-                acc0 = ZERO
-                acc1 = ZERO
-                acc2 = ZERO
-                acc3 = ZERO
-                T = ONE
-                wsum = ZERO
-                walked = 0
-                for j in range(sub_n[sb]):
-                    k = sub_ids[sb, j]
-                    dx = fx - gp[0, k]
-                    dy = fy - gp[1, k]
-                    sigma = HALF * (gp[2, k] * dx * dx + gp[4, k] * dy * dy) + gp[3, k] * dx * dy
-                    if sigma < ZERO or sigma > gp[6, k]:
-                        continue
-                    alpha = min(ALPHA_MAX, gp[5, k] * math.exp(-sigma))
-                    if alpha < ALPHA_MIN:
-                        continue
-                    next_T = T * (ONE - alpha)
-                    if next_T <= T_MIN:
-                        break
-                    w = alpha * T
-                    acc0 += w * gf[k, 0]
-                    acc1 += w * gf[k, 1]
-                    acc2 += w * gf[k, 2]
-                    acc3 += w * gf[k, 3]
-                    wsum += w
-                    T = next_T
-                    walked = j + 1
-                out_feats[y, x, 0] = acc0
-                out_feats[y, x, 1] = acc1
-                out_feats[y, x, 2] = acc2
-                out_feats[y, x, 3] = acc3
-                out_alpha[y, x] = wsum  # = 1 - T up to rounding; summed like the reference
-                out_T[y, x] = T
-                out_last[y, x] = walked
+            for p in range(NP):
+                x = bx0 + p % SUB
+                y = by0 + p // SUB
+                if x < width and y < height:
+                    out_feats[y, x, 0] = a0[p]
+                    out_feats[y, x, 1] = a1[p]
+                    out_feats[y, x, 2] = a2[p]
+                    out_feats[y, x, 3] = a3[p]
+                    out_alpha[y, x] = wsum[p]  # = 1 - T up to rounding; summed like the reference
+                    out_T[y, x] = T[p]
+                    out_last[y, x] = walked[p]
 
 
 @_jit
-def composite_backward(means2d, conics, opacities, feats, offsets, flat_ids, order, tiles_x, width, height,
+def composite_backward(means2d, conics, opacities, feats, bounds, offsets, flat_ids, order, tiles_x, width, height,
                        final_T, last, grad_feats, grad_alpha, v_isect):
     """Back-to-front gradients of ``composite_forward``.
 
     grad_feats [H, W, 4], grad_alpha [H, W]: gradients of the accumulated outputs. Writes v_isect [M, 10], one row
     per intersection: d/d(mean x, mean y, conic a, conic b, conic c, opacity, r, g, b, depth).
+
+    Per pixel this is gsplat's backward: start from the final transmittance, walk the blended Gaussians back to
+    front, recover each one's transmittance as ``T / (1 - alpha)`` and keep the running sums of what lies behind.
+    The 16 pixels of a block run as one branch-free SIMD batch; their per-Gaussian gradients are summed in a fixed
+    pairwise order (so the result does not depend on the vector width).
     """
     for i in prange(order.shape[0]):
         t = order[i]
@@ -220,79 +293,109 @@ def composite_backward(means2d, conics, opacities, feats, offsets, flat_ids, ord
         tx = t - ty * tiles_x
         s = offsets[t]
         n = offsets[t + 1] - s
-        gp, gf, sub_ids, sub_n = _gather_tile(means2d, conics, opacities, feats, flat_ids, s, n,
+        gp, gf, sub_ids, sub_n = _gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n,
                                               tx * TILE, ty * TILE)
-        # this tile's rows of v_isect: accumulated over its pixels, written once
-        v = np.zeros((n, 10), np.float32)
-        for py in range(TILE):
-            y = ty * TILE + py
-            if y >= height:
-                break
-            fy = np.float32(y)
-            for px in range(TILE):
-                x = tx * TILE + px
-                if x >= width:
-                    break
-                walked = last[y, x]
-                if walked == 0:
-                    continue
-                fx = np.float32(x)
-                sb = (py // SUB) * NSUB + px // SUB
-                T_final = final_T[y, x]
-                T = T_final
-                g_a = grad_alpha[y, x]
-                buf0 = ZERO
-                buf1 = ZERO
-                buf2 = ZERO
-                buf3 = ZERO
-                go0 = grad_feats[y, x, 0]
-                go1 = grad_feats[y, x, 1]
-                go2 = grad_feats[y, x, 2]
-                go3 = grad_feats[y, x, 3]
-                for j in range(walked - 1, -1, -1):
-                    k = sub_ids[sb, j]
-                    dx = fx - gp[0, k]
-                    dy = fy - gp[1, k]
-                    a = gp[2, k]
-                    b = gp[3, k]
-                    c = gp[4, k]
-                    sigma = HALF * (a * dx * dx + c * dy * dy) + b * dx * dy
-                    if sigma < ZERO or sigma > gp[6, k]:
-                        continue
-                    vis = math.exp(-sigma)
-                    o_vis = gp[5, k] * vis
+        v = np.zeros((n, 10), np.float32)  # this tile's rows of v_isect, written once at the end
+        lx = np.empty(NP, np.float32)
+        ly = np.empty(NP, np.float32)
+        walked = np.empty(NP, np.int32)
+        T = np.empty(NP, np.float32)
+        T_final = np.empty(NP, np.float32)
+        g_a = np.empty(NP, np.float32)
+        g0 = np.empty(NP, np.float32)
+        g1 = np.empty(NP, np.float32)
+        g2 = np.empty(NP, np.float32)
+        g3 = np.empty(NP, np.float32)
+        b0 = np.empty(NP, np.float32)
+        b1 = np.empty(NP, np.float32)
+        b2 = np.empty(NP, np.float32)
+        b3 = np.empty(NP, np.float32)
+        dv = np.empty((10, NP), np.float32)
+        for sb in range(NSUB * NSUB):
+            bx0 = tx * TILE + (sb % NSUB) * SUB
+            by0 = ty * TILE + (sb // NSUB) * SUB
+            j_end = 0
+            for p in range(NP):
+                x = bx0 + p % SUB
+                y = by0 + p // SUB
+                lx[p] = np.float32(x)
+                ly[p] = np.float32(y)
+                b0[p] = ZERO
+                b1[p] = ZERO
+                b2[p] = ZERO
+                b3[p] = ZERO
+                if x < width and y < height:
+                    walked[p] = last[y, x]
+                    T[p] = final_T[y, x]
+                    g_a[p] = grad_alpha[y, x]
+                    g0[p] = grad_feats[y, x, 0]
+                    g1[p] = grad_feats[y, x, 1]
+                    g2[p] = grad_feats[y, x, 2]
+                    g3[p] = grad_feats[y, x, 3]
+                else:
+                    walked[p] = 0
+                    T[p] = ONE
+                    g_a[p] = ZERO
+                    g0[p] = ZERO
+                    g1[p] = ZERO
+                    g2[p] = ZERO
+                    g3[p] = ZERO
+                T_final[p] = T[p]
+                j_end = max(j_end, walked[p])
+            for j in range(j_end - 1, -1, -1):
+                k = sub_ids[sb, j]
+                mx, my, ca, cb, cc = gp[0, k], gp[1, k], gp[2, k], gp[3, k], gp[4, k]
+                o, smax = gp[5, k], gp[6, k]
+                f0, f1, f2, f3 = gf[k, 0], gf[k, 1], gf[k, 2], gf[k, 3]
+                n_use = 0
+                for p in range(NP):
+                    dx = lx[p] - mx
+                    dy = ly[p] - my
+                    sigma = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                    vis = exp_neg(sigma)
+                    o_vis = o * vis
                     alpha = min(ALPHA_MAX, o_vis)
-                    if alpha < ALPHA_MIN:
-                        continue
+                    use = (j < walked[p]) & (sigma >= ZERO) & (sigma <= smax) & (alpha >= ALPHA_MIN)
                     ra = ONE / (ONE - alpha)
-                    T = T * ra  # transmittance in front of Gaussian k
-                    fac = alpha * T
-                    f0 = gf[k, 0]
-                    f1 = gf[k, 1]
-                    f2 = gf[k, 2]
-                    f3 = gf[k, 3]
-                    v[k, 6] += fac * go0
-                    v[k, 7] += fac * go1
-                    v[k, 8] += fac * go2
-                    v[k, 9] += fac * go3
-                    v_alpha = T_final * ra * g_a + (f0 * T - buf0 * ra) * go0 + (f1 * T - buf1 * ra) * go1 \
-                        + (f2 * T - buf2 * ra) * go2 + (f3 * T - buf3 * ra) * go3
-                    buf0 += f0 * fac
-                    buf1 += f1 * fac
-                    buf2 += f2 * fac
-                    buf3 += f3 * fac
-                    if o_vis <= ALPHA_MAX:  # the clamp passes no gradient
-                        v_sigma = -o_vis * v_alpha
-                        # d sigma / d mean = -(conic @ (pixel - mean))
-                        v[k, 0] -= v_sigma * (a * dx + b * dy)
-                        v[k, 1] -= v_sigma * (b * dx + c * dy)
-                        v[k, 2] += HALF * v_sigma * dx * dx
-                        v[k, 3] += v_sigma * dx * dy
-                        v[k, 4] += HALF * v_sigma * dy * dy
-                        v[k, 5] += vis * v_alpha
+                    Tk = T[p] * ra  # transmittance in front of Gaussian k
+                    fac = alpha * Tk
+                    v_alpha = T_final[p] * ra * g_a[p] + (f0 * Tk - b0[p] * ra) * g0[p] \
+                        + (f1 * Tk - b1[p] * ra) * g1[p] + (f2 * Tk - b2[p] * ra) * g2[p] \
+                        + (f3 * Tk - b3[p] * ra) * g3[p]
+                    # the alpha clamp passes no gradient to opacity and sigma
+                    v_sigma = -o_vis * v_alpha if use & (o_vis <= ALPHA_MAX) else ZERO
+                    # d sigma / d mean = -(conic @ (pixel - mean))
+                    dv[0, p] = -v_sigma * (ca * dx + cb * dy)
+                    dv[1, p] = -v_sigma * (cb * dx + cc * dy)
+                    dv[2, p] = HALF * v_sigma * dx * dx
+                    dv[3, p] = v_sigma * dx * dy
+                    dv[4, p] = HALF * v_sigma * dy * dy
+                    dv[5, p] = vis * v_alpha if use & (o_vis <= ALPHA_MAX) else ZERO
+                    fac = fac if use else ZERO
+                    dv[6, p] = fac * g0[p]
+                    dv[7, p] = fac * g1[p]
+                    dv[8, p] = fac * g2[p]
+                    dv[9, p] = fac * g3[p]
+                    b0[p] += f0 * fac
+                    b1[p] += f1 * fac
+                    b2[p] += f2 * fac
+                    b3[p] += f3 * fac
+                    T[p] = Tk if use else T[p]
+                    n_use += 1 if use else 0
+                if n_use == 0:  # most of a block's list misses most of its pixels
+                    continue
+                # pairwise sum over the block's pixels: 16 -> 8 -> 4 -> 2 -> 1
+                h = NP // 2
+                while h > 0:
+                    for c in range(10):
+                        for p in range(h):
+                            dv[c, p] += dv[c, p + h]
+                    h //= 2
+                for c in range(10):
+                    v[k, c] += dv[c, 0]
         for k in range(n):
-            for j in range(10):
-                v_isect[s + k, j] = v[k, j]
+            for c in range(10):
+                v_isect[s + k, c] = v[k, c]
 
 
 @_jit_serial

@@ -20,7 +20,7 @@ import torch
 
 from ..camera import Camera
 from .base import RenderOutput, TileRenderer, finish
-from .projection import TILE, Projection, TileBins, project
+from .projection import EPS2D, NEAR, TILE, Projection, TileBins, world_to_cam
 
 _warm_seconds: float | None = None
 
@@ -29,6 +29,11 @@ def _kernels():
     """Import (and so JIT-load) the kernels lazily: ``import eligsir_o3d.render`` must not pay numba's start-up."""
     from . import _cpu_kernels
     return _cpu_kernels
+
+
+def _proj_kernels():
+    from . import _cpu_projection
+    return _cpu_projection
 
 
 def warmup() -> float:
@@ -51,12 +56,22 @@ def warmup() -> float:
         h, w = 8, 8
         out_f, out_a = np.empty((h, w, 4), f32), np.empty((h, w), f32)
         out_T, out_last = np.empty((h, w), f32), np.empty((h, w), np.int32)
+        bounds = np.empty((1, 3), f32)
         k.bin_tiles_csr(means2d, np.array([2], np.int32), np.ones(1, f32), 1, 1)
-        k.run(k.composite_forward, means2d, conics, opac, feats, offsets, ids, order, 1, w, h,
+        k.cull_bounds(conics, opac, bounds)
+        k.run(k.composite_forward, means2d, conics, opac, feats, bounds, offsets, ids, order, 1, w, h,
               out_f, out_a, out_T, out_last)
         v = np.empty((1, 10), f32)
-        k.run(k.composite_backward, means2d, conics, opac, feats, offsets, ids, order, 1, w, h, out_T, out_last,
-              np.ones((h, w, 4), f32), np.ones((h, w), f32), v)
+        k.run(k.composite_backward, means2d, conics, opac, feats, bounds, offsets, ids, order, 1, w, h,
+              out_T, out_last, np.ones((h, w, 4), f32), np.ones((h, w), f32), v)
+        pk = _proj_kernels()
+        V, cam = np.eye(4), np.array([5.0, 5.0, 4.0, 4.0, 8, 8, NEAR, EPS2D])
+        means = np.array([[0.0, 0.0, 2.0]], f32)
+        quats, scales = np.array([[1.0, 0, 0, 0]], f32), np.full((1, 3), 0.1, f32)
+        radii = np.empty(1, np.int32)
+        pk.project_forward(means, quats, scales, V, cam, means2d, conics, opac, radii)
+        pk.project_backward(means, quats, scales, V, cam, means2d, conics, opac, means.copy(), quats.copy(),
+                            scales.copy())
         _warm_seconds = time.perf_counter() - t0
     return _warm_seconds
 
@@ -73,21 +88,23 @@ class _Composite(torch.autograd.Function):
         k = _kernels()
         m, c, o, f = _f32(means2d), _f32(conics), _f32(opacities), _f32(feats)
         n_feat = f.shape[1]
+        bounds = torch.empty(m.shape[0], 3, dtype=torch.float32)
+        k.cull_bounds(c.numpy(), o.numpy(), bounds.numpy())
         out_feats = torch.empty(height, width, n_feat, dtype=torch.float32)
         out_alpha = torch.empty(height, width, dtype=torch.float32)
         out_T = torch.empty(height, width, dtype=torch.float32)
         out_last = torch.empty(height, width, dtype=torch.int32)
-        k.run(k.composite_forward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), offsets.numpy(), flat_ids.numpy(),
-              order.numpy(), tiles_x, width, height,
+        k.run(k.composite_forward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
+              flat_ids.numpy(), order.numpy(), tiles_x, width, height,
               out_feats.numpy(), out_alpha.numpy(), out_T.numpy(), out_last.numpy())
-        ctx.save_for_backward(m, c, o, f, offsets, flat_ids, order, out_T, out_last)
+        ctx.save_for_backward(m, c, o, f, bounds, offsets, flat_ids, order, out_T, out_last)
         ctx.meta = (tiles_x, width, height, [means2d.dtype, conics.dtype, opacities.dtype, feats.dtype])
         return out_feats.to(feats.dtype), out_alpha.to(feats.dtype)
 
     @staticmethod
     def backward(ctx, grad_feats, grad_alpha):
         k = _kernels()
-        m, c, o, f, offsets, flat_ids, order, out_T, out_last = ctx.saved_tensors
+        m, c, o, f, bounds, offsets, flat_ids, order, out_T, out_last = ctx.saved_tensors
         tiles_x, width, height, dtypes = ctx.meta
         n, n_feat = f.shape
         if grad_feats is None:
@@ -95,13 +112,53 @@ class _Composite(torch.autograd.Function):
         if grad_alpha is None:
             grad_alpha = torch.zeros(height, width)
         v_isect = torch.empty(flat_ids.shape[0], 6 + n_feat, dtype=torch.float32)
-        k.run(k.composite_backward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), offsets.numpy(), flat_ids.numpy(),
-              order.numpy(), tiles_x, width, height, out_T.numpy(), out_last.numpy(),
+        k.run(k.composite_backward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
+              flat_ids.numpy(), order.numpy(), tiles_x, width, height, out_T.numpy(), out_last.numpy(),
               _f32(grad_feats).numpy(), _f32(grad_alpha).numpy(), v_isect.numpy())
         v = torch.zeros(n, 6 + n_feat, dtype=torch.float32).index_add_(0, flat_ids, v_isect)
         grads = (v[:, 0:2], v[:, 2:5], v[:, 5], v[:, 6:])
         grads = tuple(g.to(dt) for g, dt in zip(grads, dtypes))
         return grads + (None,) * 6
+
+
+class _Project(torch.autograd.Function):
+    """(means [N,3], quats [N,4], scales [N,3]) -> (means2d [N,2], conics [N,3], depths [N], radii [N] int32)."""
+
+    @staticmethod
+    def forward(ctx, means, quats, scales, V, cam):
+        pk = _proj_kernels()
+        m, q, s = _f32(means), _f32(quats), _f32(scales)
+        n = m.shape[0]
+        means2d, conics = torch.empty(n, 2), torch.empty(n, 3)
+        depths, radii = torch.empty(n), torch.empty(n, dtype=torch.int32)
+        pk.project_forward(m.numpy(), q.numpy(), s.numpy(), V, cam, means2d.numpy(), conics.numpy(), depths.numpy(),
+                           radii.numpy())
+        ctx.save_for_backward(m, q, s)
+        ctx.V, ctx.cam, ctx.dtypes = V, cam, (means.dtype, quats.dtype, scales.dtype)
+        ctx.mark_non_differentiable(radii)
+        dt = means.dtype
+        return means2d.to(dt), conics.to(dt), depths.to(dt), radii
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_depths, _g_radii):
+        pk = _proj_kernels()
+        m, q, s = ctx.saved_tensors
+        n = m.shape[0]
+        grads = [g if g is not None else torch.zeros(shape) for g, shape in
+                 ((g_means2d, (n, 2)), (g_conics, (n, 3)), (g_depths, (n,)))]
+        v_means, v_quats, v_scales = torch.empty(n, 3), torch.empty(n, 4), torch.empty(n, 3)
+        pk.project_backward(m.numpy(), q.numpy(), s.numpy(), ctx.V, ctx.cam, *(_f32(g).numpy() for g in grads),
+                            v_means.numpy(), v_quats.numpy(), v_scales.numpy())
+        return tuple(v.to(dt) for v, dt in zip((v_means, v_quats, v_scales), ctx.dtypes)) + (None, None)
+
+
+def project_cpu(means, quats, scales, camera: Camera, T_world_cam) -> Projection:
+    """:func:`.projection.project` in compiled code (forward and backward); same values up to float32 rounding."""
+    # the reference rounds the world-to-camera matrix to the parameters' dtype: do the same
+    V = world_to_cam(T_world_cam, "cpu", torch.float32).double().numpy()
+    cam = np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, NEAR, EPS2D], np.float64)
+    means2d, conics, depths, radii = _Project.apply(means, quats, scales, V, cam)
+    return Projection(means2d, conics, depths, radii)
 
 
 def tile_lists(bins: TileBins) -> tuple[torch.Tensor, torch.Tensor]:
@@ -147,7 +204,7 @@ class CpuRenderer(TileRenderer):
         """means [N, 3], quats [N, 4] wxyz, scales [N, 3] metres, opacities [N] in (0, 1), colors [N, 3]."""
         _check_shapes(means, quats, scales, opacities, colors)
         warmup()
-        proj = project(means, quats, scales, camera, T_world_cam)
+        proj = project_cpu(means, quats, scales, camera, T_world_cam)
         offsets, flat, tiles_x = bin_tiles_csr(proj, camera.width, camera.height)
         color_acc, depth_acc, alpha_acc = self._composite(proj, opacities, colors, offsets, flat, tiles_x,
                                                           camera.width, camera.height)
