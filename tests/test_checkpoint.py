@@ -92,6 +92,22 @@ def test_round_trip_renders_and_continues_identically(tmp_path, seq, frames, abl
     _assert_same_state(a, b)
 
 
+@pytest.mark.xfail(strict=True, reason="issue-5 policies: MapGuidedViews.state_dict() lacks _since_refresh, active and "
+                   "each view's priority/last_error (load_state_dict recomputes them by refresh()); LoadAdaptiveFidelity"
+                   ".state_dict() lacks _obs_here and _before - the drain then picks other views than an unbroken run")
+def test_drain_after_resume_continues_identically(tmp_path, seq, frames):
+    """Updates without new frames (finalize's drain, idle time) replay views chosen from the active set and
+    priorities of the last refresh: a resumed run must hold the same ones (7-Scenes diverged 2 frames after)."""
+    a = _rec(seq, seed=3)
+    a.config.views.active_size = 2  # fewer active than retained views, so the active set matters
+    for f in frames[:7]:
+        a.integrate(f, updates=3)
+    b = _deterministic(load_checkpoint(save_checkpoint(a, tmp_path / "ck.pt")))
+    a.optimize(12)
+    b.optimize(12)
+    _assert_same_state(a, b)
+
+
 def test_views_are_stored_compactly_or_as_sequence_references(tmp_path, seq, frames):
     rec = _rec(seq, ("fidelity",))
     for f in frames[:6]:
