@@ -126,6 +126,29 @@ def render_mesh_png(mesh_path: Path, png: Path, T_world_cam: np.ndarray, camera)
     o3d.t.io.write_image(str(png), o3d.t.geometry.Image(o3d.core.Tensor((img * 255).astype(np.uint8))))
 
 
+def geometry_vs_sensor(data: str, frames: int, mesh_path: Path, cloud_path: Path) -> dict:
+    """Distances (m) between the exported geometry and the held-out frames' sensor depth, back-projected."""
+    import open3d as o3d
+
+    from eligsir_o3d.datasets import open_sequence
+
+    seq = open_sequence(data)
+    pts = []
+    for i in (i for i in range(min(len(seq), frames)) if i % 8 == 4):
+        f = seq.frame(i, depth_max=4.0)
+        p, _ = f.camera.backproject(f.depth, stride=4)
+        pts.append(p.numpy() @ f.T_world_cam[:3, :3].T + f.T_world_cam[:3, 3])
+    sensor = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.concatenate(pts))).voxel_down_sample(0.01)
+    mesh_pts = o3d.io.read_triangle_mesh(str(mesh_path)).sample_points_uniformly(200000)
+    cloud = o3d.io.read_point_cloud(str(cloud_path))
+    out = {}
+    for name, a, b in (("mesh_to_sensor", mesh_pts, sensor), ("sensor_to_mesh", sensor, mesh_pts),
+                       ("cloud_to_sensor", cloud, sensor)):
+        d = np.asarray(a.compute_point_cloud_distance(b))
+        out[name] = {"mean": float(d.mean()), "median": float(np.median(d)), "p90": float(np.percentile(d, 90))}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default="../shared/data/7scenes_redkitchen_jpg1000")
@@ -200,6 +223,7 @@ def main() -> None:
     eye = centre + 1.5 * (centres.mean(0) - centre) + 1.0 * up  # behind and above the cameras
     render_mesh_png(args.out / "mesh.ply", args.out / "mesh_overview.png", look_at(eye, centre, up=up), cam)
 
+    geometry = geometry_vs_sensor(args.data, args.frames, args.out / "mesh.ply", args.out / "cloud.ply")
     results = {
         "data": args.data, "frames": args.frames, "updates_per_frame": args.updates,
         "checkpoint_every_source_frames": args.every, "killed_after_source_frames": args.kill_at,
@@ -207,7 +231,7 @@ def main() -> None:
         "reference": a, "resumed": b, "params_identical": identical,
         "psnr_difference_db": b["heldout_psnr"] - a["heldout_psnr"],
         "wall_s": {"reference": ref_s, "killed": killed_s, "resume": resumed_s, "export": export_s},
-        "export": exp,
+        "export": exp, "geometry_vs_heldout_sensor_depth_m": geometry,
     }
     (args.out / "results.json").write_text(json.dumps(results, indent=1))
     ck = b["checkpoints"]  # the resumed process's own saves (those of the killed one are in killed.log)
@@ -228,6 +252,11 @@ def main() -> None:
           f"- wall time: reference {ref_s:.0f} s, killed run {killed_s:.0f} s, resumed run {resumed_s:.0f} s",
           f"- export: {exp['views']} views ({exp['view_source']}), mesh {exp['vertices']} vertices / "
           f"{exp['triangles']} triangles, cloud {exp['points']} points, {export_s:.1f} s",
+          "- exported geometry vs held-out sensor depth (median / p90, cm): mesh->sensor "
+          f"{100 * geometry['mesh_to_sensor']['median']:.1f} / {100 * geometry['mesh_to_sensor']['p90']:.1f}, "
+          f"sensor->mesh {100 * geometry['sensor_to_mesh']['median']:.1f} / "
+          f"{100 * geometry['sensor_to_mesh']['p90']:.1f}, cloud->sensor "
+          f"{100 * geometry['cloud_to_sensor']['median']:.1f} / {100 * geometry['cloud_to_sensor']['p90']:.1f}",
           f"- peak RSS: reference {a['peak_rss_mb']:.0f} MB, resumed {b['peak_rss_mb']:.0f} MB"]
     (args.out / "summary.md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
