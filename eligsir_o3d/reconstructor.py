@@ -37,6 +37,7 @@ class MappingStats:
     mapping_s: float = 0.0
     tracking_s: float = 0.0
     excluded_s: float = 0.0  # wall time spent in callbacks (held-out evaluation), excluded from mapping time
+    last_timestamp: float | None = None  # of the last integrated frame: timestamps must increase
 
     @property
     def supervised_mpix(self) -> float:
@@ -81,6 +82,7 @@ class Reconstructor:
         """
         t0 = time.perf_counter()
         frame = self._to_frame(rgbd, pose, timestamp)
+        self.stats.last_timestamp = frame.timestamp
         self.stats.frames_released += 1
         self.ctx.frames_released = self.stats.frames_released
         admitted = self.views.admit(frame, self.ctx)
@@ -174,6 +176,10 @@ class Reconstructor:
                 frame.T_world_cam = self._track(frame)
         if frame.camera != self.camera:
             raise FrameError(f"frame {frame.index}: camera {frame.camera} differs from the reconstructor's {self.camera}")
+        last = self.stats.last_timestamp
+        if last is not None and not frame.timestamp > last:
+            raise FrameError(f"frame {frame.index}: timestamp {frame.timestamp:g} s is not after the previous "
+                             f"frame's {last:g} s (timestamps must increase)")
         return frame
 
     def _checked(self, pose, index: int) -> np.ndarray:

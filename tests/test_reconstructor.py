@@ -34,7 +34,8 @@ def _legacy_rgbd(shift=0):
 
 
 def _rec(seed=0, **kw):
-    cfg = eo3d.Config(renderer="torch", seed=seed, **kw)
+    # the plain policies: every frame kept, native resolution, new-space seeding (exact, easy-to-count behaviour)
+    cfg = eo3d.Config(renderer="torch", seed=seed, ablate=("scheduling", "fidelity", "growth"), **kw)
     cfg.stride.every = 1
     cfg.seeding.stride = 3
     cfg.optim.updates_per_frame = 6

@@ -50,10 +50,11 @@ class StrideKeyframes(ViewPolicy):
         return self._views
 
     def state_dict(self) -> dict:
-        return {"released": self._released}
+        return {"released": self._released, "views": list(self._views)}
 
     def load_state_dict(self, state: dict) -> None:
         self._released = int(state.get("released", 0))
+        self._views = list(state.get("views", []))
 
 
 class FixedFidelity(FidelityPolicy):
