@@ -146,8 +146,9 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
             except (FrameError, ValueError, OSError) as e:
                 if opts.on_bad_frame == "stop":
                     raise
-                log.warning("skipping frame %d: %s", i, e)
-                skipped.append(f"frame {i}: {e}")
+                msg = str(e) if str(e).startswith(f"frame {i}") else f"frame {i}: {e}"
+                log.warning("skipping %s", msg)
+                skipped.append(msg)
                 continue
             trajectory[i] = (frame.timestamp, frame.T_world_cam)
             yield frame
@@ -171,7 +172,9 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
 
     rec.save_ply(out / "map.ply")
     _write_trajectory(out / "trajectory.txt", trajectory)
-    config.save(out / "config.json")
+    cam = rec.camera
+    (out / "config.json").write_text(json.dumps({**config.to_dict(), "camera": {
+        "width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy}}, indent=2))
     acq = _acquisition_time(seq, n)
     if clock.name == "realtime":
         mapping_s = wall_s  # the mapper's elapsed time against the wall clock (tracking and decoding included)

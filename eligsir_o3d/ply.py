@@ -6,6 +6,7 @@ scale, wxyz quaternion, f_rest stored channel-major (all R coefficients, then G,
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -38,8 +39,11 @@ def save_ply(gmap: GaussianMap, path: str | Path) -> Path:
     for name, v in cols:
         arr[name] = v
     tmp = path.with_name(path.name + ".tmp")
-    PlyData([PlyElement.describe(arr, "vertex")]).write(str(tmp))
-    tmp.replace(path)  # atomic: a crash mid-write leaves the previous file intact
+    with open(tmp, "wb") as f:
+        PlyData([PlyElement.describe(arr, "vertex")], comments=[f"sh_degree {gmap.sh_degree}"]).write(f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)  # atomic: a crash mid-write leaves the previous file intact
     return path
 
 
@@ -51,7 +55,7 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu", lrs=None) -> 
     if not path.is_file():
         raise PlyError(f"{path}: no such file")
     try:
-        ply = PlyData.read(str(path))
+        ply = PlyData.read(str(path), mmap=False)
         v = ply["vertex"]
     except Exception as e:  # plyfile raises several types on malformed input
         raise PlyError(f"{path}: not a readable PLY with a 'vertex' element ({e})") from None

@@ -69,9 +69,7 @@ def _assert_same_state(a, b):
 @pytest.mark.parametrize("ablate", [
     (),
     ("fidelity",),
-    pytest.param(PLAIN, marks=pytest.mark.xfail(
-        strict=True, raises=CheckpointError,
-        reason="StrideKeyframes.state_dict() does not include its retained views yet (lead: add them)")),
+    PLAIN,
 ], ids=["eligsir", "no-fidelity", "plain"])
 def test_round_trip_renders_and_continues_identically(tmp_path, seq, frames, ablate):
     a = _rec(seq, ablate, seed=3)
