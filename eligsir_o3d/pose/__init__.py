@@ -1,0 +1,74 @@
+"""Pose sources: where each frame's camera-to-world pose comes from, and how good a trajectory is.
+
+``get_pose_source(spec)`` builds one from a short name or a path:
+
+=================  =========================================================================  ==========
+spec               source                                                                     causal
+=================  =========================================================================  ==========
+``gt``             the dataset's own poses (ground truth)                                     yes
+``odometry``       Open3D RGB-D odometry, frame-to-model against a small TSDF (odometry.py)   yes
+``kiss-icp``       kiss-icp frame-to-map ICP on depth points (kiss.py; needs kiss-icp)       yes
+``colmap``         pycolmap SfM over the colour images, scaled by depth (colmap.py)           no: runs in
+                                                                                              ``prepare``,
+                                                                                              before mapping
+a file path        a TUM trajectory file, matched by timestamp (trajectory.py)                yes
+a folder path      an existing COLMAP model (cameras/images/points3D .bin or .txt)            no
+=================  =========================================================================  ==========
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from .accuracy import plot_trajectories, trajectory_accuracy, umeyama_alignment
+from .base import PoseSource, TrackingLost
+from .trajectory import GroundTruthSource, TrajectoryFileSource, read_tum_trajectory, write_tum_trajectory
+
+POSE_SOURCES = ("gt", "odometry", "kiss-icp", "colmap")
+
+__all__ = ["PoseSource", "TrackingLost", "get_pose_source", "read_tum_trajectory", "write_tum_trajectory",
+           "trajectory_accuracy", "umeyama_alignment", "plot_trajectories", "POSE_SOURCES"]
+
+
+def is_colmap_model(path: Path) -> bool:
+    """A folder holding a COLMAP sparse model (binary or text), directly or in ``sparse/0`` or ``0``."""
+    from .colmap import find_model_dir
+
+    return find_model_dir(path) is not None
+
+
+def get_pose_source(spec: str | Path, *, sequence: Any = None, **options) -> PoseSource:
+    """A pose source from a name (``gt``, ``odometry``, ``kiss-icp``, ``colmap``) or a path.
+
+    ``sequence`` is kept for ``prepare()``; ``options`` go to the source's constructor (see each class). Call
+    ``src.prepare(sequence)`` once before the first ``track``: offline sources (colmap) do their work there.
+    """
+    key = str(spec).strip()
+    low = key.lower()
+    if low in ("gt", "groundtruth", "ground-truth", "ground_truth"):
+        return GroundTruthSource(sequence=sequence, **options)
+    if low in ("odometry", "o3d", "open3d"):
+        from .odometry import OdometrySource
+
+        return OdometrySource(sequence=sequence, **options)
+    if low in ("kiss-icp", "kiss_icp", "kiss", "kissicp"):
+        from .kiss import KissICPSource
+
+        return KissICPSource(sequence=sequence, **options)
+    if low in ("colmap", "pycolmap", "sfm"):
+        from .colmap import ColmapSource
+
+        return ColmapSource(sequence=sequence, **options)
+    path = Path(key).expanduser()
+    if path.is_dir():
+        if not is_colmap_model(path):
+            raise ValueError(f"pose source {key!r}: folder holds no COLMAP model (cameras, images and points3D "
+                             f".bin or .txt, directly or under sparse/0)")
+        from .colmap import ColmapSource
+
+        return ColmapSource(sequence=sequence, model=path, **options)
+    if path.is_file():
+        return TrajectoryFileSource(path, sequence=sequence, **options)
+    raise ValueError(f"unknown pose source {key!r}: use one of {', '.join(POSE_SOURCES)}, a TUM trajectory file "
+                     f"or a COLMAP model folder (no such file or folder: {path})")

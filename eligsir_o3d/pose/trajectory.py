@@ -1,0 +1,113 @@
+"""Poses given, not estimated: the dataset's ground truth, or a TUM-format trajectory file.
+
+TUM format (Sturm et al. 2012): one pose per line, ``timestamp tx ty tz qx qy qz qw``, camera-to-world,
+``#`` comments. ORB-SLAM3, evo and this package (``trajectory.txt`` in a results folder) write it. A frame is
+given the pose whose timestamp is nearest to the frame's, if it lies within ``max_diff`` seconds; otherwise the
+source raises TrackingLost for that frame (the file has no pose for it).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ..camera import check_pose, pose_from_tum, pose_to_tum
+from .base import PoseSource, TrackingLost
+
+
+def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(timestamps [N] float64, camera-to-world poses [4, 4] list) of a TUM file, sorted by time.
+
+    Raises ValueError naming ``file:line`` for a malformed line, FileNotFoundError for a missing file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"trajectory file {path} does not exist")
+    stamps, poses = [], []
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = line.replace(",", " ").split()
+        if len(fields) != 8:
+            raise ValueError(f"{path}:{lineno}: expected 8 fields 'timestamp tx ty tz qx qy qz qw', got "
+                             f"{len(fields)}: {line[:80]!r}")
+        try:
+            v = np.array([float(f) for f in fields], dtype=np.float64)
+        except ValueError:
+            raise ValueError(f"{path}:{lineno}: not a number in {line[:80]!r}") from None
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"{path}:{lineno}: non-finite value in {line[:80]!r}")
+        if np.linalg.norm(v[4:]) < 1e-9:
+            raise ValueError(f"{path}:{lineno}: zero quaternion")
+        stamps.append(v[0])
+        poses.append(pose_from_tum(v[1:4], v[4:8]))
+    if not stamps:
+        raise ValueError(f"{path}: no poses (empty trajectory file)")
+    stamps = np.asarray(stamps)
+    order = np.argsort(stamps, kind="stable")
+    if np.any(np.diff(stamps[order]) == 0):
+        dup = stamps[order][np.flatnonzero(np.diff(stamps[order]) == 0)[0]]
+        raise ValueError(f"{path}: timestamp {dup:.6f} appears more than once")
+    return stamps[order], [poses[i] for i in order]
+
+
+def write_tum_trajectory(path: str | Path, timestamps: Sequence[float], poses: Sequence[np.ndarray]) -> Path:
+    """Write camera-to-world poses as a TUM trajectory file (creating parent folders)."""
+    if len(timestamps) != len(poses):
+        raise ValueError(f"write_tum_trajectory: {len(timestamps)} timestamps for {len(poses)} poses")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world, metres, OpenCV camera axes)"]
+    for t, T in zip(timestamps, poses):
+        p, q = pose_to_tum(check_pose(T, f"pose at t={float(t):.6f}"))
+        lines.append(f"{float(t):.6f} " + " ".join(f"{x:.9f}" for x in (*p, *q)))
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def nearest_index(stamps: np.ndarray, t: float) -> tuple[int, float]:
+    """(index, |difference|) of the sorted ``stamps`` entry nearest to ``t``."""
+    i = int(np.searchsorted(stamps, t))
+    cands = [j for j in (i - 1, i) if 0 <= j < len(stamps)]
+    j = min(cands, key=lambda k: abs(stamps[k] - t))
+    return j, abs(float(stamps[j]) - t)
+
+
+class GroundTruthSource(PoseSource):
+    """The dataset's own poses: ``gt_pose`` when the caller passes it, else ``sequence.poses[index]``."""
+
+    name = "gt"
+
+    def _prepare(self, sequence) -> None:
+        if sequence is not None and getattr(sequence, "poses", None) is None:
+            raise ValueError(f"pose source 'gt': sequence {getattr(sequence, 'name', '')!r} has no ground-truth "
+                             "poses; use --pose odometry, kiss-icp, colmap or a trajectory file")
+
+    def _track(self, index, timestamp, color, depth, camera, gt_pose):
+        if gt_pose is not None:
+            return gt_pose
+        poses = getattr(self.sequence, "poses", None)
+        if poses is None:
+            raise ValueError(f"frame {index}: pose source 'gt' got no gt_pose and has no sequence with poses")
+        return poses[index]
+
+
+class TrajectoryFileSource(PoseSource):
+    """Poses read from a TUM trajectory file, associated to frames by nearest timestamp (``max_diff`` s)."""
+
+    def __init__(self, path: str | Path, *, max_diff: float = 0.02, sequence=None) -> None:
+        super().__init__(sequence)
+        self.path = Path(path)
+        self.max_diff = float(max_diff)
+        self.timestamps, self.poses = read_tum_trajectory(self.path)
+        self.name = f"file:{self.path.name}"
+
+    def _track(self, index, timestamp, color, depth, camera, gt_pose):
+        j, diff = nearest_index(self.timestamps, timestamp)
+        if diff > self.max_diff:
+            raise TrackingLost(f"frame {index}: {self.path} has no pose within {self.max_diff:g} s of t="
+                               f"{timestamp:.6f} (nearest is {diff:.3f} s away)")
+        return self.poses[j]
