@@ -22,6 +22,7 @@ import open3d as o3d
 import torch
 
 from .camera import Camera, check_pose, invert_pose
+from .render.projection import quat_to_rotmat  # columns are the Gaussians' axes
 from .gaussians import GaussianMap, sh0_to_rgb
 
 log = logging.getLogger("eligsir_o3d")
@@ -30,17 +31,6 @@ DEFAULT_CAMERA = Camera(640, 480, 525.0, 525.0, 319.5, 239.5)  # the OpenNI / TU
 
 
 # ---- point cloud ---------------------------------------------------------------------------------------
-def quat_to_rotmats(quats: torch.Tensor) -> torch.Tensor:
-    """[N, 4] wxyz (unnormalised) -> [N, 3, 3] rotation matrices whose columns are the Gaussians' axes."""
-    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], -1).reshape(-1, 3, 3)
-
-
 @torch.no_grad()
 def extract_point_cloud(gmap: GaussianMap, min_opacity: float = 0.1, poses: Sequence[np.ndarray] | None = None,
                         normals: str = "auto", flat_ratio: float = 0.5, knn: int = 16) -> o3d.geometry.PointCloud:
@@ -68,7 +58,7 @@ def extract_point_cloud(gmap: GaussianMap, min_opacity: float = 0.1, poses: Sequ
     if normals == "none" or m == 0:
         return pcd
     scales = gmap.scales[keep].detach().float().cpu()  # [M, 3]
-    axes = quat_to_rotmats(gmap.quats[keep].detach().float().cpu())  # [M, 3, 3]
+    axes = quat_to_rotmat(gmap.quats[keep].detach().float().cpu())  # [M, 3, 3]
     sorted_scales, order = torch.sort(scales, dim=1)
     shortest = torch.gather(axes, 2, order[:, None, :1].expand(m, 3, 1))[..., 0]  # [M, 3]
     flat = sorted_scales[:, 0] < flat_ratio * sorted_scales[:, 1]  # [M]

@@ -93,7 +93,7 @@ def test_point_cloud_normals_are_the_shortest_axis():
     means = torch.randn(n, 3) * 0.2
     g.add(means, torch.rand(n, 3), torch.tensor([[0.05, 0.04, 0.004]]).expand(n, 3), 0.9, quats)
     pcd = extract_point_cloud(g, poses=[np.eye(4)], normals="auto")
-    from eligsir_o3d.export import quat_to_rotmats
+    from eligsir_o3d.render.projection import quat_to_rotmat as quat_to_rotmats
 
     z_axes = quat_to_rotmats(quats)[:, :, 2].numpy()
     normals = np.asarray(pcd.normals)
