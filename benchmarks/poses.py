@@ -43,7 +43,14 @@ SOURCES = {
     "odometry-f2f": ("odometry", {"mode": "frame", "scale": 1.0}),
     "kiss-icp": ("kiss-icp", {}),
     "colmap": ("colmap", {}),
+    # variants, run only when named in --sources
+    "odometry-fullres": ("odometry", {"scale": 1.0}),
+    "odometry-raycast3": ("odometry", {"raycast_every": 3}),
+    "odometry-f2f-half": ("odometry", {"mode": "frame", "scale": 0.5}),
+    "kiss-icp-2cm": ("kiss-icp", {"voxel_size": 0.02, "max_points_per_voxel": 20, "max_iterations": 500,
+                                  "convergence": 1e-4}),
 }
+DEFAULT = ["odometry", "odometry-f2f", "kiss-icp", "colmap"]
 
 
 def run_online(name: str, spec: str, options: dict, seq, n: int) -> dict:
@@ -61,8 +68,9 @@ def run_online(name: str, spec: str, options: dict, seq, n: int) -> dict:
         stamps.append(frame.timestamp)
         poses.append(T)
     acc = trajectory_accuracy((stamps, poses), (seq.timestamps[:n], seq.poses[:n]))
-    return {"source": name, "sequence": seq.name, "frames": n, "lost": len(lost), "first_lost": lost[:1],
-            "ms_per_frame": src.ms_per_frame, **{k: acc[k] for k in ("ate_rmse_m", "rpe_trans_m", "rpe_rot_deg")},
+    extra = {k: getattr(src, k) for k in ("frames_on_previous", "lowest_fitness", "model_blocks") if hasattr(src, k)}
+    return {"source": name, "sequence": seq.name, "frames": n, "lost": len(lost), "first_lost": lost[:1], **extra,
+            "ms_per_frame": src.ms_per_frame, "cpu_ms_per_frame": src.cpu_ms_per_frame, **{k: acc[k] for k in ("ate_rmse_m", "rpe_trans_m", "rpe_rot_deg")},
             "load1": os.getloadavg()[0], "_traj": (stamps, poses)}
 
 
@@ -81,14 +89,14 @@ def run_colmap(seq, options: dict) -> dict:
     acc = trajectory_accuracy((stamps, poses), (seq.timestamps, seq.poses))
     acc_s = trajectory_accuracy((stamps, poses), (seq.timestamps, seq.poses), with_scale=True)
     return {"source": "colmap", "sequence": seq.name, "frames": len(seq), "lost": len(seq) - len(poses),
-            "wall_s": wall, "metric_scale": src.metric_scale, "scale_vs_gt": acc_s["scale"],
+            "wall_s": wall, "cpu_s": src.cpu_seconds, "metric_scale": src.metric_scale, "scale_vs_gt": acc_s["scale"],
             **{k: acc[k] for k in ("ate_rmse_m", "rpe_trans_m", "rpe_rot_deg")}, "load1": os.getloadavg()[0],
             "_traj": (stamps, poses)}
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sources", nargs="+", default=list(SOURCES), choices=list(SOURCES))
+    ap.add_argument("--sources", nargs="+", default=DEFAULT, choices=list(SOURCES))
     ap.add_argument("--frames", type=int, default=300, help="frames of the 7-Scenes kitchen for online sources")
     ap.add_argument("--out", type=Path, default=None, help="write trajectories (TUM) and plots (PNG) here")
     ap.add_argument("--json", action="store_true", help="one JSON object per line")
@@ -125,12 +133,16 @@ def report(row: dict, as_json: bool) -> None:
     if as_json:
         print(json.dumps(row))
         return
-    timing = (f"{row['ms_per_frame']:6.1f} ms/frame" if "ms_per_frame" in row
-              else f"{row['wall_s']:6.1f} s wall, metric scale {row['metric_scale']:.3f}")
+    timing = (f"{row['ms_per_frame']:6.1f} ms/frame (CPU {row['cpu_ms_per_frame']:.1f})" if "ms_per_frame" in row
+              else f"{row['wall_s']:6.1f} s wall (CPU {row['cpu_s']:.1f} s), metric scale {row['metric_scale']:.4f}, "
+                   f"scale vs gt {row['scale_vs_gt']:.3f}")
     print(f"{row['source']:13s} {row['sequence']:28s} {row['frames']:4d} frames  "
           f"ATE {100 * row['ate_rmse_m']:5.2f} cm  "
           f"RPE {1000 * row['rpe_trans_m']:5.2f} mm / {row['rpe_rot_deg']:.2f} deg  {timing}  lost {row['lost']}  "
           f"(load {row['load1']:.1f})", flush=True)
+    if row.get("model_blocks"):
+        print(f"    frames registered to the previous frame (model too thin): {row['frames_on_previous']}, "
+              f"lowest fitness {row['lowest_fitness']:.2f}, TSDF blocks {row['model_blocks']}")
     if row.get("first_lost"):
         print(f"    first loss: {row['first_lost'][0]}")
 

@@ -232,6 +232,16 @@ def test_lost_tracking_is_reported(room, spec, options):
     assert np.linalg.norm(T[:3, 3] - room.poses[5][:3, 3]) < 0.2
 
 
+def test_odometry_model_stays_small(room):
+    """Past max_blocks, TSDF blocks far from the camera are dropped; tracking goes on."""
+    full = get_pose_source("odometry", scale=1.0)
+    err_full = np.linalg.norm(run_source(full, room, 8)[-1][:3, 3] - room.poses[7][:3, 3])
+    small = get_pose_source("odometry", scale=1.0, max_blocks=100, keep_radius=3.0)
+    err_small = np.linalg.norm(run_source(small, room, 8)[-1][:3, 3] - room.poses[7][:3, 3])
+    assert small.model_blocks < full.model_blocks
+    assert err_small < err_full + 0.02, (err_small, err_full)
+
+
 def test_odometry_input_errors(room):
     src = get_pose_source("odometry")
     f = room.frame(0)

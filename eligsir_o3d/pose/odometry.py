@@ -10,8 +10,27 @@ VGA input), which measured both faster and more accurate than full resolution. W
 
 ``mode="frame"`` is plain frame-to-frame odometry (Hybrid: photometric + geometric), kept for comparison.
 
-Measured on the first 300 frames of 7scenes_redkitchen_jpg1000 (2-core CPU): see benchmarks/poses.py and the
-module's README note in the pose package docstring of the report; numbers there, not here.
+First 300 frames of 7scenes_redkitchen_jpg1000, 2-core CPU, ``python benchmarks/poses.py`` (ATE after rigid
+alignment / RPE per frame pair / wall ms per frame at load ~2):
+
+==========================================================  =======  =======  ========
+variant                                                      ATE cm   RPE mm   ms/frame
+==========================================================  =======  =======  ========
+frame-to-model, point-to-plane, 320x240 (default)            2.55     3.08     37
+  same, ray-cast every 3rd frame (``raycast_every=3``)       2.52     3.13     23
+  same, without the half-voxel ray-cast correction           2.25     3.49     -
+  same, 640x480                                              3.08     3.10     100
+  same, 3 cm voxels (before the correction)                  2.71-2.97  3.8-4.1  -
+  same, Hybrid (photometric + geometric) against the model   6.96     10.2     -
+frame-to-frame Hybrid 640x480, iterations 20/10/5            2.70     5.07     69
+  same, iterations 10/5/3 (the issue's 4.9 cm baseline)      4.86     5.14     -
+  same, 320x240                                              2.83     5.40     26
+frame-to-frame point-to-plane 640x480                        13.1     3.80     -
+keyframes (new one past 10-20 cm / 10-15 deg), 320x240       3.3-4.1  5.3-5.9  -
+==========================================================  =======  =======  ========
+
+The ground truth here is KinectFusion's own tracking: ATE differences under ~0.5 cm are within its accuracy;
+the RPE (frame-to-frame drift) shows frame-to-model's gain more clearly.
 
 Conventions: ``rgbd_odometry_multi_scale(source=current, target=reference)`` returns the transform taking
 current-camera points into the reference camera, so ``T_world_cur = T_world_ref @ result``. Open3D's
@@ -114,7 +133,7 @@ class OdometrySource(PoseSource):
         self._blocks = None  # block coordinates touched by the last integrated frame
         self._n_integrated = 0
         self._prev: tuple[o3d.t.geometry.RGBDImage, np.ndarray, float] | None = None  # (rgbd, T_world_cam, t)
-        self._model: tuple[o3d.t.geometry.RGBDImage, np.ndarray] | None = None  # (ray-cast depth, its pose)
+        self._model: tuple[o3d.t.geometry.Image, np.ndarray] | None = None  # (ray-cast depth, its pose)
         self._model_age = 0
 
     def _prepare(self, sequence) -> None:
