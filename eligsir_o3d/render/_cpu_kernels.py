@@ -399,29 +399,16 @@ def composite_backward(means2d, conics, opacities, feats, bounds, offsets, flat_
 
 
 @_jit_serial
-def bin_tiles_csr(means2d, radii, depths, tiles_x, tiles_y):
+def bin_tiles_fill(means2d, radii, by_depth, tiles_x, tiles_y):
     """The reference's tile binning (:func:`..projection.bin_tiles`) as compressed lists.
 
-    means2d [N, 2] float32, radii [N] int32 (0 = culled), depths [N] float32. Returns offsets [T + 1] and flat_ids [M]
-    (int64): tile t's Gaussians, front to back (ties in depth by index, as the reference's stable sorts), are
-    ``flat_ids[offsets[t]:offsets[t + 1]]``. The tile range of a Gaussian is computed with the reference's float32
-    operations in the same order, so both produce identical lists.
+    means2d [N, 2] float32, radii [N] int32, by_depth [V] int64: the visible Gaussians (radius > 0) front to back,
+    ties in depth by index (the order of the reference's stable sorts). Returns offsets [T + 1] and flat_ids [M]
+    (int64): tile t's Gaussians, front to back, are ``flat_ids[offsets[t]:offsets[t + 1]]``. The tile range of a
+    Gaussian is computed with the reference's float32 operations in the same order, so the lists are identical.
     """
-    n = radii.shape[0]
+    n_vis = by_depth.shape[0]
     n_tiles = tiles_x * tiles_y
-    n_vis = 0
-    for g in range(n):
-        if radii[g] > 0:
-            n_vis += 1
-    vis = np.empty(n_vis, np.int64)
-    vd = np.empty(n_vis, np.float32)
-    j = 0
-    for g in range(n):
-        if radii[g] > 0:
-            vis[j] = g
-            vd[j] = depths[g]
-            j += 1
-    by_depth = vis[np.argsort(vd, kind="mergesort")]
     rect = np.empty((n_vis, 4), np.int64)
     counts = np.zeros(n_tiles + 1, np.int64)
     inv_tile = np.float32(1.0 / TILE)

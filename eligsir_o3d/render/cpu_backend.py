@@ -57,7 +57,7 @@ def warmup() -> float:
         out_f, out_a = np.empty((h, w, 4), f32), np.empty((h, w), f32)
         out_T, out_last = np.empty((h, w), f32), np.empty((h, w), np.int32)
         bounds = np.empty((1, 3), f32)
-        k.bin_tiles_csr(means2d, np.array([2], np.int32), np.ones(1, f32), 1, 1)
+        k.bin_tiles_fill(means2d, np.array([2], np.int32), np.zeros(1, np.int64), 1, 1)
         k.cull_bounds(conics, opac, bounds)
         k.run(k.composite_forward, means2d, conics, opac, feats, bounds, offsets, ids, order, 1, w, h,
               out_f, out_a, out_T, out_last)
@@ -173,9 +173,15 @@ def tile_lists(bins: TileBins) -> tuple[torch.Tensor, torch.Tensor]:
 def bin_tiles_csr(proj: Projection, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor, int]:
     """:func:`.projection.bin_tiles` in compiled code, as (offsets [T + 1], flat ids [M], tiles_x); same lists."""
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    radii = proj.radii.to(torch.int32).contiguous()
-    offsets, flat = _kernels().bin_tiles_csr(_f32(proj.means2d).numpy(), radii.numpy(), _f32(proj.depths).numpy(),
-                                             tiles_x, tiles_y)
+    radii = proj.radii.to(torch.int32).contiguous().numpy()
+    depths = _f32(proj.depths).numpy()
+    vis = np.flatnonzero(radii > 0)
+    # Front to back with ties by index, as the reference's stable sorts, from one fast unstable sort of unique
+    # keys: visible depths are > 0, where float32 bit patterns order like the values.
+    keys = (depths[vis].view(np.int32).astype(np.int64) << 32) | vis
+    keys.sort()
+    by_depth = keys & 0xFFFFFFFF
+    offsets, flat = _kernels().bin_tiles_fill(_f32(proj.means2d).numpy(), radii, by_depth, tiles_x, tiles_y)
     return torch.from_numpy(offsets), torch.from_numpy(flat), tiles_x
 
 
