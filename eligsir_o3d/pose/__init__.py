@@ -14,6 +14,21 @@ spec               source                                                       
 a file path        a TUM trajectory file, matched by timestamp (trajectory.py)                yes
 a folder path      an existing COLMAP model (cameras/images/points3D .bin or .txt)            no
 =================  =========================================================================  ==========
+
+Use: ``src.prepare(sequence)`` once, then ``T_world_cam = src.track(index, timestamp, color, depth, camera,
+gt_pose=None)`` per frame in order; ``TrackingLost`` means "no pose for this frame" (skip it; online sources
+keep their state and try the next frame against the last good one); ``src.seconds`` / ``src.cpu_seconds`` is
+the time spent, which counts toward mapping time in real-time replay.
+
+Map frame: tracked sources start at ``gt_pose`` when it is passed with the first frame (so a map built from
+tracked poses lives in the ground truth's frame, and held-out views can be rendered at their ground-truth
+poses, off only by the tracking drift), else at the identity. Where the frames differ (no anchor, or a
+trajectory file from elsewhere), ``trajectory_accuracy(est, gt, return_alignment=True)["T_gt_est"]`` is the rigid
+Umeyama alignment; ``inv(T_gt_est) @ T_gt`` brings a ground-truth pose into the map's frame.
+
+First 300 frames of 7scenes_redkitchen_jpg1000 (2-core CPU, ``python benchmarks/poses.py``): frame-to-model
+odometry ATE 2.55 cm at 37 ms/frame, frame-to-frame Hybrid 2.70 cm at 69 ms, kiss-icp 3.42 cm at 14 ms;
+pycolmap on the 50 frames of sun3d_mit76_studyroom_f0935: ATE 1.40 cm, 19 s wall.
 """
 
 from __future__ import annotations
