@@ -45,7 +45,7 @@ def map_cmd(
     max_frames: Optional[int] = typer.Option(None, help="Use only the first N frames."),
     holdout_every: int = typer.Option(8, help="Hold out every N-th frame for evaluation (never mapped)."),
     holdout_list: Optional[Path] = typer.Option(None, help="File of frame indices to hold out instead."),
-    pose: str = typer.Option("gt", help="gt | odometry | kiss-icp | colmap (runs SfM BEFORE mapping) | PATH to a TUM trajectory."),
+    pose: str = typer.Option("gt", help="gt | odometry (Open3D frame-to-model) | kiss-icp | colmap (runs SfM over the whole recording BEFORE mapping) | PATH to a TUM trajectory file or a COLMAP model folder."),
     realtime: bool = typer.Option(False, "--realtime", help="Real-time replay against the wall clock (frames can drop)."),
     speed: float = typer.Option(1.0, help="Real-time replay speed factor."),
     updates_per_frame: Optional[int] = typer.Option(None, help="Deterministic budget: updates per source frame."),

@@ -83,3 +83,15 @@ def test_missing_sequence_is_a_clear_error(tmp_path):
 
     with pytest.raises(DatasetError, match="does_not_exist"):
         run_mapping(str(tmp_path / "does_not_exist"), tmp_path / "out", _cfg(), _opts())
+
+
+def test_pose_from_a_trajectory_file_is_used_and_scored(tmp_path):
+    from eligsir_o3d.datasets import open_sequence
+    from eligsir_o3d.pose import write_tum_trajectory
+
+    seq = open_sequence("synthetic")
+    traj = tmp_path / "traj.txt"
+    write_tum_trajectory(traj, seq.timestamps[:12], seq.poses[:12])
+    m = run_mapping("synthetic", tmp_path / "out", _cfg(), _opts(max_frames=12, pose=str(traj), eval_every=0))
+    assert m["ate_rmse_m"] is not None and m["ate_rmse_m"] < 1e-4
+    assert m["pose_source"] == str(traj) and (tmp_path / "out" / "trajectory.txt").is_file()
