@@ -47,7 +47,7 @@ def map_cmd(
     holdout_list: Optional[Path] = typer.Option(None, help="File of frame indices to hold out instead."),
     pose: str = typer.Option("gt", help="gt | odometry (Open3D frame-to-model) | kiss-icp | colmap (runs SfM over the whole recording BEFORE mapping) | PATH to a TUM trajectory file or a COLMAP model folder."),
     realtime: bool = typer.Option(False, "--realtime", help="Real-time replay against the wall clock (frames can drop)."),
-    speed: float = typer.Option(1.0, help="Real-time replay speed factor."),
+    speed: float = typer.Option(1.0, help="Replay speed: 0.1 gives the mapper 10x the recording's duration (both clocks)."),
     updates_per_frame: Optional[int] = typer.Option(None, help="Deterministic budget: updates per source frame."),
     ablate: List[Mechanism] = typer.Option([], help="Swap a mechanism for its plain policy (repeatable)."),
     refine: int = typer.Option(0, help="Extra post-mapping updates (+N PM map state)."),
