@@ -52,6 +52,7 @@ def map_cmd(
     ablate: List[Mechanism] = typer.Option([], help="Swap a mechanism for its plain policy (repeatable)."),
     refine: int = typer.Option(0, help="Extra post-mapping updates (+N PM map state)."),
     offline_reference: bool = typer.Option(False, "--offline-reference", help="Offline reference: all frames at once, long full-res schedule."),
+    offline_updates: int = typer.Option(0, help="Offline reference: length of its schedule (0: 30 updates per source frame)."),
     eval_every: int = typer.Option(100, help="Held-out checkpoint every N updates (0: only at the end)."),
     on_bad_frame: BadFrame = typer.Option(BadFrame.skip, help="What to do with a frame that cannot be read or used."),
     checkpoint_every: int = typer.Option(0, help="Write OUT/checkpoint.pt every N source frames (atomic)."),
@@ -73,6 +74,7 @@ def map_cmd(
     opts = RunOptions(max_frames=max_frames, holdout_every=holdout_every,
                       holdout_list=str(holdout_list) if holdout_list else None, pose=pose, realtime=realtime,
                       speed=speed, eval_every=eval_every, refine=refine, offline_reference=offline_reference,
+                      offline_updates=offline_updates,
                       on_bad_frame=on_bad_frame.value, checkpoint_every=checkpoint_every, resume=resume,
                       progress=not quiet)
     try:
