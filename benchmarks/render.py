@@ -26,8 +26,11 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-import torch
+if "--omp-passive" in sys.argv:  # must reach libgomp before torch loads it
+    os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -169,6 +172,9 @@ def main(argv=None):
     ap.add_argument("--max-ref-seconds", type=float, default=30.0,
                     help="skip a torch-reference row predicted to take longer than this per forward+backward")
     ap.add_argument("--json", action="store_true", help="one JSON object per line instead of a table")
+    ap.add_argument("--omp-passive", action="store_true",
+                    help="OMP_WAIT_POLICY=PASSIVE for torch and numba (one shared libgomp): idle OpenMP threads sleep "
+                         "instead of spinning, which keeps timings sane on a machine shared with other jobs")
     ap.add_argument("--single-thread-cpu-time", action="store_true",
                     help="run torch and numba on one thread and time the main thread's CPU time instead of the wall "
                          "clock: a measure of work that holds up on a machine shared with other jobs (CPU only)")
@@ -188,7 +194,8 @@ def main(argv=None):
         backends = ["torch"] + [b for b in backends if b != "torch"]
     info = {"device": str(device), "torch_threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
             "clock": "main-thread CPU time, 1 thread" if args.single_thread_cpu_time else "wall",
-            "loadavg_1min": os.getloadavg()[0]}
+            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default"),
+            "loadavg_1min": round(os.getloadavg()[0], 2)}
     if "cpu" in backends:
         from eligsir_o3d.render.cpu_backend import warmup
         info["cpu_kernel_first_call_s"] = round(warmup(), 3)
