@@ -28,9 +28,10 @@ from pathlib import Path
 VARIANTS = {"full": (), "fidelity": ("fidelity",), "growth": ("growth",), "scheduling": ("scheduling",)}
 LABELS = {"full": "EliGSiR", "fidelity": "w/o adaptive fidelity", "growth": "w/o targeted growth",
           "scheduling": "w/o view scheduling"}
-COLUMNS = [("PSNR", "psnr", "{:.2f}"), ("CVQ-AUC", "cvq_auc", "{:.2f}"), ("CUC@20 [%]", "cuc20", "{:.1f}"),
-           ("Sup. px [M]", "supervised_mpix", "{:.1f}"), ("Gaus. [k]", "gaussians_k", "{:.1f}"),
-           ("Map. time [s]", "mapping_time_s", "{:.1f}"), ("updates", "updates", "{:d}"),
+COLUMNS = [("PSNR", "psnr", "{:.2f}"), ("CVQ-AUC", "cvq_auc", "{:.2f}"), ("CVQ-AUC common-p", "cvq_auc_common", "{:.2f}"),
+           ("CUC@20 [%]", "cuc20", "{:.1f}"), ("Sup. px [M]", "supervised_mpix", "{:.1f}"),
+           ("Gaus. [k]", "gaussians_k", "{:.1f}"), ("Map. time [s]", "mapping_time_s", "{:.1f}"),
+           ("model time [s]", "modelled_time_s", "{:.1f}"), ("updates", "updates", "{:d}"),
            ("admitted", "frames_admitted", "{:d}"), ("dropped", "dropped_frames", "{:d}")]
 
 
@@ -48,7 +49,7 @@ def parse_args(argv=None):
     p.add_argument("--realtime", action="store_true", help="replay against the wall clock instead")
     p.add_argument("--renderer", default="auto")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--eval-every", type=int, default=200, help="held-out checkpoint every N updates")
+    p.add_argument("--eval-every", type=int, default=50, help="held-out checkpoint every N updates")
     p.add_argument("--drain", type=int, default=None, help="updates of the bounded drain (default: config's)")
     p.add_argument("--threads", type=int, default=None, help="torch/numba threads (1 is fastest on a busy CPU)")
     p.add_argument("--seed", type=int, default=0)
@@ -108,8 +109,42 @@ def row(metrics: dict) -> dict:
     cuc = metrics.get("cuc20_final")
     return {"psnr": held.get("psnr"), "cvq_auc": metrics.get("cvq_auc"), "cuc20": None if cuc is None else 100 * cuc,
             "supervised_mpix": metrics.get("supervised_mpix"), "gaussians_k": metrics.get("gaussians", 0) / 1e3,
-            "mapping_time_s": metrics.get("mapping_time_s"), "updates": metrics.get("updates"),
+            "mapping_time_s": metrics.get("mapping_time_s"), "modelled_time_s": metrics.get("modelled_time_s"),
+            "updates": metrics.get("updates"),
             "frames_admitted": metrics.get("frames_admitted"), "dropped_frames": metrics.get("dropped_frames")}
+
+
+def _curve_points(metrics: dict) -> tuple[list[float], list[float]]:
+    """(progress, CVQ) of the checkpoints taken during acquisition; at equal progress the first one counts (the
+    drain's checkpoint at p = 1 is a zero-width step in CVQ-AUC anyway)."""
+    ps, cs = [], []
+    for r in metrics.get("curve") or []:
+        p, c = r.get("progress"), r.get("cvq")
+        if p is None or c is None or (ps and p <= ps[-1]):
+            continue
+        ps.append(float(p))
+        cs.append(float(c))
+    return ps, cs
+
+
+def _first_progress(metrics: dict) -> float:
+    ps, _ = _curve_points(metrics)
+    return ps[0] if ps else 0.0
+
+
+def common_auc(metrics: dict, p0: float) -> float | None:
+    """CVQ-AUC over the progress range every variant has checkpoints for ([p0, p_last]), linear in between.
+
+    Checkpoints fall every N *updates*, so a variant with few (expensive) updates has its first checkpoint late and
+    its plain CVQ-AUC skips the weak early phase; over a common range the variants compare like for like.
+    """
+    import numpy as np
+
+    ps, cs = _curve_points(metrics)
+    if not ps or ps[-1] <= p0:
+        return None
+    grid = np.linspace(p0, ps[-1], 256)
+    return float(np.interp(grid, ps, cs).mean())
 
 
 def format_table(rows: dict[str, dict]) -> str:
@@ -184,6 +219,9 @@ def main(argv=None) -> int:
         for v in variants:
             results[v] = run_variant(args, v)
     rows = {v: row(m) for v, m in results.items()}
+    p0 = max([_first_progress(m) for m in results.values()] + [0.0])
+    for v, m in results.items():
+        rows[v]["cvq_auc_common"] = common_auc(m, p0)
     table = format_table(rows)
     cmd = "python tools/ablation.py " + " ".join(sys.argv[1:] if argv is None else argv)
     (out / "table.md").write_text(f"{cmd}\n\n{table}\n")

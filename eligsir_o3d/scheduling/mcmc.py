@@ -27,7 +27,7 @@ class MCMCConfig:
     refine_start: int = 100  # updates before the first relocation/densification (gsplat: 500 of 30k iterations)
     refine_every: int = 100  # updates between relocation/densification rounds (gsplat: 100)
     min_opacity: float = 0.005  # dead below this (gsplat: 0.005)
-    growth_rate: float = 0.02  # densification adds this fraction of N per round, up to the cap (gsplat: 0.05)
+    growth_rate: float = 0.05  # densification adds this fraction of N per round, up to the cap (gsplat: 0.05)
     n_max: int = 51  # copies per source are clamped here (gsplat: 51)
     noise_lr: float = 5e5  # position noise = lr_means * noise_lr * covariance-shaped noise (gsplat: 5e5)
     opacity_reg: float = 0.01  # loss += opacity_reg * mean(opacity) (gsplat default)

@@ -32,8 +32,8 @@ class ViewConfig:
     min_rotation_deg: float = 5.0  # ... rotated less than this from some retained view is a near-duplicate
     min_novelty: float = 0.10  # admit when at least this fraction of the frame's depth is not explained by the map
     max_gap_s: float = 1.0  # admit the next non-redundant view when none was admitted for this long
-    active_size: int = 8  # views in the active supervision set
-    active_share: float = 0.75  # share of updates drawn from the active set (the rest replays retained views)
+    active_size: int = 16  # views in the active supervision set
+    active_share: float = 0.5  # share of updates drawn from the active set (the rest replays retained views)
     refresh_every: int = 10  # updates between priority refreshes
     fresh_updates: int = 15  # a newly admitted view keeps a (linearly decaying) bonus for this many of its updates
     fresh_bonus: float = 0.2  # priority bonus of a brand-new view (a cell at init_error gives need ~0.12)
