@@ -145,7 +145,7 @@ def test_overlap_with_the_map_decides_admission():
 
 
 def test_retained_view_returns_to_active_set_when_its_cells_error_rises():
-    cfg = ViewConfig(min_novelty=0.0, active_size=2, refresh_every=1, fresh_updates=1)
+    cfg = ViewConfig(min_novelty=0.0, active_size=2, active_share=0.9, refresh_every=1, fresh_updates=1)
     views, ctx = MapGuidedViews(cfg), _ctx()
     frames = [_plane_frame(_pose(3.0 * i), i) for i in range(3)]  # three far-apart views, disjoint cells
     for f in frames:
@@ -166,7 +166,7 @@ def test_retained_view_returns_to_active_set_when_its_cells_error_rises():
     assert views.is_active(frames[0])
     p = views.priorities()
     assert p[0] > p[1]
-    # selection follows: view 0 is now picked most often
+    # selection follows: view 0 (active, highest priority) is now picked more often than view 1 (retained)
     rng = torch.Generator().manual_seed(0)
     picks = [views.select(rng).index for _ in range(200)]
     assert picks.count(0) > picks.count(1)
