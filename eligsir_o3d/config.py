@@ -24,6 +24,7 @@ class OptimConfig:
     loss: LossConfig = field(default_factory=LossConfig)
     updates_per_frame: int = 8  # deterministic budget: optimisation updates granted per released source frame
     drain_updates: int = 100  # finalize(): bounded drain after the stream (the paper's ME state)
+    realtime_drain_fraction: float = 0.03  # real-time replay: the drain also stops after this share of the stream
     refine_scale: float = 1.0  # refine(): supervision scale of post-mapping updates (+N PM)
 
 

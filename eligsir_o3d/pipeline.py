@@ -164,7 +164,10 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
         rec.optimize(opts.offline_updates or 30 * len(source), scale=1.0)
         map_state = "offline-reference"
     else:
-        rec.finalize()
+        # In real-time replay the drain is also bounded in time, so the ME map is ready about when the stream ends.
+        deadline = rec.clock_now() + config.optim.realtime_drain_fraction * _acquisition_time(seq, n) \
+            if clock.name == "realtime" else None
+        rec.finalize(deadline)
         map_state = "ME"
     if opts.refine:
         rec.refine(opts.refine)

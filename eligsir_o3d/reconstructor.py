@@ -105,9 +105,10 @@ class Reconstructor:
             done += 1
         return done
 
-    def finalize(self) -> None:
-        """The bounded drain after the stream (the paper's ME map state)."""
-        self.optimize(self.config.optim.drain_updates)
+    def finalize(self, deadline: float | None = None) -> None:
+        """The bounded drain after the stream (the paper's ME map state): ``config.optim.drain_updates`` updates,
+        or fewer if the :meth:`clock_now` ``deadline`` comes first (real-time replay bounds it in time)."""
+        self.optimize(self.config.optim.drain_updates, deadline)
 
     def refine(self, steps: int, scale: float | None = None) -> None:
         """``steps`` post-mapping updates (the paper's +N PM), at ``scale`` (default: config.optim.refine_scale)."""
