@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
 import torch
@@ -39,7 +40,7 @@ def finish(color_acc, depth_acc, alpha_acc, background) -> tuple[torch.Tensor, t
     return color, depth, alpha_acc
 
 
-class TileRenderer:
+class TileRenderer(ABC):
     """Projection + tile binning in torch; ``composite`` (per-tile front-to-back blending) is the backend part."""
 
     name = "base"
@@ -58,9 +59,10 @@ class TileRenderer:
         color, depth, alpha = finish(color_acc, depth_acc, alpha_acc, background)
         return RenderOutput(color, depth, alpha, proj.radii, proj.means2d)
 
+    @abstractmethod
     def composite(self, proj: Projection, opacities, colors, bins: TileBins, width: int, height: int):
         """Return accumulated colour [H, W, 3], depth [H, W] and alpha [H, W] (no background)."""
-        raise NotImplementedError  # abstract: each backend implements it
+        raise NotImplementedError
 
 
 def tile_pixel_coords(bins: TileBins, device) -> torch.Tensor:

@@ -7,6 +7,7 @@ policy is active.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Callable
 
@@ -30,15 +31,17 @@ class MapContext:
     frames_released: int = 0
 
 
-class ViewPolicy:
+class ViewPolicy(ABC):
     """Which released frames are retained, and which retained view supervises the next update."""
 
     name = "views"
 
+    @abstractmethod
     def admit(self, frame: Frame, ctx: MapContext) -> bool:
         """Called once per released source frame; True if the frame is retained for supervision."""
         raise NotImplementedError
 
+    @abstractmethod
     def select(self, rng: torch.Generator) -> Frame:
         """The view for the next optimisation update."""
         raise NotImplementedError
@@ -48,6 +51,7 @@ class ViewPolicy:
         """After an update: the training render's per-pixel error [h, w] (already computed by the loss)."""
 
     @property
+    @abstractmethod
     def views(self) -> list[Frame]:
         raise NotImplementedError
 
@@ -58,11 +62,12 @@ class ViewPolicy:
         pass
 
 
-class FidelityPolicy:
+class FidelityPolicy(ABC):
     """At which image scale the next update is supervised."""
 
     name = "fidelity"
 
+    @abstractmethod
     def scale(self) -> float:
         raise NotImplementedError
 
@@ -76,11 +81,12 @@ class FidelityPolicy:
         pass
 
 
-class GrowthPolicy:
+class GrowthPolicy(ABC):
     """Where the Gaussian population grows, moves or shrinks."""
 
     name = "growth"
 
+    @abstractmethod
     def on_frame(self, frame: Frame, admitted: bool, ctx: MapContext) -> int:
         """Called once per released source frame; returns the number of Gaussians added."""
         raise NotImplementedError
