@@ -90,9 +90,6 @@ def test_round_trip_renders_and_continues_identically(tmp_path, seq, frames, abl
     _assert_same_state(a, b)
 
 
-@pytest.mark.xfail(strict=True, reason="issue-5 policies: MapGuidedViews.state_dict() lacks _since_refresh, active and "
-                   "each view's priority/last_error (load_state_dict recomputes them by refresh()); LoadAdaptiveFidelity"
-                   ".state_dict() lacks _obs_here and _before - the drain then picks other views than an unbroken run")
 def test_drain_after_resume_continues_identically(tmp_path, seq, frames):
     """Updates without new frames (finalize's drain, idle time) replay views chosen from the active set and
     priorities of the last refresh: a resumed run must hold the same ones (7-Scenes diverged 2 frames after)."""

@@ -156,11 +156,15 @@ class LoadAdaptiveFidelity(FidelityPolicy):
     def state_dict(self) -> dict:
         return {"level": self.level, "period_s": self.period_s, "cost": self.cost, "pixels": list(self.pixels),
                 "gamma": self.gamma, "backlog": self.backlog, "votes": self._votes, "updates": self.updates,
+                "obs_here": self._obs_here, "before": None if self._before is None else list(self._before),
                 "supervised_pixels": self.supervised_pixels, "trace": list(self.trace)}
 
     def load_state_dict(self, state: dict) -> None:
         self.level, self.period_s = int(state["level"]), float(state["period_s"])
         self.cost, self.pixels, self.gamma = state["cost"], list(state["pixels"]), float(state["gamma"])
         self.backlog, self._votes = float(state["backlog"]), int(state["votes"])
+        self._obs_here = int(state.get("obs_here", 0))
+        before = state.get("before")
+        self._before = None if before is None else (int(before[0]), float(before[1]))
         self.updates, self.supervised_pixels = int(state["updates"]), int(state["supervised_pixels"])
         self.trace = list(state.get("trace", []))

@@ -193,18 +193,25 @@ class MapGuidedViews(ViewPolicy):
     def state_dict(self) -> dict:
         views = [{"color": v.frame.color, "depth": v.frame.depth, "camera": v.frame.camera,
                   "T_world_cam": v.frame.T_world_cam, "timestamp": v.frame.timestamp, "index": v.frame.index,
-                  "cells": v.cells, "weights": v.weights, "updates": v.updates} for v in self._views]
+                  "cells": v.cells, "weights": v.weights, "updates": v.updates, "priority": v.priority,
+                  "last_error": v.last_error} for v in self._views]
+        # the active set and priorities of the last refresh decide the next picks: saved, not recomputed
         return {"views": views, "cells": self.cells.state_dict(), "last_admit_ts": self._last_admit_ts,
-                "counts": dict(self.counts)}
+                "counts": dict(self.counts), "active": list(self.active), "since_refresh": self._since_refresh}
 
     def load_state_dict(self, state: dict) -> None:
         self.cells.load_state_dict(state["cells"])
         self._views, self._by_frame, self._flat = [], {}, None
         for d in state["views"]:
             frame = Frame(d["color"], d["depth"], d["camera"], d["T_world_cam"], d["timestamp"], d["index"])
-            view = _View(frame, d["cells"], d["weights"], d["updates"])
+            view = _View(frame, d["cells"], d["weights"], d["updates"], d.get("priority", 0.0),
+                         d.get("last_error", float("nan")))
             self._views.append(view)
             self._by_frame[id(frame)] = view
         self._last_admit_ts = state["last_admit_ts"]
         self.counts.update(state.get("counts", {}))
-        self.refresh()
+        if "active" in state:
+            self.active = [int(i) for i in state["active"]]
+            self._since_refresh = int(state["since_refresh"])
+        else:
+            self.refresh()
