@@ -20,6 +20,7 @@ Items of ``frames`` are :class:`Frame` objects (pose and timestamp inside) or ``
 from __future__ import annotations
 
 import time
+from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Iterator
@@ -92,7 +93,7 @@ def _index(item: Any, k: int) -> int:
     return int(item.index) if isinstance(item, Frame) else k
 
 
-class _Replay:
+class _Replay(ABC):
     """Release frames by timestamp against a time source; a bounded drop-oldest queue; backlog to the mapper."""
 
     name = "replay"
@@ -109,16 +110,20 @@ class _Replay:
         self.on_bad_frame = _check_bad(on_bad_frame)
 
     # time source hooks
+    @abstractmethod
     def now(self, rec) -> float:
         raise NotImplementedError
 
+    @abstractmethod
     def attach(self, rec, period_s: float) -> None:
         raise NotImplementedError
 
+    @abstractmethod
     def work(self, rec, item, deadline: float | None, behind: bool) -> None:
         """Integrate ``item`` and optimise: ``min_updates_behind`` updates if behind, else until ``deadline``."""
         raise NotImplementedError
 
+    @abstractmethod
     def idle(self, rec, deadline: float) -> None:
         """Nothing waits: optimise (or wait) until ``deadline``."""
         raise NotImplementedError

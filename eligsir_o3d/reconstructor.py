@@ -170,8 +170,9 @@ class Reconstructor:
             if pose is not None:
                 frame.T_world_cam = self._checked(pose, frame.index)
         else:
-            placeholder = np.eye(4) if pose is None else pose
-            frame = Frame.from_rgbd(rgbd, self.camera, placeholder, depth_scale=self.config.depth_scale,
+            # without a pose, the frame is decoded and validated at the identity, then tracked (below)
+            given = np.eye(4) if pose is None else pose
+            frame = Frame.from_rgbd(rgbd, self.camera, given, depth_scale=self.config.depth_scale,
                                     depth_max=self.config.depth_max, timestamp=ts, index=index)
             if pose is None:
                 frame.T_world_cam = self._track(frame)
