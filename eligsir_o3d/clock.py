@@ -23,7 +23,10 @@ import time
 from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, field
+from itertools import combinations
 from typing import Any, Callable, Iterable, Iterator
+
+import numpy as np
 
 from .frame import Frame, FrameError
 
@@ -47,21 +50,60 @@ class CostModel:
     grow with N; blending grows with pixels times the Gaussians overlapping each pixel). One integrated frame
     (admission render, growth): ``frame_s + gaussian_s * gaussians``.
 
-    Defaults: least-squares fit to the ``cpu`` renderer, one thread, 640x480 7-Scenes frames, 1.5k-60k Gaussians
-    (an 80x60 update at 30k Gaussians ~0.1 s, a 640x480 one ~1 s). Scale them to model another machine.
+    Defaults: ``python benchmarks/cost_model.py --frames 300`` on the project's reference machine (2 cores, the
+    ``cpu`` renderer on 2 threads, the default policies mapping the first 300 frames of 7-Scenes redkitchen,
+    1k-9k Gaussians): an 80x60 update ~12 ms, 160x120 ~25 ms, 320x240 ~64 ms, 640x480 ~0.27 s; median
+    predicted/measured 0.97. Run that script to fit another machine and pass its output with ``--config``.
     """
 
-    update_s: float = 0.012
-    gaussian_s: float = 2.4e-6
-    pixel_s: float = 6.0e-7
-    pixel_gaussian_s: float = 6.0e-11
-    frame_s: float = 0.010
+    update_s: float = 0.0039
+    gaussian_s: float = 9.4e-7
+    pixel_s: float = 6.6e-7
+    pixel_gaussian_s: float = 3.1e-11
+    frame_s: float = 0.0020
+
+    @classmethod
+    def fit(cls, updates: np.ndarray, frames: np.ndarray) -> "CostModel":
+        """Fit to timings: ``updates`` rows ``(pixels, gaussians, seconds)``, ``frames`` rows ``(gaussians, seconds)``.
+
+        Non-negative least squares on relative error (every update weighs the same whatever its size); the frame
+        term shares ``gaussian_s`` and takes the mean remainder (the budget is a sum over frames).
+        """
+        u = np.asarray(updates, dtype=np.float64).reshape(-1, 3)
+        f = np.asarray(frames, dtype=np.float64).reshape(-1, 2)
+        if len(u) < 4 or not np.all(u[:, 2] > 0):
+            raise ValueError(f"need at least 4 update timings, all positive; got {len(u)}")
+        P, G, t = u[:, 0], u[:, 1], u[:, 2]
+        A = np.stack([np.ones_like(P), G, P, P * G], 1) / t[:, None]
+        norm = np.maximum(np.linalg.norm(A, axis=0), 1e-300)  # columns span 10 orders of magnitude
+        a = _nnls(A / norm, np.ones_like(t)) / norm
+        frame_s = float(np.mean(np.maximum(f[:, 1] - a[1] * f[:, 0], 0.0))) if len(f) else cls.frame_s
+        return cls(update_s=float(a[0]), gaussian_s=float(a[1]), pixel_s=float(a[2]), pixel_gaussian_s=float(a[3]),
+                   frame_s=frame_s)
 
     def update(self, pixels: int, gaussians: int) -> float:
         return self.update_s + self.gaussian_s * gaussians + pixels * (self.pixel_s + self.pixel_gaussian_s * gaussians)
 
     def frame(self, gaussians: int) -> float:
         return self.frame_s + self.gaussian_s * gaussians
+
+
+def _nnls(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Non-negative least squares for a handful of unknowns: the best unconstrained solution over every subset of
+    free variables that comes out non-negative (exact, 2^n small solves)."""
+    n = A.shape[1]
+    best, best_r = np.zeros(n), float(np.sum(b * b))
+    for k in range(1, n + 1):
+        for free in combinations(range(n), k):
+            x_free = np.linalg.lstsq(A[:, free], b, rcond=None)[0]
+            if np.any(x_free < 0):
+                continue
+            x = np.zeros(n)
+            x[list(free)] = x_free
+            r = float(np.sum((A @ x - b) ** 2))
+            if r < best_r:
+                best, best_r = x, r
+    return best
 
 
 @dataclass

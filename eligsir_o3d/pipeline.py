@@ -222,6 +222,7 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
         "gaussians": len(rec.gmap),
         "frames_released": report.released,
         "frames_admitted": rec.stats.frames_admitted,
+        "policies": rec.policy_counters(),
         "dropped_frames": report.dropped,
         "skipped_frames": skipped + list(report.skipped_bad),
         "peak_rss_mb": _peak_rss_mb(),

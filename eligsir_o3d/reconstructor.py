@@ -141,6 +141,11 @@ class Reconstructor:
                 cb(self)
             self.stats.excluded_s += time.perf_counter() - t1
 
+    def policy_counters(self) -> dict:
+        """Each policy's name and what it decided so far (admissions, seeds, insertions, relocations, scales)."""
+        return {kind: {"policy": p.name, **p.counters()}
+                for kind, p in (("views", self.views), ("fidelity", self.fidelity), ("growth", self.growth))}
+
     def clock_now(self) -> float:
         """``time.perf_counter()`` minus the time spent in callbacks: the mapper's own clock for real-time replay."""
         return time.perf_counter() - self.stats.excluded_s

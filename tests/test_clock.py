@@ -161,3 +161,22 @@ def test_realtime_replay_with_the_reconstructor():
     assert rec.stats.updates > 0 and len(rec.gmap) > 0 and rec.backlog == 0
     assert rec.fidelity.period_s == pytest.approx(1 / 30 / 0.5)
     assert rec.fidelity.trace and rec.fidelity.trace[-1]["update"] == rec.stats.updates
+
+
+def test_cost_model_fit_recovers_the_constants_of_noisy_timings():
+    truth = CostModel(update_s=0.004, gaussian_s=1e-6, pixel_s=6e-7, pixel_gaussian_s=3e-11, frame_s=0.002)
+    rng = np.random.default_rng(0)
+    pixels = rng.choice([4800, 19200, 76800, 307200], 400)
+    gaussians = rng.integers(1000, 20000, 400)
+    seconds = np.array([truth.update(p, g) for p, g in zip(pixels, gaussians)]) * rng.uniform(0.97, 1.03, 400)
+    fg = rng.integers(1000, 20000, 50)
+    frames = np.stack([fg, [truth.frame(g) for g in fg]], 1)
+    fit = CostModel.fit(np.stack([pixels, gaussians, seconds], 1), frames)
+    for name in ("update_s", "gaussian_s", "pixel_s", "pixel_gaussian_s", "frame_s"):
+        assert getattr(fit, name) == pytest.approx(getattr(truth, name), rel=0.15), name
+    # a term the timings do not support is clamped at zero, never negative
+    flat = CostModel.fit(np.stack([pixels, gaussians, np.full(400, 0.01)], 1), frames[:0])
+    assert flat.update_s == pytest.approx(0.01, rel=1e-6)
+    assert min(flat.gaussian_s, flat.pixel_s, flat.pixel_gaussian_s) >= 0.0
+    with pytest.raises(ValueError, match="update timings"):
+        CostModel.fit(np.zeros((2, 3)), frames)

@@ -53,6 +53,12 @@ def test_results_folder_contract_and_heldout_never_supervise(tmp_path, monkeypat
         assert key in saved, key
     assert saved["frames_heldout"] == len(held) and saved["map_state"] == "ME"
     assert saved["updates"] == 12 * 3 + 10
+    pol = saved["policies"]  # what each policy decided, consistent with the run's own counts
+    assert pol["views"]["policy"] == "map_guided" and pol["views"]["released"] == 12
+    assert pol["views"]["admitted"] == saved["frames_admitted"] == pol["views"]["retained"]
+    assert sum(pol["fidelity"]["updates_by_scale"].values()) == saved["updates"]
+    assert pol["growth"]["policy"] == "targeted" and pol["growth"]["seeded"] > 0
+    assert pol["growth"]["seeded"] + pol["growth"]["inserted"] + pol["growth"]["added"] >= saved["gaussians"]
     assert saved["heldout"]["psnr"] > 12.0
     assert len(saved["curve"]) >= 4 and saved["curve"][-1]["progress"] == pytest.approx(1.0)
     lines = [ln for ln in (tmp_path / "trajectory.txt").read_text().splitlines() if not ln.startswith("#")]

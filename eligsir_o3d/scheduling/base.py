@@ -55,6 +55,10 @@ class ViewPolicy(ABC):
     def views(self) -> list[Frame]:
         raise NotImplementedError
 
+    def counters(self) -> dict:
+        """What the policy decided so far (counts for metrics.json and ablation tables)."""
+        return {}
+
     def state_dict(self) -> dict:
         return {}
 
@@ -73,6 +77,10 @@ class FidelityPolicy(ABC):
 
     def observe(self, seconds: float, pixels: int, backlog: int) -> None:
         """After an update: its measured cost and the current backlog of unprocessed frames."""
+
+    def counters(self) -> dict:
+        """What the policy decided so far (counts for metrics.json and ablation tables)."""
+        return {}
 
     def state_dict(self) -> dict:
         return {}
@@ -97,6 +105,10 @@ class GrowthPolicy(ABC):
 
     def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
         """After the optimizer step (relocation, noise, evidence-gated insertion)."""
+
+    def counters(self) -> dict:
+        """What the policy decided so far (counts for metrics.json and ablation tables)."""
+        return {}
 
     def state_dict(self) -> dict:
         return {}

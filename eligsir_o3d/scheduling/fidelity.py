@@ -64,6 +64,7 @@ class LoadAdaptiveFidelity(FidelityPolicy):
         self._issued: int | None = None  # level handed out by the last scale()
         self.updates = 0
         self.supervised_pixels = 0
+        self.by_scale: dict[str, int] = {}  # updates at each scale it issued; "explicit": refine()
         self.trace: list[dict] = []
 
     def attach(self, period_s: float | None, cost_fn: Callable[[int], float] | None = None) -> None:
@@ -90,6 +91,8 @@ class LoadAdaptiveFidelity(FidelityPolicy):
         self.backlog = (1 - a) * self.backlog + a * float(backlog)
         self.updates += 1
         self.supervised_pixels += int(pixels)
+        key = f"{self.scales[issued]:g}" if issued is not None else "explicit"
+        self.by_scale[key] = self.by_scale.get(key, 0) + 1
         self._decide()
         if self.updates % max(1, self.cfg.trace_every) == 0:
             self.trace.append({"update": self.updates, "backlog": float(backlog), "backlog_ema": self.backlog,
@@ -152,12 +155,16 @@ class LoadAdaptiveFidelity(FidelityPolicy):
             self.cost = self.predicted_cost(level)  # a prior for the new level until its own measurements arrive
         self.level, self._votes, self._obs_here = level, 0, 0
 
+    def counters(self) -> dict:
+        return {"scale": self.scales[self.level], "updates_by_scale": dict(self.by_scale)}
+
     # ---- persistence ----------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
         return {"level": self.level, "period_s": self.period_s, "cost": self.cost, "pixels": list(self.pixels),
                 "gamma": self.gamma, "backlog": self.backlog, "votes": self._votes, "updates": self.updates,
                 "obs_here": self._obs_here, "before": None if self._before is None else list(self._before),
-                "supervised_pixels": self.supervised_pixels, "trace": list(self.trace)}
+                "supervised_pixels": self.supervised_pixels, "trace": list(self.trace),
+                "by_scale": dict(self.by_scale)}
 
     def load_state_dict(self, state: dict) -> None:
         self.level, self.period_s = int(state["level"]), float(state["period_s"])
@@ -168,3 +175,4 @@ class LoadAdaptiveFidelity(FidelityPolicy):
         self._before = None if before is None else (int(before[0]), float(before[1]))
         self.updates, self.supervised_pixels = int(state["updates"]), int(state["supervised_pixels"])
         self.trace = list(state.get("trace", []))
+        self.by_scale = dict(state.get("by_scale", {}))

@@ -140,6 +140,9 @@ class TargetedGrowth(GrowthPolicy):
     def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
         self.mcmc.post_step(ctx.gmap, ctx.max_gaussians)
 
+    def counters(self) -> dict:
+        return {**self.counts, **self.mcmc.counts, "evidence_voxels": len(self.voxels)}
+
     # ---- persistence ----------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
         n = len(self.voxels)

@@ -49,6 +49,9 @@ class StrideKeyframes(ViewPolicy):
     def views(self) -> list[Frame]:
         return self._views
 
+    def counters(self) -> dict:
+        return {"released": self._released, "retained": len(self._views)}
+
     def state_dict(self) -> dict:
         return {"released": self._released, "views": list(self._views)}
 
@@ -67,6 +70,9 @@ class FixedFidelity(FidelityPolicy):
 
     def scale(self) -> float:
         return self._scale
+
+    def counters(self) -> dict:
+        return {"scale": self._scale}
 
 
 @dataclass
@@ -88,6 +94,7 @@ class NewSpaceSeeding(GrowthPolicy):
     def __init__(self, cfg: SeedingConfig | None = None, seed: int = 0):
         self.cfg = cfg or SeedingConfig()
         self.rng = torch.Generator().manual_seed(seed)
+        self.seeded = 0
 
     def on_frame(self, frame: Frame, admitted: bool, ctx: MapContext) -> int:
         if not admitted and not self.cfg.dense:
@@ -104,14 +111,19 @@ class NewSpaceSeeding(GrowthPolicy):
                                                min(self.cfg.max_per_frame, room), self.rng)
         if means.shape[0]:
             ctx.gmap.add(means, rgbs, scales, self.cfg.init_opacity)
+        self.seeded += int(means.shape[0])
         return int(means.shape[0])
 
+    def counters(self) -> dict:
+        return {"seeded": self.seeded}
+
     def state_dict(self) -> dict:
-        return {"rng": self.rng.get_state()}
+        return {"rng": self.rng.get_state(), "seeded": self.seeded}
 
     def load_state_dict(self, state: dict) -> None:
         if "rng" in state:
             self.rng.set_state(state["rng"])
+        self.seeded = int(state.get("seeded", 0))
 
 
 @torch.no_grad()

@@ -189,6 +189,9 @@ class MapGuidedViews(ViewPolicy):
     def views(self) -> list[Frame]:
         return [v.frame for v in self._views]
 
+    def counters(self) -> dict:
+        return {**self.counts, "retained": len(self._views), "active": len(self.active)}
+
     # ---- persistence ----------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
         views = [{"color": v.frame.color, "depth": v.frame.depth, "camera": v.frame.camera,
