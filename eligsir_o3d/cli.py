@@ -40,25 +40,26 @@ def _fail(msg: str) -> None:
 def map_cmd(
     path: str = typer.Argument(..., help="Sequence folder (TUM, Replica, plain folder layout) or 'synthetic'."),
     out: Path = typer.Option(Path("runs/map"), "--out", "-o", help="Results folder."),
-    device: str = typer.Option("cpu", help="'cpu' or 'cuda:0'."),
-    renderer: Renderer = typer.Option(Renderer.auto, help="auto: gsplat on CUDA, else the compiled cpu rasteriser."),
+    device: Optional[str] = typer.Option(None, help="'cpu' or 'cuda:0' [default: the config's, else cpu]."),
+    renderer: Optional[Renderer] = typer.Option(None, help="auto: gsplat on CUDA, else the compiled cpu rasteriser "
+                                                "[default: the config's, else auto]."),
     max_frames: Optional[int] = typer.Option(None, help="Use only the first N frames."),
     holdout_every: int = typer.Option(8, help="Hold out every N-th frame for evaluation (never mapped)."),
     holdout_list: Optional[Path] = typer.Option(None, help="File of frame indices to hold out instead."),
     pose: str = typer.Option("gt", help="gt | odometry (Open3D frame-to-model) | kiss-icp | colmap (runs SfM over the whole recording BEFORE mapping) | PATH to a TUM trajectory file or a COLMAP model folder."),
     realtime: bool = typer.Option(False, "--realtime", help="Real-time replay against the wall clock (frames can drop)."),
-    speed: float = typer.Option(1.0, help="Replay speed: 0.1 gives the mapper 10x the recording's duration (both clocks)."),
+    speed: Optional[float] = typer.Option(None, help="Replay speed: 0.1 gives the mapper 10x the recording's duration (both clocks) [default: the config's, else 1]."),
     updates_per_frame: Optional[int] = typer.Option(None, help="Deterministic budget: updates per source frame."),
-    ablate: List[Mechanism] = typer.Option([], help="Swap a mechanism for its plain policy (repeatable)."),
+    ablate: List[Mechanism] = typer.Option([], help="Swap a mechanism for its plain policy (repeatable) [default: the config's, else none]."),
     refine: int = typer.Option(0, help="Extra post-mapping updates (+N PM map state)."),
     offline_reference: bool = typer.Option(False, "--offline-reference", help="Offline reference: all frames at once, long full-res schedule."),
     offline_updates: int = typer.Option(0, help="Offline reference: length of its schedule (0: 30 updates per source frame)."),
     eval_every: int = typer.Option(100, help="Held-out checkpoint every N updates (0: only at the end)."),
-    on_bad_frame: BadFrame = typer.Option(BadFrame.skip, help="What to do with a frame that cannot be read or used."),
+    on_bad_frame: Optional[BadFrame] = typer.Option(None, help="What to do with a frame that cannot be read or used [default: the config's, else skip]."),
     checkpoint_every: int = typer.Option(0, help="Write OUT/checkpoint.pt every N source frames (atomic)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoint.pt of an interrupted run."),
-    config: Optional[Path] = typer.Option(None, help="config.json to start from (e.g. one written by an earlier run)."),
-    seed: int = typer.Option(0, help="Random seed."),
+    config: Optional[Path] = typer.Option(None, help="config.json to start from (e.g. one written by an earlier run); options given here override it."),
+    seed: Optional[int] = typer.Option(None, help="Random seed [default: the config's, else 0]."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
 ) -> None:
     """Map a recorded RGB-D sequence into a 3D Gaussian map and evaluate it on held-out views."""
@@ -67,15 +68,21 @@ def map_cmd(
 
     logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(levelname)s %(message)s")
     cfg = Config.load(config) if config else Config()
-    cfg.device, cfg.renderer, cfg.seed = device, renderer.value, seed
-    cfg.ablate = tuple(sorted({a.value for a in ablate}))
+    if device is not None:
+        cfg.device = device
+    if renderer is not None:
+        cfg.renderer = renderer.value
+    if seed is not None:
+        cfg.seed = seed
+    if ablate:
+        cfg.ablate = tuple(sorted({a.value for a in ablate}))
     if updates_per_frame is not None:
         cfg.optim.updates_per_frame = updates_per_frame
     opts = RunOptions(max_frames=max_frames, holdout_every=holdout_every,
                       holdout_list=str(holdout_list) if holdout_list else None, pose=pose, realtime=realtime,
                       speed=speed, eval_every=eval_every, refine=refine, offline_reference=offline_reference,
                       offline_updates=offline_updates,
-                      on_bad_frame=on_bad_frame.value, checkpoint_every=checkpoint_every, resume=resume,
+                      on_bad_frame=on_bad_frame.value if on_bad_frame else None, checkpoint_every=checkpoint_every, resume=resume,
                       progress=not quiet)
     try:
         m = run_mapping(path, out, cfg, opts)

@@ -31,14 +31,14 @@ class RunOptions:
     holdout_list: str | None = None  # a text file of frame indices to hold out instead
     pose: str = "gt"  # gt | odometry | kiss-icp | colmap | path to a TUM trajectory
     realtime: bool = False  # real-time replay against the wall clock instead of the deterministic budget
-    speed: float = 1.0  # replay speed (both clocks): 0.1 gives the mapper 10x the recording's duration
+    speed: float | None = None  # replay speed (both clocks; None: config.clock.speed): 0.1 gives the mapper 10x
     eval_every: int = 100  # held-out checkpoint every N optimisation updates (0 = only at the end)
     eval_sample_stride: int = 2  # regional samples: every 2nd pixel in x and y of each held-out view
     eval_ssim_at_checkpoints: bool = True
     refine: int = 0  # +N post-mapping updates after the drain (map state "+N PM")
     offline_reference: bool = False  # all source frames available at once, long full-resolution schedule
     offline_updates: int = 0  # 0 -> 30 updates per source frame
-    on_bad_frame: str = "skip"  # skip | stop
+    on_bad_frame: str | None = None  # skip | stop (None: config.clock.on_bad_frame)
     checkpoint_every: int = 0  # frames between checkpoints (0 = none)
     resume: bool = False
     plots: bool = True
@@ -257,8 +257,10 @@ def _clock(opts: RunOptions, config: Config):
 
     if opts.offline_reference:
         return BudgetClock(0)
-    config.clock.on_bad_frame = opts.on_bad_frame
-    config.clock.speed = opts.speed
+    if opts.on_bad_frame is not None:
+        config.clock.on_bad_frame = opts.on_bad_frame
+    if opts.speed is not None:
+        config.clock.speed = opts.speed
     if opts.realtime:
         config.clock.mode = "realtime"
     return get_clock(config)

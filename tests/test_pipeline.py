@@ -104,3 +104,27 @@ def test_pose_from_a_trajectory_file_is_used_and_scored(tmp_path):
     m = run_mapping("synthetic", tmp_path / "out", _cfg(), _opts(max_frames=12, pose=str(traj), eval_every=0))
     assert m["ate_rmse_m"] is not None and m["ate_rmse_m"] < 1e-4
     assert m["pose_source"] == str(traj) and (tmp_path / "out" / "trajectory.txt").is_file()
+
+
+def test_cli_keeps_the_config_files_values_unless_an_option_overrides_them(tmp_path):
+    from typer.testing import CliRunner
+
+    from eligsir_o3d.cli import app
+
+    cfg = _cfg()
+    cfg.seed, cfg.renderer, cfg.ablate = 3, "torch", ("scheduling",)
+    cfg.clock.speed, cfg.clock.on_bad_frame = 0.5, "stop"
+    cfg.save(tmp_path / "cfg.json")
+    common = ["map", "synthetic", "--max-frames", "6", "--eval-every", "0", "--config", str(tmp_path / "cfg.json"), "-q"]
+    runner = CliRunner()
+    r = runner.invoke(app, [*common, "--out", str(tmp_path / "a")])
+    assert r.exit_code == 0, r.output
+    kept = json.loads((tmp_path / "a" / "config.json").read_text())
+    assert (kept["seed"], kept["renderer"], kept["ablate"]) == (3, "torch", ["scheduling"])
+    assert (kept["clock"]["speed"], kept["clock"]["on_bad_frame"]) == (0.5, "stop")
+    r = runner.invoke(app, [*common, "--out", str(tmp_path / "b"), "--seed", "5", "--renderer", "cpu",
+                            "--speed", "2", "--on-bad-frame", "skip", "--ablate", "growth"])
+    assert r.exit_code == 0, r.output
+    over = json.loads((tmp_path / "b" / "config.json").read_text())
+    assert (over["seed"], over["renderer"], over["ablate"]) == (5, "cpu", ["growth"])
+    assert (over["clock"]["speed"], over["clock"]["on_bad_frame"]) == (2.0, "skip")
