@@ -73,6 +73,18 @@ def test_fidelity_lowers_scale_under_load_and_raises_it_again():
     assert ctrl.trace[-1]["supervised_mpix"] == pytest.approx(ctrl.supervised_pixels / 1e6)
 
 
+def test_fidelity_stays_at_its_floor_without_backlog_and_goes_below_only_under_load():
+    # a frame period so short that even 1/8 does not fit twice: only the backlog may take it below 1/4
+    ctrl = LoadAdaptiveFidelity(FidelityConfig(start_scale=1.0))
+    ctrl.attach(period_s=0.01)
+    assert set(_drive(ctrl, 0, 40)[-20:]) == {0.25}
+    assert _drive(ctrl, 3, 40)[-1] == 0.125  # frames wait: the load takes it lower
+    assert _drive(ctrl, 0, 40)[-1] == 0.25  # and back to the floor when they stop waiting
+    low = LoadAdaptiveFidelity(FidelityConfig(start_scale=0.125, idle_floor_scale=0.125))
+    low.attach(period_s=0.01)
+    assert _drive(low, 0, 40)[-1] == 0.125  # a floor of 1/8 is the plain cost rule
+
+
 def test_fidelity_does_not_oscillate_on_noise():
     def switches(cfg):
         rng = np.random.default_rng(0)
