@@ -36,7 +36,7 @@ class MappingStats:
     supervised_pixels: int = 0  # sum of image sizes of every supervised view over all updates
     mapping_s: float = 0.0
     tracking_s: float = 0.0
-    excluded_s: float = 0.0  # wall time spent in callbacks (held-out evaluation), excluded from mapping time
+    excluded_s: float = 0.0  # wall time of evaluation callbacks, checkpoint I/O and (pipeline) decoding the recording
     last_timestamp: float | None = None  # of the last integrated frame: timestamps must increase
 
     @property
@@ -149,6 +149,21 @@ class Reconstructor:
     def clock_now(self) -> float:
         """``time.perf_counter()`` minus the time spent in callbacks: the mapper's own clock for real-time replay."""
         return time.perf_counter() - self.stats.excluded_s
+
+    def warmup(self) -> float:
+        """Render a one-Gaussian scene forward and backward, so that the renderer's first-use costs (numba
+        compilation or cache load for ``cpu``, CUDA kernel loading for ``gsplat``) are paid before a live stream
+        starts rather than on its first frames. Returns the seconds it took; the map is untouched."""
+        t0 = time.perf_counter()
+        dev = self.device
+        means = torch.tensor([[0.0, 0.0, 1.0]], device=dev, requires_grad=True)
+        quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]], device=dev)
+        scales, colors = torch.full((1, 3), 0.1, device=dev), torch.full((1, 3), 0.5, device=dev)
+        opacities = torch.full((1,), 0.5, device=dev)
+        out = self.renderer.render(means, quats, scales, opacities, colors, Camera(16, 16, 16.0, 16.0, 7.5, 7.5),
+                                   np.eye(4), self._background)
+        (out.color.sum() + out.depth.sum() + out.alpha.sum()).backward()
+        return time.perf_counter() - t0
 
     # ---- rendering -------------------------------------------------------------------------------------
     def _render(self, camera: Camera, T_world_cam) -> RenderOutput:

@@ -106,3 +106,14 @@ def test_save_and_load_ply_renders_the_same(tmp_path):
     rec2 = _rec()
     rec2.load_ply(tmp_path / "m.ply")
     torch.testing.assert_close(rec2.render(np.eye(4)).color, a)
+
+
+@pytest.mark.parametrize("renderer", ["torch", "cpu"])
+def test_warmup_leaves_the_map_and_the_budget_untouched(renderer):
+    cfg = eo3d.Config(renderer=renderer)
+    rec = eo3d.Reconstructor(_intrinsic(), "cpu", cfg)
+    assert rec.warmup() >= 0.0
+    assert len(rec.gmap) == 0 and rec.stats.updates == 0 and rec.stats.mapping_s == 0.0
+    assert all(p.grad is None for p in rec.gmap.params.values())
+    rec.integrate(_tensor_rgbd(), np.eye(4))
+    assert len(rec.gmap) > 0
