@@ -31,7 +31,24 @@ class MapContext:
     frames_released: int = 0
 
 
-class ViewPolicy(ABC):
+class Policy(ABC):
+    """What every policy shares: a name, its decision counters, and the state a checkpoint saves."""
+
+    name = "policy"
+
+    def counters(self) -> dict:
+        """What the policy decided so far (counts for metrics.json and ablation tables)."""
+        return {}
+
+    def state_dict(self) -> dict:
+        """Everything the next decisions depend on (saved in checkpoints; resume continues identically)."""
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`'s output."""
+
+
+class ViewPolicy(Policy):
     """Which released frames are retained, and which retained view supervises the next update."""
 
     name = "views"
@@ -55,18 +72,8 @@ class ViewPolicy(ABC):
     def views(self) -> list[Frame]:
         raise NotImplementedError
 
-    def counters(self) -> dict:
-        """What the policy decided so far (counts for metrics.json and ablation tables)."""
-        return {}
 
-    def state_dict(self) -> dict:
-        return {}
-
-    def load_state_dict(self, state: dict) -> None:
-        pass
-
-
-class FidelityPolicy(ABC):
+class FidelityPolicy(Policy):
     """At which image scale the next update is supervised."""
 
     name = "fidelity"
@@ -78,18 +85,8 @@ class FidelityPolicy(ABC):
     def observe(self, seconds: float, pixels: int, backlog: int) -> None:
         """After an update: its measured cost and the current backlog of unprocessed frames."""
 
-    def counters(self) -> dict:
-        """What the policy decided so far (counts for metrics.json and ablation tables)."""
-        return {}
 
-    def state_dict(self) -> dict:
-        return {}
-
-    def load_state_dict(self, state: dict) -> None:
-        pass
-
-
-class GrowthPolicy(ABC):
+class GrowthPolicy(Policy):
     """Where the Gaussian population grows, moves or shrinks."""
 
     name = "growth"
@@ -105,13 +102,3 @@ class GrowthPolicy(ABC):
 
     def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
         """After the optimizer step (relocation, noise, evidence-gated insertion)."""
-
-    def counters(self) -> dict:
-        """What the policy decided so far (counts for metrics.json and ablation tables)."""
-        return {}
-
-    def state_dict(self) -> dict:
-        return {}
-
-    def load_state_dict(self, state: dict) -> None:
-        pass
