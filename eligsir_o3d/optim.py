@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 
+import numpy as np
 import torch
 
 from .render import RenderOutput
@@ -30,20 +31,59 @@ def _blur_matrix(n: int, win: int, sigma: float, device: str) -> torch.Tensor:
     return m.to(device)
 
 
+@lru_cache(maxsize=8)
+def _window(win: int, sigma: float) -> np.ndarray:
+    t = np.arange(win, dtype=np.float64) - (win - 1) / 2
+    g = np.exp(-(t * t) / (2 * sigma * sigma))
+    return (g / g.sum()).astype(np.float32)
+
+
+class _DssimCPU(torch.autograd.Function):
+    """D-SSIM by the numba kernel (:mod:`._dssim_kernels`): value and gradient in one pass."""
+
+    @staticmethod
+    def forward(ctx, pred, ref, win: int, sigma: float):
+        from ._dssim_kernels import dssim_value_and_grad
+
+        x = np.ascontiguousarray(pred.detach().permute(2, 0, 1).numpy())
+        y = np.ascontiguousarray(ref.detach().permute(2, 0, 1).to(torch.float32).numpy())
+        grad = np.empty_like(x)
+        value = dssim_value_and_grad(x, y, _window(win, sigma), grad)
+        ctx.save_for_backward(torch.from_numpy(grad).permute(1, 2, 0))
+        return torch.tensor(value, dtype=pred.dtype)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        (grad,) = ctx.saved_tensors
+        return grad_out * grad, None, None, None
+
+
 def dssim(pred: torch.Tensor, ref: torch.Tensor, win: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """1 - SSIM as in 3DGS (11x11 Gaussian window, sigma 1.5, no padding); pred, ref [H, W, 3] in [0, 1].
 
-    Same value as ``pytorch_msssim.ssim`` (tested). The separable Gaussian filter of the five local moments is two
-    banded matrix products, which on the CPU is about 5x faster than torch's grouped conv2d at these sizes.
+    Same value as ``pytorch_msssim.ssim`` (tested). On the CPU in float32 a numba kernel computes value and gradient
+    in one pass (5-25x faster than the torch formulation, :func:`dssim_torch`, which runs everywhere else).
     """
+    h, w = pred.shape[0], pred.shape[1]
+    win = min(win, (min(h, w) // 2) * 2 - 1)
+    if win < 3:
+        return torch.zeros((), device=pred.device)
+    if pred.device.type == "cpu" and pred.dtype == torch.float32:
+        return _DssimCPU.apply(pred, ref, win, sigma)
+    return dssim_torch(pred, ref, win, sigma)
+
+
+def dssim_torch(pred: torch.Tensor, ref: torch.Tensor, win: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """The torch formulation of :func:`dssim` (any device and dtype): the separable Gaussian filter of the five
+    local moments as two banded matrix products (on the CPU ~5x faster than a grouped conv2d at 160x120)."""
     h, w = pred.shape[0], pred.shape[1]
     win = min(win, (min(h, w) // 2) * 2 - 1)
     if win < 3:
         return torch.zeros((), device=pred.device)
     x, y = pred.permute(2, 0, 1), ref.permute(2, 0, 1)  # [3, H, W]
     maps = torch.cat([x, y, x * x, y * y, x * y], 0)  # [15, H, W]
-    bw = _blur_matrix(w, win, sigma, str(pred.device))
-    bh = _blur_matrix(h, win, sigma, str(pred.device))
+    bw = _blur_matrix(w, win, sigma, str(pred.device)).to(pred.dtype)
+    bh = _blur_matrix(h, win, sigma, str(pred.device)).to(pred.dtype)
     mu_x, mu_y, xx, yy, xy = (bh.T @ (maps @ bw)).split(3, 0)
     c1, c2 = 0.01 ** 2, 0.03 ** 2
     sxx, syy, sxy = xx - mu_x * mu_x, yy - mu_y * mu_y, xy - mu_x * mu_y
