@@ -151,9 +151,10 @@ class Reconstructor:
         return time.perf_counter() - self.stats.excluded_s
 
     def warmup(self) -> float:
-        """Render a one-Gaussian scene forward and backward, so that the renderer's first-use costs (numba
-        compilation or cache load for ``cpu``, CUDA kernel loading for ``gsplat``) are paid before a live stream
-        starts rather than on its first frames. Returns the seconds it took; the map is untouched."""
+        """Render a one-Gaussian scene and back-propagate the supervision loss through it, so that first-use costs
+        (numba compilation or cache load for ``cpu`` and the CPU D-SSIM, CUDA kernel loading for ``gsplat``) are
+        paid before a live stream starts rather than on its first frames. Returns the seconds it took; the map is
+        untouched."""
         t0 = time.perf_counter()
         dev = self.device
         means = torch.tensor([[0.0, 0.0, 1.0]], device=dev, requires_grad=True)
@@ -162,7 +163,8 @@ class Reconstructor:
         opacities = torch.full((1,), 0.5, device=dev)
         out = self.renderer.render(means, quats, scales, opacities, colors, Camera(16, 16, 16.0, 16.0, 7.5, 7.5),
                                    np.eye(4), self._background)
-        (out.color.sum() + out.depth.sum() + out.alpha.sum()).backward()
+        loss = supervision_loss(out, torch.zeros_like(out.color), torch.ones_like(out.depth), self.config.optim.loss)[0]
+        (loss + out.alpha.sum()).backward()  # the loss's own compiled kernels (D-SSIM on the CPU) load here too
         return time.perf_counter() - t0
 
     # ---- rendering -------------------------------------------------------------------------------------
