@@ -52,15 +52,15 @@ class CostModel:
 
     Defaults: ``python benchmarks/cost_model.py --frames 300`` on the project's reference machine (2 cores, the
     ``cpu`` renderer on 2 threads, the default policies mapping the first 300 frames of 7-Scenes redkitchen,
-    1k-9k Gaussians): an 80x60 update ~12 ms, 160x120 ~25 ms, 320x240 ~64 ms, 640x480 ~0.27 s; median
+    1k-8k Gaussians): an 80x60 update ~12 ms, 160x120 ~19 ms, 320x240 ~45 ms, 640x480 ~0.13 s; median
     predicted/measured 0.97. Run that script to fit another machine and pass its output with ``--config``.
     """
 
-    update_s: float = 0.0039
-    gaussian_s: float = 9.4e-7
-    pixel_s: float = 6.6e-7
-    pixel_gaussian_s: float = 3.1e-11
-    frame_s: float = 0.0020
+    update_s: float = 0.0059
+    gaussian_s: float = 1.1e-6
+    pixel_s: float = 2.0e-7
+    pixel_gaussian_s: float = 5.9e-11
+    frame_s: float = 0.0024
 
     @classmethod
     def fit(cls, updates: np.ndarray, frames: np.ndarray) -> "CostModel":
