@@ -62,7 +62,7 @@ def _drive(ctrl, backlog, n, rng=None, jitter=0.0):
 
 
 def test_fidelity_lowers_scale_under_load_and_raises_it_again():
-    ctrl = LoadAdaptiveFidelity(FidelityConfig(start_scale=0.125))
+    ctrl = LoadAdaptiveFidelity(FidelityConfig(start_scale=0.125, min_updates_per_frame=2.0))
     ctrl.attach(period_s=1.0)  # 2 updates per frame -> 0.5 s per update without backlog
     assert _drive(ctrl, 0, 60)[-1] == 1.0  # compute allows: the highest scale
     loaded = _drive(ctrl, 20, 60)  # a backlog of 20 frames shrinks the time per update ~11x
@@ -95,8 +95,9 @@ def test_fidelity_does_not_oscillate_on_noise():
         scales = _drive(ctrl, lambda: int(rng.random() < 0.3), 400, rng, jitter=0.25)
         return sum(a != b for a, b in zip(scales, scales[1:]))
 
-    assert switches(FidelityConfig(start_scale=1.0)) <= 6
-    naive = FidelityConfig(start_scale=1.0, up_patience=1, down_patience=1, up_margin=0.0, backlog_ema=1.0)
+    assert switches(FidelityConfig(start_scale=1.0, min_updates_per_frame=2.0)) <= 6
+    naive = FidelityConfig(start_scale=1.0, min_updates_per_frame=2.0, up_patience=1, down_patience=1, up_margin=0.0,
+                           backlog_ema=1.0)
     assert switches(naive) > 50  # the same load without hysteresis flips all the time
 
 
