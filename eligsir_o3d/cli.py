@@ -100,6 +100,13 @@ def _summary(m: dict, out: Path) -> None:
     typer.echo(f"held-out PSNR {f(h['psnr'], '.2f')} dB  SSIM {f(h['ssim'], '.3f')}  depth RMSE {f(h['depth_rmse_m'], '.3f')} m")
     typer.echo(f"CVQ-AUC {f(m['cvq_auc'], '.2f')} dB  CUC@20 {f(m['cuc20_final'], '.3f')}  "
                f"Gaussians {m['gaussians']}  updates {m['updates']}  supervised {m['supervised_mpix']:.1f} MPix")
+    pol = m.get("policies") or {}
+    views, growth = pol.get("views", {}), pol.get("growth", {})
+    if "admitted" in views and "seeded" in growth:
+        by_scale = ", ".join(f"{k}: {v}" for k, v in pol.get("fidelity", {}).get("updates_by_scale", {}).items())
+        typer.echo(f"views admitted {views['admitted']}/{views.get('released', '?')}  updates by scale {{{by_scale}}}  "
+                   f"Gaussians seeded {growth['seeded']}, inserted {growth.get('inserted', 0)}, "
+                   f"relocated {growth.get('relocated', 0)}")
     typer.echo(f"mapping {m['mapping_time_s']:.1f} s  RTF {f(m['rtf'], '.2f')}  dropped {m['dropped_frames']}  "
                f"renderer {m['renderer']}  state {m['map_state']}")
     typer.echo(f"results in {out.resolve()}")
