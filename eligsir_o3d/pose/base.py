@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import time
+from abc import ABC, abstractmethod
 from typing import Any
 
 import numpy as np
@@ -30,7 +31,7 @@ class TrackingLost(RuntimeError):
     """A pose source could not pose a frame. The message starts with ``frame <index>:`` and says why."""
 
 
-class PoseSource:
+class PoseSource(ABC):
     """Base class: subclasses set ``name``/``causal`` and implement ``_track`` (and ``_prepare`` if offline)."""
 
     name: str = "pose source"
@@ -96,8 +97,10 @@ class PoseSource:
     def _prepare(self, sequence: Any) -> None:
         pass
 
+    @abstractmethod
     def _track(self, index: int, timestamp: float, color: torch.Tensor, depth: torch.Tensor, camera: Camera,
                gt_pose: np.ndarray | None) -> np.ndarray:
+        """The pose T_world_cam of one frame (the source's own work; ``track`` adds timing and validation)."""
         raise NotImplementedError
 
 
