@@ -46,16 +46,25 @@ class RGBDSequence:
     Attributes: name, path, camera (:class:`Camera`), intrinsic (Open3D), depth_scale (png value / depth_scale =
     metres), timestamps [N] float seconds (strictly increasing), poses (list of [4, 4] camera-to-world, or None),
     dropped_unassociated (frames of the source left out because no depth or pose matched them).
+
+    Two cameras: ``camera`` is the depth camera's intrinsics; a reader that knows a separate colour camera passes
+    ``color_camera`` (and ``T_color_depth``, ``poses_of``; see :mod:`.registration`). Each frame's depth is then
+    registered into the colour camera as it is read, and ``seq.camera`` is the colour camera, the one camera
+    everything downstream sees (``seq.depth_camera`` keeps the depth one, ``seq.rig`` the pair).
     """
 
     def __init__(self, *, name: str, path: Path | None, camera: Camera, depth_scale: float,
                  timestamps: Sequence[float], poses: list[np.ndarray] | None = None,
                  color_paths: Sequence[Path] = (), depth_paths: Sequence[Path] = (),
-                 dropped_unassociated: int = 0, format: str = "") -> None:
+                 dropped_unassociated: int = 0, format: str = "", color_camera: Camera | None = None,
+                 T_color_depth: np.ndarray | None = None, poses_of: str = "depth") -> None:
         self.name = name
         self.path = path
         self.format = format
         self.camera = camera
+        self.depth_camera = camera
+        self.rig = None
+        self._depth_poses = None  # the given poses, when they were the depth camera's and got moved to the colour
         self.depth_scale = float(depth_scale)
         self.timestamps = np.asarray(timestamps, dtype=np.float64)
         self.color_paths = [Path(p) for p in color_paths]
@@ -86,6 +95,41 @@ class RGBDSequence:
                     raise DatasetError(str(e)) from None
             poses = checked
         self.poses = poses
+        if color_camera is not None:
+            self._set_rig(color_camera, T_color_depth, poses_of)
+
+    # -- two cameras ----------------------------------------------------------------------------------------
+    def _set_rig(self, color_camera: Camera, T_color_depth: np.ndarray | None, poses_of: str) -> None:
+        from .registration import TwoCameraRig
+
+        try:
+            rig = TwoCameraRig(self.depth_camera, color_camera, T_color_depth, poses_of)
+        except ValueError as e:
+            raise DatasetError(f"sequence {self.name!r}: colour camera: {e}") from None
+        if rig.is_identity:
+            return
+        self.rig, self.camera = rig, rig.color
+        if self.poses is not None and rig.poses_of == "depth" and not np.array_equal(rig.T_color_depth, np.eye(4)):
+            self._depth_poses = self.poses
+            self.poses = [rig.color_pose(T) for T in self.poses]
+
+    def ignore_color_camera(self) -> None:
+        """Use the depth camera for colour too, as if the sequence had one camera (no registration)."""
+        if self.rig is None:
+            return
+        d, c = self.rig.depth, self.rig.color
+        if (d.width, d.height) != (c.width, c.height):
+            raise DatasetError(f"sequence {self.name!r}: colour images are {c.width}x{c.height} but depth images are "
+                               f"{d.width}x{d.height}; the colour camera cannot be ignored")
+        if self._depth_poses is not None:
+            self.poses, self._depth_poses = self._depth_poses, None
+        self.rig, self.camera = None, self.depth_camera
+
+    def raw_images(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame i as read, before registration: colour uint8 [H, W, 3] (colour camera), depth [h, w] raw units
+        (depth camera)."""
+        color, depth = self._read_images(self._index(int(i)))
+        return color.as_tensor().numpy(), depth.as_tensor().numpy()[..., 0]
 
     # -- sizes and clocks ---------------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -113,7 +157,8 @@ class RGBDSequence:
         c = self.camera
         return (f"{type(self).__name__}(name={self.name!r}, format={self.format!r}, frames={len(self)}, "
                 f"size={c.width}x{c.height}, fx={c.fx:g}, depth_scale={self.depth_scale:g}, "
-                f"poses={'yes' if self.poses is not None else 'no'})")
+                f"poses={'yes' if self.poses is not None else 'no'}"
+                f"{'' if self.rig is None else f', depth registered from fx={self.depth_camera.fx:g}'})")
 
     # -- frames -------------------------------------------------------------------------------------------
     def _index(self, i: int) -> int:
@@ -125,11 +170,14 @@ class RGBDSequence:
     def _read_images(self, i: int) -> tuple[o3d.t.geometry.Image, o3d.t.geometry.Image]:
         """(colour UInt8 [H, W, 3], depth [H, W, 1]) of frame i; file readers read from disk."""
         return (read_color(self.color_paths[i], i, self.camera),
-                read_depth(self.depth_paths[i], i, self.camera))
+                read_depth(self.depth_paths[i], i, self.depth_camera))
 
     def __getitem__(self, i: int) -> SequenceFrame:
         i = self._index(int(i))
         color, depth = self._read_images(i)
+        if self.rig is not None:  # once, at read time: downstream sees one camera, the colour one
+            depth = o3d.t.geometry.Image(o3d.core.Tensor(
+                self.rig.register(depth.as_tensor().numpy(), self.depth_scale)[..., None]))
         pose = None if self.poses is None else self.poses[i].copy()
         return SequenceFrame(i, float(self.timestamps[i]), o3d.t.geometry.RGBDImage(color, depth, True), pose,
                              self.color_paths[i] if self.color_paths else None,
@@ -282,3 +330,17 @@ def read_intrinsics_json(path: Path) -> tuple[Camera, float | None]:
     if scale is not None and not scale > 0:
         raise DatasetError(f"{path}: depth_scale must be positive, got {scale}")
     return camera, scale
+
+
+def read_color_sidecar(path: Path, depth_camera: Camera) -> dict:
+    """Keyword arguments for :class:`RGBDSequence` (``color_camera``, ``T_color_depth``, ``poses_of``) from the
+    optional ``color`` block of an ``intrinsics.json`` sidecar (see :mod:`.registration`); {} without one."""
+    from .registration import read_color_block
+
+    try:
+        rig = read_color_block(path, depth_camera)
+    except ValueError as e:
+        raise DatasetError(str(e)) from None
+    if rig is None:
+        return {}
+    return {"color_camera": rig.color, "T_color_depth": rig.T_color_depth, "poses_of": rig.poses_of}

@@ -6,7 +6,12 @@ my_capture/
                                     "cy": 239.5, "depth_scale": 1000.0}   (metres = png value / depth_scale;
                                     depth_scale defaults to 1000, i.e. millimetres)
   color/000000.png       colour images, .png or .jpg (a folder named rgb/ works too)
-  depth/000000.png       16-bit single-channel PNG depth, 0 = no measurement, same size as colour
+                         Colour and depth from two cameras: the numbers above are the depth camera's, and a
+                         "color": {"fx", "fy", "cx", "cy"[, "width", "height", "T_color_depth", "poses_of"]}
+                         block gives the colour camera; depth is registered into it as frames are read
+                         (see registration.py; `eligsir calibrate-color` can estimate and write the block)
+  depth/000000.png       16-bit single-channel PNG depth, 0 = no measurement, same size as colour (or as the
+                         depth camera of a "color" block)
   poses.txt              optional: camera-to-world poses, TUM format `timestamp tx ty tz qx qy qz qw`,
                          one line per frame in frame order ('#' comments allowed)
   poses/000000.txt       optional alternative: one camera-to-world 4x4 matrix per frame (4 lines of 4 numbers)
@@ -24,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .base import DatasetError, RGBDSequence, check_increasing, read_intrinsics_json, read_matrix_file, \
-    read_table, read_tum_trajectory
+from .base import DatasetError, RGBDSequence, check_increasing, read_color_sidecar, read_intrinsics_json, \
+    read_matrix_file, read_table, read_tum_trajectory
 
 COLOR_DIRS = ("color", "rgb")
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg"}
@@ -93,4 +98,5 @@ def open_folder(path: Path, *, fps: float = 30.0, depth_scale: float | None = No
     if depth_scale is None:
         depth_scale = 1000.0 if scale is None else scale
     return RGBDSequence(name=path.resolve().name, path=path, camera=camera, depth_scale=depth_scale,
-                        timestamps=timestamps, poses=poses, color_paths=colors, depth_paths=depths, format="folder")
+                        timestamps=timestamps, poses=poses, color_paths=colors, depth_paths=depths, format="folder",
+                        **read_color_sidecar(sidecar, camera))

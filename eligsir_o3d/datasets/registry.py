@@ -50,13 +50,22 @@ def _call(fmt_name: str, fn: Callable[..., RGBDSequence], *args, **options) -> R
     return fn(*args, **options)
 
 
-def open_sequence(path_or_name: str | Path, kind: str = "auto", **options) -> RGBDSequence:
+def open_sequence(path_or_name: str | Path, kind: str = "auto", *, register: bool = True,
+                  **options) -> RGBDSequence:
     """Open a recorded RGB-D sequence (or the synthetic scene) as an :class:`RGBDSequence`.
 
     kind: "auto" (detect from the folder's files) or one of :func:`list_formats`. Options go to the reader,
     for example ``max_dt=0.02`` (tum), ``fps=30`` (replica, folder), ``depth_scale=`` (tum, replica, folder),
-    ``n_frames, width, height, seed`` (synthetic).
+    ``n_frames, width, height, seed`` (synthetic). register=False ignores a separate colour camera (the
+    sidecar's ``color`` block): depth is not registered and the depth camera serves both images, as before.
     """
+    seq = _open(path_or_name, kind, **options)
+    if not register:
+        seq.ignore_color_camera()
+    return seq
+
+
+def _open(path_or_name: str | Path, kind: str, **options) -> RGBDSequence:
     text = str(path_or_name)
     if kind == "synthetic" or (kind == "auto" and (text == "synthetic" or text.startswith("synthetic:"))):
         scene = text.split(":", 1)[1] if text.startswith("synthetic:") else "room"

@@ -6,7 +6,9 @@ timestamp within ``max_dt``. Colour frames left without depth or pose are droppe
 never returned with a None pose: a sequence with a ``groundtruth.txt`` always has a pose per frame.
 
 Intrinsics and depth scale, first match wins:
-1. an ``intrinsics.json`` sidecar in the folder (width, height, fx, fy, cx, cy, depth_scale);
+1. an ``intrinsics.json`` sidecar in the folder (width, height, fx, fy, cx, cy, depth_scale); when colour and
+   depth come from two cameras, those are the depth camera's and a ``color`` block gives the colour camera
+   (depth is then registered into it as frames are read; see :mod:`.registration`);
 2. ``camera="fr1" | "fr2" | "fr3" | "default"`` given to :func:`open_sequence`;
 3. the freiburg camera named in the folder name (``rgbd_dataset_freiburg2_desk`` -> fr2; also ``fr3_...``);
 4. otherwise the OpenNI default (fx = fy = 525, cx = 319.5, cy = 239.5), with a warning.
@@ -24,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera
-from .base import DatasetError, RGBDSequence, check_increasing, read_intrinsics_json, read_table, \
-    read_tum_trajectory
+from .base import DatasetError, RGBDSequence, check_increasing, read_color_sidecar, read_intrinsics_json, \
+    read_table, read_tum_trajectory
 
 # Published TUM RGB-D colour-camera intrinsics (https://cvg.cit.tum.de/data/datasets/rgbd-dataset/file_formats).
 TUM_CAMERAS = {
@@ -117,7 +119,8 @@ def open_tum(path: Path, *, max_dt: float = 0.02, camera: str | None = None,
                       f"{no_pose} without a ground-truth pose within {max_dt} s)", stacklevel=3)
 
     cam, scale = _intrinsics(path, camera)
-    return RGBDSequence(name=path.resolve().name, path=path, camera=cam,
+    two = read_color_sidecar(path / "intrinsics.json", cam) if (path / "intrinsics.json").is_file() else {}
+    return RGBDSequence(name=path.resolve().name, path=path, camera=cam, **two,
                         depth_scale=depth_scale if depth_scale is not None else scale,
                         timestamps=rgb_t[[i for i, _ in pairs]], poses=poses,
                         color_paths=[rgb_files[i] for i, _ in pairs], depth_paths=[depth_files[j] for _, j in pairs],
