@@ -61,6 +61,7 @@ def map_cmd(
     config: Optional[Path] = typer.Option(None, help="config.json to start from (e.g. one written by an earlier run); options given here override it."),
     seed: Optional[int] = typer.Option(None, help="Random seed [default: the config's, else 0]."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+    no_register: bool = typer.Option(False, "--no-register", help="Ignore a separate colour camera (the sidecar's \"color\" block): the depth camera serves both images, depth is not registered."),
 ) -> None:
     """Map a recorded RGB-D sequence into a 3D Gaussian map and evaluate it on held-out views."""
     from .config import Config
@@ -83,7 +84,7 @@ def map_cmd(
                       speed=speed, eval_every=eval_every, refine=refine, offline_reference=offline_reference,
                       offline_updates=offline_updates,
                       on_bad_frame=on_bad_frame.value if on_bad_frame else None, checkpoint_every=checkpoint_every, resume=resume,
-                      progress=not quiet)
+                      progress=not quiet, sequence_options={"register": False} if no_register else None)
     try:
         m = run_mapping(path, out, cfg, opts)
     except (ValueError, OSError, RuntimeError) as e:
