@@ -132,6 +132,31 @@ def demo(
     _summary(m, out)
 
 
+@app.command("calibrate-color")
+def calibrate_color_cmd(
+    path: str = typer.Argument(..., help="Sequence folder with poses (TUM-style or plain folder layout)."),
+    pairs: int = typer.Option(8, help="Frame pairs compared."),
+    gap: Optional[int] = typer.Option(None, help="Pair frame i with i + GAP (default: with the first frame that has turned 6 degrees or moved 12 cm)."),
+    max_frames: Optional[int] = typer.Option(None, help="Use only the first N frames."),
+    stride: int = typer.Option(4, help="Every STRIDE-th depth pixel (x and y) is compared."),
+    principal_point: bool = typer.Option(True, "--principal-point/--focal-only", help="Also search the principal point (kept unless clearly identified)."),
+    write: bool = typer.Option(False, "--write", help="Store the estimate as the \"color\" block of PATH/intrinsics.json."),
+) -> None:
+    """Estimate the colour camera's intrinsics by the photometric consistency of depth-warped colour across frames."""
+    from .color_calibration import calibrate_color, write_estimate
+    from .datasets import open_sequence
+
+    try:
+        seq = open_sequence(path)
+        result = calibrate_color(seq, pairs=pairs, gap=gap, frames=max_frames, stride=stride,
+                                 principal_point=principal_point)
+        typer.echo(result.report())
+        if write:
+            typer.echo(f"wrote the colour camera to {write_estimate(seq, result)}")
+    except (ValueError, OSError) as e:
+        _fail(str(e))
+
+
 @app.command()
 def export(
     map_ply: Path = typer.Argument(..., help="A 3DGS PLY (e.g. runs/kitchen/map.ply)."),
