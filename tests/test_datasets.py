@@ -50,7 +50,7 @@ def reprojection_dz(seq: RGBDSequence, i: int, j: int, use_poses: bool = True) -
 # -- the real folders --------------------------------------------------------------------------------------
 @needs_data
 @pytest.mark.parametrize("folder, fmt, n, cam, scale", [
-    (SEVEN, "tum", 1000, Camera(640, 480, 585.0, 585.0, 320.0, 240.0), 1000.0),
+    (SEVEN, "tum", 1000, Camera(640, 480, 525.0, 525.0, 320.0, 240.0), 1000.0),  # the colour camera (depth: 585)
     (SUN3D, "tum", 50, Camera(640, 480, 570.342205, 570.342205, 320.0, 240.0), 1000.0),
     (REPLICA, "replica", 4, Camera(1200, 680, 600.0, 600.0, 599.5, 339.5), 6553.5),
 ])
