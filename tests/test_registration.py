@@ -228,3 +228,27 @@ def test_calibration_on_real_sequences():
     est = calibrate_color(seven, pairs=4, stride=8, frames=200, principal_point=False)
     assert 505.0 < est.camera.fx < 540.0
     assert est.start.fx == 585.0 and est.error < 0.85 * est.error_start  # clearly better than the depth camera's
+
+
+def test_map_sees_the_colour_camera_unless_told_not_to(tmp_path, room, monkeypatch):
+    from eligsir_o3d import Config, pipeline
+    from eligsir_o3d.pipeline import RunOptions, run_mapping
+
+    root = write_two_camera_room(tmp_path / "cap", room, COLOR_CAM, n=8, color_block=True)
+    cfg = Config(renderer="cpu")
+    cfg.optim.updates_per_frame, cfg.optim.drain_updates, cfg.clock.budget = 2, 4, "updates"
+    m = run_mapping(str(root), tmp_path / "reg", cfg, RunOptions(holdout_every=4, eval_every=0, progress=False,
+                                                                   plots=False))
+    assert json.loads((tmp_path / "reg" / "config.json").read_text())["camera"]["fx"] == COLOR_CAM.fx
+    assert m["heldout"]["depth_rmse_m"] is not None
+    # --no-register reaches open_sequence as register=False (which test_colour_block_registers... checks)
+    seen = []
+
+    def fake_run_mapping(path, out, config, opts):
+        seen.append(opts.sequence_options)
+        raise ValueError("stop here")
+
+    monkeypatch.setattr(pipeline, "run_mapping", fake_run_mapping)
+    for extra, want in (([], None), (["--no-register"], {"register": False})):
+        r = CliRunner().invoke(app, ["map", str(root), "--out", str(tmp_path / "x"), "-q", *extra])
+        assert r.exit_code == 2 and "stop here" in r.output and seen[-1] == want
