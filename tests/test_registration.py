@@ -252,3 +252,15 @@ def test_map_sees_the_colour_camera_unless_told_not_to(tmp_path, room, monkeypat
     for extra, want in (([], None), (["--no-register"], {"register": False})):
         r = CliRunner().invoke(app, ["map", str(root), "--out", str(tmp_path / "x"), "-q", *extra])
         assert r.exit_code == 2 and "stop here" in r.output and seen[-1] == want
+
+
+def test_reader_delivering_the_wrong_depth_size_is_named(room):
+    class Odd(RGBDSequence):
+        def _read_images(self, i):
+            color = np.zeros((H, W, 3), np.uint8)
+            return (o3d.t.geometry.Image(o3d.core.Tensor(color)),
+                    o3d.t.geometry.Image(o3d.core.Tensor(np.ones((H // 2, W // 2, 1), np.float32))))
+
+    seq = Odd(name="odd", path=None, camera=room.camera, depth_scale=1.0, timestamps=[0.0], color_camera=COLOR_CAM)
+    with pytest.raises(DatasetError, match=r"frame 0: cannot register depth.*80x60 but the depth camera is 160x120"):
+        seq[0]

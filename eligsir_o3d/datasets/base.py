@@ -176,8 +176,11 @@ class RGBDSequence:
         i = self._index(int(i))
         color, depth = self._read_images(i)
         if self.rig is not None:  # once, at read time: downstream sees one camera, the colour one
-            depth = o3d.t.geometry.Image(o3d.core.Tensor(
-                self.rig.register(depth.as_tensor().numpy(), self.depth_scale)[..., None]))
+            try:
+                registered = self.rig.register(depth.as_tensor().numpy(), self.depth_scale)
+            except ValueError as e:
+                raise DatasetError(f"frame {i}: cannot register depth into the colour camera: {e}") from None
+            depth = o3d.t.geometry.Image(o3d.core.Tensor(registered[..., None]))
         pose = None if self.poses is None else self.poses[i].copy()
         return SequenceFrame(i, float(self.timestamps[i]), o3d.t.geometry.RGBDImage(color, depth, True), pose,
                              self.color_paths[i] if self.color_paths else None,
