@@ -252,9 +252,9 @@ def calibrate_color(seq, *, pairs: int = 8, gap: int | None = None, stride: int 
     cx, cy, pp_ok, cx_curve, cy_curve, f_fine = start.cx, start.cy, False, [], [], []
     if principal_point:
         base = err(cam(fx, cx, cy))
-        cx_new, cx_curve = _grid_min(lambda c: err(cam(fx, c, cy)), cx + cw * np.linspace(-pp_range, pp_range, pp_steps))
-        cy_new, cy_curve = _grid_min(lambda c: err(cam(fx, cx_new, c)),
-                                     cy + ch * np.linspace(-pp_range, pp_range, pp_steps))
+        offsets = np.linspace(-pp_range, pp_range, pp_steps)
+        cx_new, cx_curve = _grid_min(lambda c: err(cam(fx, c, cy)), cx + cw * offsets)
+        cy_new, cy_curve = _grid_min(lambda c: err(cam(fx, cx_new, c)), cy + ch * offsets)
         interior = all(min(c)[0] < v < max(c)[0] for c, v in ((cx_curve, cx_new), (cy_curve, cy_new)))
         gain = 1 - err(cam(fx, cx_new, cy_new)) / base
         if interior and gain > pp_min_gain:
