@@ -38,7 +38,7 @@ def _fail(msg: str) -> None:
 
 @app.command("map")
 def map_cmd(
-    path: str = typer.Argument(..., help="Sequence folder (TUM, Replica, plain folder layout) or 'synthetic'."),
+    path: str = typer.Argument(..., help="Sequence folder (TUM, Replica, plain folder layout), a ROS 1/2 or RealSense bag, a ScanNet .sens, or 'synthetic'."),
     out: Path = typer.Option(Path("runs/map"), "--out", "-o", help="Results folder."),
     device: Optional[str] = typer.Option(None, help="'cpu' or 'cuda:0' [default: the config's, else cpu]."),
     renderer: Optional[Renderer] = typer.Option(None, help="auto: gsplat on CUDA, else the compiled cpu rasteriser "
@@ -61,6 +61,12 @@ def map_cmd(
     config: Optional[Path] = typer.Option(None, help="config.json to start from (e.g. one written by an earlier run); options given here override it."),
     seed: Optional[int] = typer.Option(None, help="Random seed [default: the config's, else 0]."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
+    rgb_topic: Optional[str] = typer.Option(None, help="ROS bag: colour topic (when the bag has several)."),
+    depth_topic: Optional[str] = typer.Option(None, help="ROS bag: depth topic (when the bag has several)."),
+    rgb_info_topic: Optional[str] = typer.Option(None, help="ROS bag: CameraInfo topic of the colour camera."),
+    depth_info_topic: Optional[str] = typer.Option(None, help="ROS bag: CameraInfo topic of the depth camera."),
+    pose_topic: Optional[str] = typer.Option(None, help="ROS bag: PoseStamped/Odometry topic of the camera's optical frame."),
+    pose_frames: Optional[str] = typer.Option(None, help="ROS bag: poses from tf, 'world_frame:camera_optical_frame'."),
 ) -> None:
     """Map a recorded RGB-D sequence into a 3D Gaussian map and evaluate it on held-out views."""
     from .config import Config
@@ -84,6 +90,9 @@ def map_cmd(
                       offline_updates=offline_updates,
                       on_bad_frame=on_bad_frame.value if on_bad_frame else None, checkpoint_every=checkpoint_every, resume=resume,
                       progress=not quiet)
+    bag = dict(rgb_topic=rgb_topic, depth_topic=depth_topic, rgb_info_topic=rgb_info_topic,
+               depth_info_topic=depth_info_topic, pose_topic=pose_topic, pose_frames=pose_frames)
+    opts.sequence_options = {k: v for k, v in bag.items() if v is not None} or None
     try:
         m = run_mapping(path, out, cfg, opts)
     except (ValueError, OSError, RuntimeError) as e:

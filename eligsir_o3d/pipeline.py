@@ -255,6 +255,9 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
 
 
 def _pose_source(spec: str, seq):
+    if spec == "gt" and seq.poses is None and getattr(seq, "default_pose", None):  # e.g. a bag without poses
+        log.info("%s has no poses: tracking with the %s pose source", seq.path, seq.default_pose)
+        spec = seq.default_pose
     if spec == "gt":
         if seq.poses is None:
             raise ValueError(f"{seq.path}: the sequence has no ground-truth poses; choose --pose odometry|kiss-icp|colmap")

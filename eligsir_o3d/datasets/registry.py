@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from . import folder, replica, tum
+from . import folder, replica, rosbag, scannet, tum
 from .base import DatasetError, RGBDSequence
 from .synthetic import SyntheticRoom, open_synthetic
 
@@ -69,8 +69,6 @@ def open_sequence(path_or_name: str | Path, kind: str = "auto", **options) -> RG
     path = Path(path_or_name).expanduser()
     if not path.exists():
         raise DatasetError(f"sequence folder {path} does not exist")
-    if not path.is_dir():
-        raise DatasetError(f"{path} is not a folder (a sequence is a folder of images and text files)")
     if kind != "auto":
         if kind not in _FORMATS:
             raise DatasetError(f"unknown format {kind!r}; available: {', '.join(list_formats())}")
@@ -79,10 +77,14 @@ def open_sequence(path_or_name: str | Path, kind: str = "auto", **options) -> RG
         if fmt.detect(path):
             return _call(fmt.name, fmt.open, path, **options)
     looked = "\n".join(f"  - {f.name}: {f.looks_for}" for f in _FORMATS.values())
-    raise DatasetError(f"{path}: unrecognised sequence layout; looked for\n{looked}")
+    what = "sequence layout" if path.is_dir() else "file type (a sequence is a folder, a bag or a .sens file)"
+    raise DatasetError(f"{path}: unrecognised {what}; known layouts:\n{looked}")
 
 
 register_format("tum", tum.detect, tum.open_tum, "rgb.txt + depth.txt (+ groundtruth.txt), TUM RGB-D")
 register_format("replica", replica.detect, replica.open_replica,
                 "results/frame*.jpg + results/depth*.png + traj.txt, NICE-SLAM Replica")
 register_format("folder", folder.detect, folder.open_folder, "color/ (or rgb/) + depth/ + intrinsics.json")
+register_format("rosbag", rosbag.detect, rosbag.open_rosbag,
+                "ROS 1 .bag, or ROS 2 bag folder (metadata.yaml + .db3/.mcap): Image/CompressedImage + depth Image")
+register_format("scannet", scannet.detect, scannet.open_sens, "a ScanNet .sens file")
