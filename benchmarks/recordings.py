@@ -26,7 +26,7 @@ SEVEN = ROOT / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 
 def write_all(frames: int, work: Path) -> dict[str, Path]:
     from eligsir_o3d.datasets import open_sequence
-    from eligsir_o3d.datasets.writers import write_rosbag, write_sens
+    from eligsir_o3d.datasets.writers import write_realsense_bag, write_rosbag, write_sens
 
     src = open_sequence(SEVEN)
     work.mkdir(parents=True, exist_ok=True)
@@ -38,12 +38,9 @@ def write_all(frames: int, work: Path) -> dict[str, Path]:
     write_rosbag(src, out["ros2-sqlite3"], ros=2, storage="sqlite3", frames=range(frames))
     write_rosbag(src, out["ros2-mcap"], ros=2, storage="mcap", frames=range(frames))
     write_sens(src, out["scannet"], frames=range(frames))
-    try:
-        from eligsir_o3d.datasets.writers import write_realsense_bag
-
-        out["realsense"] = write_realsense_bag(src, work / "realsense.bag", frames=range(frames))
-    except ImportError:
-        pass
+    out["realsense"] = work / "realsense.bag"
+    out["realsense"].unlink(missing_ok=True)
+    write_realsense_bag(src, out["realsense"], frames=range(frames), poses=True)
     return out
 
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from . import folder, replica, rosbag, scannet, tum
+from . import folder, replica, rosbag, rsbag, scannet, tum
 from .base import DatasetError, RGBDSequence
 from .synthetic import SyntheticRoom, open_synthetic
 
@@ -85,6 +85,8 @@ register_format("tum", tum.detect, tum.open_tum, "rgb.txt + depth.txt (+ groundt
 register_format("replica", replica.detect, replica.open_replica,
                 "results/frame*.jpg + results/depth*.png + traj.txt, NICE-SLAM Replica")
 register_format("folder", folder.detect, folder.open_folder, "color/ (or rgb/) + depth/ + intrinsics.json")
+register_format("realsense", rsbag.detect, rsbag.open_realsense,
+                "RealSense .bag (librealsense layout: /file_version, /device_0/sensor_*/Depth_0, Color_0)")
 register_format("rosbag", rosbag.detect, rosbag.open_rosbag,
                 "ROS 1 .bag, or ROS 2 bag folder (metadata.yaml + .db3/.mcap): Image/CompressedImage + depth Image")
 register_format("scannet", scannet.detect, scannet.open_sens, "a ScanNet .sens file")

@@ -242,3 +242,72 @@ def write_sens(seq, out: str | Path, *, frames: Sequence[int] | None = None, ver
             t_us = int(round(item.timestamp * 1e6))
             f.write(T.tobytes() + struct.pack("<QQQQ", t_us, t_us, len(jpg), len(z)) + jpg + z)
     return out
+
+
+# -- RealSense (librealsense ROS 1 layout, file version 3) ------------------------------------------------------
+RS_DEPTH = "/device_0/sensor_0/Depth_0"
+RS_COLOR = "/device_0/sensor_1/Color_0"
+
+
+def write_realsense_bag(seq, out: str | Path, *, frames: Sequence[int] | None = None, depth_units: float = 0.001,
+                        t0: float = 1.0, poses: bool = False) -> Path:
+    """Write frames of ``seq`` in the layout librealsense records (``rs-record``, RealSense Viewer): file version 3,
+    a "Stereo Module" sensor with a Z16 ``Depth_0`` stream and an "RGB Camera" sensor with an RGB8 ``Color_0``
+    stream, each with its StreamInfo, CameraInfo and extrinsic, and the ``Depth Units`` option.
+    Depth is written in ``depth_units`` metres per unit; both streams use ``seq.camera``. poses: also write the
+    ground truth as ``geometry_msgs/PoseStamped`` on ``/camera/pose`` (not part of librealsense's layout; it ignores it).
+    """
+    rb = import_rosbags()
+    out = Path(out)
+    m = _Msgs(1)
+    if "realsense_msgs/msg/StreamInfo" not in m.ts.types:
+        m.ts.register(rb.get_types_from_msg("uint32 fps\nstring encoding\nbool is_recommended",
+                                            "realsense_msgs/msg/StreamInfo"))
+    T = m.T
+    idx = _frames(seq, frames)
+    fps = int(round(1.0 / seq.frame_period_s)) if len(seq) > 1 else 30
+    writer = rb.Writer1(out)
+    with writer:
+        conns: dict[str, object] = {}
+
+        def put(topic: str, typ: str, msg, t_ns: int = 1) -> None:  # static info at t = 1 ns (0 is invalid)
+            if topic not in conns:
+                conns[topic] = writer.add_connection(topic, typ, typestore=m.ts)
+            writer.write(conns[topic], t_ns, m.serialize(msg, typ))
+
+        kv = lambda k, v: T["diagnostic_msgs/msg/KeyValue"](key=k, value=v)  # noqa: E731
+        put("/file_version", "std_msgs/msg/UInt32", T["std_msgs/msg/UInt32"](data=3))
+        for k, v in (("Name", "Intel RealSense D435"), ("Serial Number", "000000000000"),
+                     ("Firmware Version", "05.13.00.50"), ("Product Id", "0B07"), ("Product Line", "D400")):
+            put("/device_0/info", "diagnostic_msgs/msg/KeyValue", kv(k, v))
+        put("/device_0/sensor_0/info", "diagnostic_msgs/msg/KeyValue", kv("Name", "Stereo Module"))
+        put("/device_0/sensor_1/info", "diagnostic_msgs/msg/KeyValue", kv("Name", "RGB Camera"))
+        put("/device_0/sensor_0/option/Depth Units/value", "std_msgs/msg/Float32",
+            T["std_msgs/msg/Float32"](data=depth_units))
+        put("/device_0/sensor_0/option/Depth Units/description", "std_msgs/msg/String",
+            T["std_msgs/msg/String"](data="Number of meters represented by a single depth unit"))
+        ident = T["geometry_msgs/msg/Transform"](translation=T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+                                                 rotation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0))
+        for stream, enc in ((RS_DEPTH, "mono16"), (RS_COLOR, "rgb8")):
+            put(f"{stream}/info", "realsense_msgs/msg/StreamInfo",
+                T["realsense_msgs/msg/StreamInfo"](fps=fps, encoding=enc, is_recommended=True))
+            put(f"{stream}/info/camera_info", "sensor_msgs/msg/CameraInfo", m.camera_info(0, "0", seq.camera))
+            put(f"{stream}/tf/0", "geometry_msgs/msg/Transform", ident)
+        for k, i in enumerate(idx):
+            item = seq[i]
+            t_ns = int(round((t0 + item.timestamp) * 1e9))
+            d = item.rgbd.depth.as_tensor().numpy()[..., 0].astype(np.float64) / seq.depth_scale
+            units = np.round(d / depth_units).astype(np.uint16)
+            for stream, img, enc in ((RS_DEPTH, units, "mono16"), (RS_COLOR, item.rgbd.color.as_tensor().numpy(),
+                                                                    "rgb8")):
+                msg = m.image(t_ns, "0", img, enc)
+                msg.header.seq = k
+                put(f"{stream}/image/data", "sensor_msgs/msg/Image", msg, t_ns)
+                for key, val in (("frame_timestamp", f"{(t0 + item.timestamp) * 1e3:.6f}"),
+                                 ("timestamp_domain", "System Time"), ("system_time", str(t_ns // 1000000))):
+                    put(f"{stream}/image/metadata", "diagnostic_msgs/msg/KeyValue", kv(key, val), t_ns)
+            if poses and item.T_world_cam is not None:
+                put("/camera/pose", "geometry_msgs/msg/PoseStamped",
+                    T["geometry_msgs/msg/PoseStamped"](header=m.header(t_ns, "world"), pose=m.pose(item.T_world_cam)),
+                    t_ns)
+    return out
