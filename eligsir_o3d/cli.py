@@ -141,6 +141,46 @@ def demo(
 
 
 @app.command()
+def live(
+    out: Path = typer.Option(Path("runs/live"), "--out", "-o", help="Results folder."),
+    replay: Optional[str] = typer.Option(None, help="Replay a recording (a RealSense .bag through Open3D's reader, or anything `map` reads) instead of a camera, at its own pace."),
+    frames: Optional[int] = typer.Option(None, help="Stop after N frames."),
+    seconds: Optional[float] = typer.Option(None, help="Stop after S seconds."),
+    pose: str = typer.Option("odometry", help="Pose source: odometry | kiss-icp."),
+    device: str = typer.Option("cpu"),
+    config: Optional[Path] = typer.Option(None, help="config.json to start from."),
+) -> None:
+    """Map a connected RealSense camera live (wall clock; frames drop when the mapper falls behind)."""
+    from .config import Config
+    from .live import RSBagReplay, RealSenseCamera, SequenceReplay, run_live
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    cfg = Config.load(config) if config else Config()
+    cfg.device = device
+    try:
+        if replay is None:
+            source = RealSenseCamera()
+        elif replay.endswith(".bag") and _is_realsense(replay):
+            source = RSBagReplay(replay)
+        else:
+            from .datasets import open_sequence
+
+            source = SequenceReplay(open_sequence(replay), max_frames=frames)
+        s = run_live(source, out, cfg, pose=pose, max_frames=frames, seconds=seconds)
+    except (ValueError, OSError, RuntimeError) as e:
+        _fail(str(e))
+    typer.echo(f"{s['source']}: captured {s['captured']}, integrated {s['integrated']}, dropped {s['dropped']}, "
+               f"tracking lost {s['lost']}; {s['gaussians']} Gaussians, {s['updates']} updates in {s['wall_s']:.1f} s")
+    typer.echo(f"results in {out.resolve()}")
+
+
+def _is_realsense(path: str) -> bool:
+    from .datasets import rsbag
+
+    return rsbag.detect(Path(path))
+
+
+@app.command()
 def export(
     map_ply: Path = typer.Argument(..., help="A 3DGS PLY (e.g. runs/kitchen/map.ply)."),
     mesh: Optional[Path] = typer.Option(None, help="Write a TSDF mesh of the map's rendered depth here (.ply/.obj)."),
