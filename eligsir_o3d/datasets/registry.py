@@ -1,4 +1,4 @@
-"""Format registry: ``open_sequence(path)`` finds the reader whose layout matches the folder.
+"""Format registry: ``open_sequence(path)`` finds the reader whose layout matches the folder or file.
 
 Readers register a ``detect(path) -> bool`` and an ``open(path, **options) -> RGBDSequence``; detection runs in
 registration order (the first match wins), and ``kind=`` skips it. A name ``synthetic`` or ``synthetic:<scene>``
@@ -54,7 +54,8 @@ def open_sequence(path_or_name: str | Path, kind: str = "auto", **options) -> RG
     """Open a recorded RGB-D sequence (or the synthetic scene) as an :class:`RGBDSequence`.
 
     kind: "auto" (detect from the folder's files) or one of :func:`list_formats`. Options go to the reader,
-    for example ``max_dt=0.02`` (tum), ``fps=30`` (replica, folder), ``depth_scale=`` (tum, replica, folder),
+    for example ``max_dt=0.02`` (tum, rosbag, realsense), ``fps=30`` (replica, folder, scannet), ``depth_scale=``,
+    ``rgb_topic, depth_topic, rgb_info_topic, depth_info_topic, pose_topic, pose_frames, intrinsics`` (rosbag),
     ``n_frames, width, height, seed`` (synthetic).
     """
     text = str(path_or_name)
