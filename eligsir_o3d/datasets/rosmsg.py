@@ -115,7 +115,7 @@ def camera_from_info(msg, where: str) -> Camera:
     return Camera(int(msg.width), int(msg.height), float(K[0]), float(K[4]), float(K[2]), float(K[5]))
 
 
-def _pose_matrix(p) -> np.ndarray:
+def transform_matrix(p) -> np.ndarray:
     """geometry_msgs Pose or Transform -> 4x4."""
     t = p.position if hasattr(p, "position") else p.translation
     q = p.orientation if hasattr(p, "orientation") else p.rotation
@@ -128,9 +128,9 @@ def _pose_matrix(p) -> np.ndarray:
 def pose_from_msg(msg, msgtype: str) -> np.ndarray:
     """Camera-to-world pose of PoseStamped, PoseWithCovarianceStamped, Odometry or TransformStamped."""
     if msgtype == "geometry_msgs/msg/TransformStamped":
-        return _pose_matrix(msg.transform)
+        return transform_matrix(msg.transform)
     pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
-    return _pose_matrix(pose)
+    return transform_matrix(pose)
 
 
 class TfBuffer:
@@ -143,7 +143,7 @@ class TfBuffer:
     def add(self, msg, static: bool) -> None:
         for tr in msg.transforms:
             key = (tr.header.frame_id.lstrip("/"), tr.child_frame_id.lstrip("/"))
-            T = _pose_matrix(tr.transform)
+            T = transform_matrix(tr.transform)
             if static:
                 self.static[key] = T
             else:

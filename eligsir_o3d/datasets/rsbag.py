@@ -25,7 +25,7 @@ import numpy as np
 
 from .base import DatasetError
 from .rosbag import BagSequence, open_reader, open_rosbag
-from .rosmsg import pose_from_msg
+from .rosmsg import transform_matrix
 
 _STREAM = re.compile(r"^/device_(\d+)/sensor_(\d+)/(Depth|Color)_(\d+)/image/data$")
 
@@ -67,8 +67,7 @@ def open_realsense(path: Path, *, max_dt: float = 0.02, depth_scale: float | Non
             if c.topic.endswith("/value"):
                 units = float(msg.data)
             else:
-                extrinsics[c.topic.split("/tf/")[0]] = pose_from_msg(
-                    type("T", (), {"transform": msg})(), "geometry_msgs/msg/TransformStamped")
+                extrinsics[c.topic.split("/tf/")[0]] = transform_matrix(msg)
     finally:
         reader.close()
     if depth_scale is None:
