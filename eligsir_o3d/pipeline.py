@@ -91,7 +91,7 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
     evaluator = HeldoutEvaluator(heldout_frames, sample_stride=opts.eval_sample_stride,
                                  checkpoint_ssim=opts.eval_ssim_at_checkpoints)
     ck_path = out / "checkpoint.pt"
-    start, trajectory, skipped = 0, {}, []
+    start, trajectory, skipped = 0, {}, list(getattr(seq, "skipped_frames", ()))  # left out by the reader
     if opts.resume and ck_path.is_file():
         from .checkpoint import load_checkpoint
 

@@ -81,3 +81,17 @@ def test_bad_sens_files(tmp_path, src):
     head.write_bytes(data[:100])
     with pytest.raises(DatasetError, match=r"head\.sens: file ends inside the header"):
         open_sequence(head)
+
+
+def test_bad_pose_frames_are_reported_by_the_pipeline(tmp_path, src):
+    from eligsir_o3d import Config
+    from eligsir_o3d.pipeline import RunOptions, run_mapping
+
+    path = write_sens(src, tmp_path / "s.sens", frames=range(7), bad_pose_frames=[3])
+    cfg = Config(renderer="cpu")
+    cfg.optim.updates_per_frame, cfg.optim.drain_updates, cfg.clock.budget = 1, 0, "updates"
+    with pytest.warns(UserWarning, match="left out 1 of 7"):
+        m = run_mapping(str(path), tmp_path / "run", cfg, RunOptions(holdout_every=3, eval_every=0, progress=False,
+                                                                     plots=False))
+    assert m["frames_total"] == 6
+    assert m["skipped_frames"] == ["s.sens frame 3 (in the file): invalid (-inf/NaN) pose, left out"]

@@ -10,7 +10,8 @@ colour bytes, the depth bytes.
 Opening walks the frame headers once, seeking over the image bytes, and keeps only their offsets: a 5 GB scan
 opens in a few seconds and ``seq[i]`` reads just frame i. ScanNet marks frames where its tracking failed with
 -inf (or NaN) poses: those frames are left out of the sequence with a warning naming them
-(``seq.bad_pose_frames`` lists their indices in the file), like TUM frames without a ground-truth pose.
+(``seq.bad_pose_frames`` lists their indices in the file; ``eligsir map`` reports them in metrics.json
+``skipped_frames``), like TUM frames without a ground-truth pose.
 
 Colour (1296x968) and depth (640x480) come from two cameras: both intrinsics and ``T_color_depth`` (colour
 extrinsic^-1 @ depth extrinsic) are kept on the sequence (see twocam.py); frames use the depth camera, with the
@@ -59,7 +60,8 @@ class SensSequence(RGBDSequence):
         self.cameras = cameras
         self.color_intrinsic, self.depth_intrinsic = cameras.color_intrinsic, cameras.depth_intrinsic
         self.T_color_depth = cameras.T_color_depth
-        self.bad_pose_frames: list[int] = []
+        self.bad_pose_frames: list[int] = []  # indices in the file of frames left out for a -inf/NaN pose
+        self.skipped_frames: list[str] = []  # the same, as messages (the pipeline reports them in metrics.json)
 
     def read_native(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         """Frame i's colour [Hc, Wc, 3] uint8 RGB and depth [Hd, Wd] uint16 as stored."""
@@ -160,4 +162,5 @@ def open_sens(path: Path, *, fps: float = 30.0, depth_scale: float | None = None
                        name=path.stem, path=path, depth_scale=depth_scale or float(shift), timestamps=stamps,
                        poses=poses, dropped_unassociated=len(bad), format="scannet")
     seq.bad_pose_frames = bad
+    seq.skipped_frames = [f"{path.name} frame {k} (in the file): invalid (-inf/NaN) pose, left out" for k in bad]
     return seq
