@@ -21,6 +21,7 @@ ap.add_argument("bag")
 ap.add_argument("--out", type=Path, default=Path("runs/bag"))
 ap.add_argument("--frames", type=int, default=None)
 ap.add_argument("--updates", type=int, default=None, help="optimisation updates per frame (default: the config's)")
+ap.add_argument("--drain", type=int, default=None, help="updates after the last frame (default: the config's)")
 for topic in ("rgb-topic", "depth-topic", "pose-topic", "pose-frames"):
     ap.add_argument(f"--{topic}", default=None)
 args = ap.parse_args()
@@ -44,6 +45,8 @@ for i in range(len(seq) if args.frames is None else min(args.frames, len(seq))):
             continue
     rec.integrate(frame, updates=args.updates)
     poses.append(frame.T_world_cam)
+if args.drain is not None:
+    rec.config.optim.drain_updates = args.drain
 rec.finalize()
 
 args.out.mkdir(parents=True, exist_ok=True)

@@ -49,6 +49,7 @@ ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDe
 ap.add_argument("sequence", nargs="?", default="../shared/data/7scenes_redkitchen_jpg1000")
 ap.add_argument("--frames", type=int, default=100)
 ap.add_argument("--updates", type=int, default=None)
+ap.add_argument("--drain", type=int, default=None, help="updates after the last frame (default: the config's)")
 args = ap.parse_args()
 
 seq = open_sequence(args.sequence)
@@ -70,6 +71,8 @@ for i in range(min(args.frames, len(seq))):
     est[frame.timestamp] = T
     if seq.poses is not None:
         gt[frame.timestamp] = seq.poses[i]
+if args.drain is not None:
+    rec.config.optim.drain_updates = args.drain
 rec.finalize()
 print(f"{tracker.name}: {tracker.frames_tracked} frames at {tracker.ms_per_frame:.0f} ms, {len(rec.gmap)} Gaussians")
 if len(gt) >= 3:

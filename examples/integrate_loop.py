@@ -16,6 +16,7 @@ ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDe
 ap.add_argument("sequence", nargs="?", default="../shared/data/7scenes_redkitchen_jpg1000")
 ap.add_argument("--frames", type=int, default=200, help="how many frames to integrate")
 ap.add_argument("--updates", type=int, default=None, help="optimisation updates per frame (default: the config's)")
+ap.add_argument("--drain", type=int, default=None, help="updates after the last frame (default: the config's)")
 ap.add_argument("--out", type=Path, default=Path("runs/loop"))
 args = ap.parse_args()
 
@@ -26,6 +27,8 @@ rec.config.depth_scale = seq.depth_scale                   # integer depth / dep
 for i in range(min(args.frames, len(seq))):
     item = seq[i]                                          # o3d.t.geometry.RGBDImage + camera-to-world pose
     rec.integrate(item.rgbd, item.T_world_cam, timestamp=item.timestamp, updates=args.updates)
+if args.drain is not None:
+    rec.config.optim.drain_updates = args.drain
 rec.finalize()                                             # a bounded drain: the map as the stream ends
 
 args.out.mkdir(parents=True, exist_ok=True)

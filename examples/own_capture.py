@@ -23,6 +23,7 @@ ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDe
 ap.add_argument("capture", type=Path)
 ap.add_argument("--frames", type=int, default=None)
 ap.add_argument("--updates", type=int, default=None, help="optimisation updates per frame (default: the config's)")
+ap.add_argument("--drain", type=int, default=None, help="updates after the last frame (default: the config's)")
 ap.add_argument("--out", type=Path, default=Path("runs/own_capture"))
 args = ap.parse_args()
 
@@ -41,6 +42,8 @@ for i in range(len(seq) if args.frames is None else min(args.frames, len(seq))):
     rec.integrate(frame, updates=args.updates)         # a Frame carries its own pose and timestamp
     stamps.append(frame.timestamp)
     poses.append(frame.T_world_cam)
+if args.drain is not None:
+    rec.config.optim.drain_updates = args.drain
 rec.finalize()
 
 args.out.mkdir(parents=True, exist_ok=True)

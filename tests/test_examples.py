@@ -36,7 +36,7 @@ def test_every_example_has_a_test():
 
 
 def test_integrate_loop_then_export_mesh(tmp_path, capsys, monkeypatch):
-    out = run_example("integrate_loop.py", SEVEN, "--frames", 6, "--updates", 2, "--out", tmp_path, capsys=capsys)
+    out = run_example("integrate_loop.py", SEVEN, "--frames", 6, "--updates", 2, "--drain", 5, "--out", tmp_path, capsys=capsys)
     assert "Gaussians" in out and (tmp_path / "map.ply").is_file()
     from eligsir_o3d.ply import load_ply
 
@@ -65,7 +65,7 @@ def test_own_capture_tracks_a_folder_without_poses(tmp_path, capsys):
     intr = json.loads((SEVEN / "intrinsics.json").read_text())
     (cap / "intrinsics.json").write_text(json.dumps({k: intr[k] for k in
                                                      ("width", "height", "fx", "fy", "cx", "cy", "depth_scale")}))
-    out = run_example("own_capture.py", cap, "--updates", 1, "--out", tmp_path / "run", capsys=capsys)
+    out = run_example("own_capture.py", cap, "--updates", 1, "--drain", 5, "--out", tmp_path / "run", capsys=capsys)
     assert "tracked 6 frames" in out, out
     lines = [ln for ln in (tmp_path / "run" / "trajectory.txt").read_text().splitlines() if not ln.startswith("#")]
     assert len(lines) == 6
@@ -79,14 +79,14 @@ def test_bag_to_ply_from_a_ros_bag(tmp_path, capsys):
     from eligsir_o3d.datasets.writers import write_rosbag
 
     bag = write_rosbag(open_sequence(SEVEN), tmp_path / "cap.bag", ros=1, frames=range(5))
-    out = run_example("bag_to_ply.py", bag, "--updates", 2, "--out", tmp_path / "run", capsys=capsys)
+    out = run_example("bag_to_ply.py", bag, "--updates", 2, "--drain", 5, "--out", tmp_path / "run", capsys=capsys)
     assert (tmp_path / "run" / "map.ply").is_file() and (tmp_path / "run" / "mesh.ply").is_file()
     assert "format='ros1'" in out and "poses=yes" in out
     assert int(out.split("mesh with ")[1].split()[0]) > 100, out
 
 
 def test_custom_pose_source_tracks_close_to_ground_truth(capsys):
-    out = run_example("custom_pose_source.py", SEVEN, "--frames", 8, "--updates", 1, capsys=capsys)
+    out = run_example("custom_pose_source.py", SEVEN, "--frames", 8, "--updates", 1, "--drain", 5, capsys=capsys)
     assert "constant-velocity odometry: 8 frames" in out, out
     ate_cm = float(out.split("ATE against the sequence's poses: ")[1].split()[0])
     assert ate_cm < 2.0, out
