@@ -216,7 +216,7 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
         "device": str(rec.device),
         "renderer": rec.config.renderer,
         "map_state": map_state,
-        "pose_source": opts.pose,
+        "pose_source": getattr(seq, "default_pose", opts.pose) if opts.pose == "gt" and seq.poses is None else opts.pose,
         "clock": clock.name,
         "heldout": {k: final.get(k) for k in ("psnr", "ssim", "lpips", "depth_rmse_m", "depth_rmse_2m_m")},
         "cvq_auc": final.get("cvq_auc"),

@@ -86,7 +86,7 @@ def test_bag_without_poses_maps_with_odometry(tmp_path, src, caplog):
         m = run_mapping(str(out), tmp_path / "run", cfg, RunOptions(holdout_every=4, eval_every=0, progress=False,
                                                                     plots=False))
     assert "has no poses: tracking with the odometry pose source" in caplog.text
-    assert m["frames_source"] == 6 and m["skipped_frames"] == []
+    assert m["frames_source"] == 6 and m["skipped_frames"] == [] and m["pose_source"] == "odometry"
     assert len((tmp_path / "run" / "trajectory.txt").read_text().splitlines()) == 1 + 6
 
 
