@@ -38,7 +38,7 @@ def _fail(msg: str) -> None:
 
 @app.command("map")
 def map_cmd(
-    path: str = typer.Argument(..., help="Sequence folder (TUM, Replica, plain folder layout) or 'synthetic'."),
+    path: str = typer.Argument(..., help="Sequence folder (TUM, Replica, plain folder layout), a ROS 1/2 or RealSense bag, a ScanNet .sens, or 'synthetic'."),
     out: Path = typer.Option(Path("runs/map"), "--out", "-o", help="Results folder."),
     device: Optional[str] = typer.Option(None, help="'cpu' or 'cuda:0' [default: the config's, else cpu]."),
     renderer: Optional[Renderer] = typer.Option(None, help="auto: gsplat on CUDA, else the compiled cpu rasteriser "
@@ -62,6 +62,12 @@ def map_cmd(
     seed: Optional[int] = typer.Option(None, help="Random seed [default: the config's, else 0]."),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar."),
     no_register: bool = typer.Option(False, "--no-register", help="Ignore a separate colour camera (the sidecar's \"color\" block): the depth camera serves both images, depth is not registered."),
+    rgb_topic: Optional[str] = typer.Option(None, help="ROS bag: colour topic (when the bag has several)."),
+    depth_topic: Optional[str] = typer.Option(None, help="ROS bag: depth topic (when the bag has several)."),
+    rgb_info_topic: Optional[str] = typer.Option(None, help="ROS bag: CameraInfo topic of the colour camera."),
+    depth_info_topic: Optional[str] = typer.Option(None, help="ROS bag: CameraInfo topic of the depth camera."),
+    pose_topic: Optional[str] = typer.Option(None, help="ROS bag: PoseStamped/Odometry topic of the camera's optical frame."),
+    pose_frames: Optional[str] = typer.Option(None, help="ROS bag: poses from tf, 'world_frame:camera_optical_frame'."),
 ) -> None:
     """Map a recorded RGB-D sequence into a 3D Gaussian map and evaluate it on held-out views."""
     from .config import Config
@@ -84,7 +90,13 @@ def map_cmd(
                       speed=speed, eval_every=eval_every, refine=refine, offline_reference=offline_reference,
                       offline_updates=offline_updates,
                       on_bad_frame=on_bad_frame.value if on_bad_frame else None, checkpoint_every=checkpoint_every, resume=resume,
-                      progress=not quiet, sequence_options={"register": False} if no_register else None)
+                      progress=not quiet)
+    seq_opts = dict(rgb_topic=rgb_topic, depth_topic=depth_topic, rgb_info_topic=rgb_info_topic,
+                    depth_info_topic=depth_info_topic, pose_topic=pose_topic, pose_frames=pose_frames)
+    seq_opts = {k: v for k, v in seq_opts.items() if v is not None}
+    if no_register:
+        seq_opts["register"] = False
+    opts.sequence_options = seq_opts or None
     try:
         m = run_mapping(path, out, cfg, opts)
     except (ValueError, OSError, RuntimeError) as e:
@@ -155,6 +167,46 @@ def calibrate_color_cmd(
             typer.echo(f"wrote the colour camera to {write_estimate(seq, result)}")
     except (ValueError, OSError) as e:
         _fail(str(e))
+
+
+@app.command()
+def live(
+    out: Path = typer.Option(Path("runs/live"), "--out", "-o", help="Results folder."),
+    replay: Optional[str] = typer.Option(None, help="Replay a recording (a RealSense .bag through Open3D's reader, or anything `map` reads) instead of a camera, at its own pace."),
+    frames: Optional[int] = typer.Option(None, help="Stop after N frames."),
+    seconds: Optional[float] = typer.Option(None, help="Stop after S seconds."),
+    pose: str = typer.Option("odometry", help="Pose source: odometry | kiss-icp."),
+    device: str = typer.Option("cpu"),
+    config: Optional[Path] = typer.Option(None, help="config.json to start from."),
+) -> None:
+    """Map a connected RealSense camera live (wall clock; frames drop when the mapper falls behind)."""
+    from .config import Config
+    from .live import RSBagReplay, RealSenseCamera, SequenceReplay, run_live
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    cfg = Config.load(config) if config else Config()
+    cfg.device = device
+    try:
+        if replay is None:
+            source = RealSenseCamera()
+        elif replay.endswith(".bag") and _is_realsense(replay):
+            source = RSBagReplay(replay)
+        else:
+            from .datasets import open_sequence
+
+            source = SequenceReplay(open_sequence(replay), max_frames=frames)
+        s = run_live(source, out, cfg, pose=pose, max_frames=frames, seconds=seconds)
+    except (ValueError, OSError, RuntimeError) as e:
+        _fail(str(e))
+    typer.echo(f"{s['source']}: captured {s['captured']}, integrated {s['integrated']}, dropped {s['dropped']}, "
+               f"tracking lost {s['lost']}; {s['gaussians']} Gaussians, {s['updates']} updates in {s['wall_s']:.1f} s")
+    typer.echo(f"results in {out.resolve()}")
+
+
+def _is_realsense(path: str) -> bool:
+    from .datasets import rsbag
+
+    return rsbag.detect(Path(path))
 
 
 @app.command()

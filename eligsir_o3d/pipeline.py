@@ -91,7 +91,7 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
     evaluator = HeldoutEvaluator(heldout_frames, sample_stride=opts.eval_sample_stride,
                                  checkpoint_ssim=opts.eval_ssim_at_checkpoints)
     ck_path = out / "checkpoint.pt"
-    start, trajectory, skipped = 0, {}, []
+    start, trajectory, skipped = 0, {}, list(getattr(seq, "skipped_frames", ()))  # left out by the reader
     if opts.resume and ck_path.is_file():
         from .checkpoint import load_checkpoint
 
@@ -216,7 +216,7 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
         "device": str(rec.device),
         "renderer": rec.config.renderer,
         "map_state": map_state,
-        "pose_source": opts.pose,
+        "pose_source": getattr(seq, "default_pose", opts.pose) if opts.pose == "gt" and seq.poses is None else opts.pose,
         "clock": clock.name,
         "heldout": {k: final.get(k) for k in ("psnr", "ssim", "lpips", "depth_rmse_m", "depth_rmse_2m_m")},
         "cvq_auc": final.get("cvq_auc"),
@@ -255,6 +255,9 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
 
 
 def _pose_source(spec: str, seq):
+    if spec == "gt" and seq.poses is None and getattr(seq, "default_pose", None):  # e.g. a bag without poses
+        log.info("%s has no poses: tracking with the %s pose source", seq.path, seq.default_pose)
+        spec = seq.default_pose
     if spec == "gt":
         if seq.poses is None:
             raise ValueError(f"{seq.path}: the sequence has no ground-truth poses; choose --pose odometry|kiss-icp|colmap")

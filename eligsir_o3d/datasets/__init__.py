@@ -1,4 +1,5 @@
-"""Dataset readers: TUM RGB-D, NICE-SLAM Replica, a plain folder layout and the built-in synthetic room.
+"""Dataset readers: TUM RGB-D, NICE-SLAM Replica, a plain folder layout, RealSense and ROS 1/2 bags, ScanNet
+.sens files and the built-in synthetic room.
 
 ``open_sequence(path_or_name)`` detects the layout and returns an :class:`RGBDSequence`; ``seq[i]`` is a
 :class:`SequenceFrame` (Open3D RGBD image, ground-truth pose, timestamp) and ``seq.frame(i)`` a :class:`Frame`.

@@ -1,4 +1,4 @@
-"""Format registry: ``open_sequence(path)`` finds the reader whose layout matches the folder.
+"""Format registry: ``open_sequence(path)`` finds the reader whose layout matches the folder or file.
 
 Readers register a ``detect(path) -> bool`` and an ``open(path, **options) -> RGBDSequence``; detection runs in
 registration order (the first match wins), and ``kind=`` skips it. A name ``synthetic`` or ``synthetic:<scene>``
@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from . import folder, replica, tum
+from . import folder, replica, rosbag, rsbag, scannet, tum
 from .base import DatasetError, RGBDSequence
 from .synthetic import SyntheticRoom, open_synthetic
 
@@ -55,9 +55,11 @@ def open_sequence(path_or_name: str | Path, kind: str = "auto", *, register: boo
     """Open a recorded RGB-D sequence (or the synthetic scene) as an :class:`RGBDSequence`.
 
     kind: "auto" (detect from the folder's files) or one of :func:`list_formats`. Options go to the reader,
-    for example ``max_dt=0.02`` (tum), ``fps=30`` (replica, folder), ``depth_scale=`` (tum, replica, folder),
-    ``n_frames, width, height, seed`` (synthetic). register=False ignores a separate colour camera (the
-    sidecar's ``color`` block): depth is not registered and the depth camera serves both images, as before.
+    for example ``max_dt=0.02`` (tum, rosbag, realsense), ``fps=30`` (replica, folder, scannet), ``depth_scale=``,
+    ``rgb_topic, depth_topic, rgb_info_topic, depth_info_topic, pose_topic, pose_frames, intrinsics`` (rosbag),
+    ``n_frames, width, height, seed`` (synthetic). register=False ignores a separate colour camera
+    (the sidecar's ``color`` block or a recording's two CameraInfos): depth is not registered and the depth camera
+    serves both images.
     """
     seq = _open(path_or_name, kind, **options)
     if not register:
@@ -78,8 +80,6 @@ def _open(path_or_name: str | Path, kind: str, **options) -> RGBDSequence:
     path = Path(path_or_name).expanduser()
     if not path.exists():
         raise DatasetError(f"sequence folder {path} does not exist")
-    if not path.is_dir():
-        raise DatasetError(f"{path} is not a folder (a sequence is a folder of images and text files)")
     if kind != "auto":
         if kind not in _FORMATS:
             raise DatasetError(f"unknown format {kind!r}; available: {', '.join(list_formats())}")
@@ -88,10 +88,16 @@ def _open(path_or_name: str | Path, kind: str, **options) -> RGBDSequence:
         if fmt.detect(path):
             return _call(fmt.name, fmt.open, path, **options)
     looked = "\n".join(f"  - {f.name}: {f.looks_for}" for f in _FORMATS.values())
-    raise DatasetError(f"{path}: unrecognised sequence layout; looked for\n{looked}")
+    what = "sequence layout" if path.is_dir() else "file type (a sequence is a folder, a bag or a .sens file)"
+    raise DatasetError(f"{path}: unrecognised {what}; known layouts:\n{looked}")
 
 
 register_format("tum", tum.detect, tum.open_tum, "rgb.txt + depth.txt (+ groundtruth.txt), TUM RGB-D")
 register_format("replica", replica.detect, replica.open_replica,
                 "results/frame*.jpg + results/depth*.png + traj.txt, NICE-SLAM Replica")
 register_format("folder", folder.detect, folder.open_folder, "color/ (or rgb/) + depth/ + intrinsics.json")
+register_format("realsense", rsbag.detect, rsbag.open_realsense,
+                "RealSense .bag (librealsense layout: /file_version, /device_0/sensor_*/Depth_0, Color_0)")
+register_format("rosbag", rosbag.detect, rosbag.open_rosbag,
+                "ROS 1 .bag, or ROS 2 bag folder (metadata.yaml + .db3/.mcap): Image/CompressedImage + depth Image")
+register_format("scannet", scannet.detect, scannet.open_sens, "a ScanNet .sens file")
