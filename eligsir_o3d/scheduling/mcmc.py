@@ -177,6 +177,7 @@ class MCMCRefiner:
             self.rng = torch.Generator()
             self.rng.set_state(state["rng"])
         else:  # put on its device at the next step (that device may not exist while loading)
+            self.rng = torch.Generator().manual_seed(self.seed)
             self._saved_rng = (device, state["rng"])
         self.steps = int(state["steps"])
         self.counts.update(state.get("counts", {}))
