@@ -1,5 +1,6 @@
 """3DGS-MCMC in torch: the closed-form relocation, relocation/densification with aligned optimizer state, the cap."""
 
+import copy
 import math
 from fractions import Fraction
 
@@ -160,7 +161,7 @@ def test_refiner_generator_follows_the_map_and_is_checkpointed():
     assert state["rng_device"] == "cpu"
     twin, twin_map = MCMCRefiner(MCMCConfig(refine_start=1, refine_every=2), seed=3), GaussianMap(1)
     twin.load_state_dict(state)
-    twin_map.load_state_dict(gmap.state_dict())
+    twin_map.load_state_dict(copy.deepcopy(gmap.state_dict()))  # on the CPU state_dict() shares storage
     for _ in range(3):
         refiner.post_step(gmap, cap=12)
         twin.post_step(twin_map, cap=12)
