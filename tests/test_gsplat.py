@@ -57,6 +57,11 @@ class Gsplat:
             monkeypatch.setattr(rendering, "spherical_harmonics", spherical_harmonics)
             self.renderer = GsplatRenderer("cpu", rasterization=rendering.rasterization)
         else:
+            from eligsir_o3d.render.availability import gsplat_status
+
+            status = gsplat_status("cuda")
+            if not status.usable:
+                pytest.skip(f"gsplat cannot run on this CUDA machine: {status.reason}")
             self.renderer = get_renderer("gsplat", "cuda")
         self.reference = get_renderer("torch", self.device)
 
