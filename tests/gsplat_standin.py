@@ -11,12 +11,12 @@ What comes from where:
   with gsplat's half-integer principal point); then, as in ``ProjectionEWA3DGSFused.cu``: cull at ``z < near`` or
   ``z > far``, add ``eps2d`` to the 2D covariance, cull ``det <= 0``, cull opacity < 1/255, per-axis radii
   ``ceil(min(3.33, sqrt(2 ln(255 o))) sqrt(cov_ii))``, cull boxes off the image; culled rows of means2d, depths and
-  conics are NaN (the kernel leaves them uninitialised);
+  conics hold finite garbage (the kernel leaves them uninitialised);
 - tile binning: ``_isect_tiles`` and ``_isect_offset_encode`` as they are (depth bits as the sort key);
 - compositing (``RasterizeToPixels3DGSFwd.cu``): pixel centres at +0.5, ``alpha = min(0.999, o exp(-sigma))``,
   skipped when ``sigma < 0`` or ``alpha < 1/255``, stop before the transmittance falls to 1e-4 (exclusive),
   ``render_alphas = 1 - T``; gradients by autograd (``_torch_impl``'s own compositor needs nerfacc and CUDA);
-- SH: ``_spherical_harmonics`` (masked rows NaN: the kernel leaves them uninitialised).
+- SH: ``_spherical_harmonics`` (masked rows garbage: the kernel leaves them uninitialised).
 """
 
 from __future__ import annotations
@@ -66,11 +66,15 @@ def fully_fused_projection(means, covars, quats, scales, viewmats, Ks, width, he
         ok = ok & ~((m[..., 0] + rx <= 0) | (m[..., 0] - rx >= width) | (m[..., 1] + ry <= 0) |
                     (m[..., 1] - ry >= height))
         radii = torch.where(ok[..., None], torch.stack([rx, ry], -1), torch.zeros_like(m)).to(torch.int32)
-    nan = float("nan")
-    means2d = torch.where(ok[..., None], means2d, torch.full_like(means2d, nan))
-    conics = torch.where(ok[..., None], conics, torch.full_like(conics, nan))
-    depths = torch.where(ok, z, torch.full_like(z, nan))
+    means2d = torch.where(ok[..., None], means2d, _garbage(means2d))
+    conics = torch.where(ok[..., None], conics, _garbage(conics))
+    depths = torch.where(ok, z, _garbage(z))
     return radii, means2d, depths, conics, None
+
+
+def _garbage(like: torch.Tensor) -> torch.Tensor:
+    """What an uninitialised CUDA buffer may hold: plausible-looking finite numbers."""
+    return torch.empty_like(like).uniform_(-1e3, 1e3, generator=torch.Generator().manual_seed(like.numel()))
 
 
 def isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, sort=True, segmented=False, packed=False,
@@ -86,7 +90,7 @@ def isect_offset_encode(isect_ids, n_images, tile_width, tile_height):
 def spherical_harmonics(degrees_to_use, dirs, coeffs, masks=None):
     colors = _impl()._spherical_harmonics(degrees_to_use, dirs, coeffs)
     if masks is not None:
-        colors = torch.where(masks[..., None], colors, torch.full_like(colors, float("nan")))
+        colors = torch.where(masks[..., None], colors, _garbage(colors))
     return colors
 
 
