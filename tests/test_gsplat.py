@@ -169,12 +169,18 @@ def test_stand_in_catches_a_broken_convention(monkeypatch):
     ref = gs.reference.render(**params, camera=camera, T_world_cam=T, background=BG)
     good = gs.renderer.render(**params, camera=camera, T_world_cam=T, background=BG)
     assert float((good.color - ref.color).abs().max()) < 2e-5
+    # the renderer keeps recent views' viewmats/Ks on the device: another pose and camera must not hit that entry
+    cam2, T2 = VIEWS["axis"]
+    other = gs.renderer.render(**params, camera=cam2, T_world_cam=T2, background=BG)
+    ref2 = gs.reference.render(**params, camera=cam2, T_world_cam=T2, background=BG)
+    assert float((other.color - ref2.color).abs().max()) < 2e-5
     cam_to_world = lambda T, device, dtype: torch.as_tensor(np.asarray(T), dtype=dtype, device=device)  # noqa: E731
     no_shift = lambda cam, device: torch.tensor([[cam.fx, 0.0, cam.cx], [0.0, cam.fy, cam.cy], [0.0, 0.0, 1.0]])  # noqa
     for name, broken in (("world_to_cam", cam_to_world), ("gsplat_intrinsics", no_shift)):
         with monkeypatch.context() as m:
             m.setattr(backend, name, broken)
-            bad = gs.renderer.render(**params, camera=camera, T_world_cam=T, background=BG)
+            fresh = GsplatRenderer("cpu", rasterization=gs.renderer._rasterization)  # nothing cached yet
+            bad = fresh.render(**params, camera=camera, T_world_cam=T, background=BG)
         assert float((bad.color - ref.color).abs().max()) > 1e-2, name
 
 

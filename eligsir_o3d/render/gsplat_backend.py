@@ -20,8 +20,10 @@ opacity above ~0.35 can reach a few more or fewer pixels at tile borders (each b
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from typing import Callable
 
+import numpy as np
 import torch
 
 from ..camera import Camera
@@ -49,6 +51,7 @@ class GsplatRenderer:
         self.device = torch.device(device)
         self.compile_s = 0.0  # seconds the first render spent JIT-compiling gsplat's extension (0: none needed)
         self._rasterization = rasterization
+        self._cameras: OrderedDict[tuple, tuple[torch.Tensor, torch.Tensor]] = OrderedDict()
         if rasterization is None:
             status = gsplat_status(self.device)
             if not status.usable:
@@ -62,6 +65,21 @@ class GsplatRenderer:
             self._rasterization = rasterization
         return self._rasterization
 
+    def _camera_tensors(self, camera: Camera, T_world_cam, device) -> tuple[torch.Tensor, torch.Tensor]:
+        """viewmats [1, 4, 4] and Ks [1, 3, 3] on ``device``, kept for the views seen recently: a host-to-device copy
+        from pageable memory waits for the GPU, and training revisits the same retained views over and over."""
+        T = np.asarray(T_world_cam, dtype=np.float64)
+        key = (T.tobytes(), camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, str(device))
+        hit = self._cameras.get(key)
+        if hit is None:
+            hit = (world_to_cam(T, device, torch.float32)[None], gsplat_intrinsics(camera, device)[None])
+            self._cameras[key] = hit
+            if len(self._cameras) > 1024:
+                self._cameras.popitem(last=False)
+        else:
+            self._cameras.move_to_end(key)
+        return hit
+
     def render(self, means, quats, scales, opacities, colors, camera: Camera, T_world_cam,
                background: torch.Tensor | None = None, sh_degree: int | None = None) -> RenderOutput:
         """means [N, 3], quats [N, 4] wxyz, scales [N, 3] metres, opacities [N] in (0, 1), colors [N, 3] RGB or
@@ -74,8 +92,7 @@ class GsplatRenderer:
             sh_degree = sh_degree_of(colors.shape[1])
         if colors.dim() == 2:
             sh_degree = None
-        viewmats = world_to_cam(T_world_cam, device, torch.float32)[None]  # [1, 4, 4]
-        Ks = gsplat_intrinsics(camera, device)[None]  # [1, 3, 3]
+        viewmats, Ks = self._camera_tensors(camera, T_world_cam, device)  # [1, 4, 4], [1, 3, 3]
         rendered, alphas, meta = rasterization(
             means.float(), quats.float(), scales.float(), opacities.float(), colors.float(), viewmats, Ks,
             camera.width, camera.height, near_plane=NEAR, eps2d=EPS2D, radius_clip=0.0, sh_degree=sh_degree,
