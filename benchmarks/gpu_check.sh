@@ -52,7 +52,10 @@ if [ -z "${PY:-}" ]; then
     if command -v "$c" >/dev/null 2>&1 && usable "$c"; then PY=$c; break; fi
   done
 fi
-online() { timeout 10 "${PY:-python3}" -c "import urllib.request; urllib.request.urlopen('https://pypi.org/simple/pip/', timeout=8)" >/dev/null 2>&1; }
+online() {
+  timeout 10 "${PY:-python3}" -c "import urllib.request as r; r.urlopen('https://pypi.org/simple/pip/', timeout=8)" \
+    >/dev/null 2>&1
+}
 if [ -z "${PY:-}" ]; then
   if online; then
     echo "no interpreter with torch + CUDA: building .venv with tools/setup.sh --test (torch from PyPI carries CUDA)"
@@ -91,21 +94,25 @@ s = gsplat_status("cuda")
 print(f"gsplat usable={s.usable} compile_pending={s.compile_pending}: {s.reason}")
 EOF
 
-# ---- 3. gsplat extension ----------------------------------------------------------------------------------------------
+# ---- 3. gsplat extension -------------------------------------------------------------------------------------------
 log "3. gsplat CUDA extension (MAX_JOBS=$MAX_JOBS)"
 step gsplat_extension "$PY" -c "
 import logging; logging.basicConfig(level=logging.INFO, format='%(message)s')
 from eligsir_o3d.render.availability import load_gsplat_extension
 print(f'gsplat extension ready; compile seconds: {load_gsplat_extension():.1f}')"
 GSPLAT=0
-"$PY" -c "from eligsir_o3d.render.availability import gsplat_status as s; import sys; sys.exit(0 if s('cuda').usable and not s('cuda').compile_pending else 1)" && GSPLAT=1
+"$PY" -c "
+import sys
+from eligsir_o3d.render.availability import gsplat_status
+s = gsplat_status('cuda')
+sys.exit(0 if s.usable and not s.compile_pending else 1)" && GSPLAT=1
 echo "gsplat ready: $GSPLAT"
 
-# ---- 4. CUDA tests ----------------------------------------------------------------------------------------------------
+# ---- 4. CUDA tests -------------------------------------------------------------------------------------------------
 log "4. CUDA tests"
 step cuda_tests "$PY" -m pytest -q -m cuda -rs tests/
 
-# ---- 5. renderer benchmark, GPU rows ------------------------------------------------------------------------------------
+# ---- 5. renderer benchmark, GPU rows -------------------------------------------------------------------------------
 DATA=${DATA:-}
 for d in ../shared/data/7scenes_redkitchen_jpg1000 shared/data/7scenes_redkitchen_jpg1000; do
   [ -z "$DATA" ] && [ -d "$d" ] && DATA=$d
@@ -118,12 +125,12 @@ else
   echo "skipped: benchmarks/render.py reads ../shared/data/7scenes_redkitchen_jpg1000, not found"
 fi
 
-# ---- 6. host round trips per update -----------------------------------------------------------------------------------
+# ---- 6. host round trips per update --------------------------------------------------------------------------------
 log "6. host round trips per mapping update"
 RENDERER=torch; [ "$GSPLAT" = 1 ] && RENDERER=gsplat
 step cuda_syncs "$PY" benchmarks/cuda_syncs.py --data "${DATA:-synthetic}" --renderer $RENDERER
 
-# ---- 7. a map on CUDA ---------------------------------------------------------------------------------------------------
+# ---- 7. a map on CUDA ----------------------------------------------------------------------------------------------
 log "7. $MAP_FRAMES-frame map, --renderer $RENDERER (data: ${DATA:-synthetic})"
 run_map() {  # run_map RENDERER
   step "map_$1" "$PY" -c "from eligsir_o3d.cli import main; main()" map "${DATA:-synthetic}" \
@@ -140,7 +147,7 @@ EOF
 run_map $RENDERER
 [ "${MAP_TORCH:-0}" = 1 ] && [ "$RENDERER" != torch ] && run_map torch
 
-# ---- 8. repeatability ---------------------------------------------------------------------------------------------------
+# ---- 8. repeatability ----------------------------------------------------------------------------------------------
 if [ "${SKIP_REPEAT:-0}" != 1 ]; then
   log "8. repeatability: two runs and a resumed one, $REPEAT_FRAMES frames"
   step repeatability "$PY" benchmarks/repeatability.py --device cuda:0 --renderer $RENDERER \

@@ -110,7 +110,8 @@ def gsplat_status(device: str | torch.device) -> GsplatStatus:
         return GsplatStatus(False, "torch sees no CUDA device (torch.cuda.is_available() is False)",
                             hint=DEVICE_HINT)
     if importlib.util.find_spec("gsplat") is None:
-        return GsplatStatus(False, "gsplat is not installed", hint="Install it: pip install 'eligsir-o3d[cuda]' (gsplat 1.5.3)")
+        return GsplatStatus(False, "gsplat is not installed",
+                            hint="Install it: pip install 'eligsir-o3d[cuda]' (gsplat 1.5.3)")
     backend = _backend_module()
     if backend is None and (_prebuilt_loads() or _cached_jit_build()):
         try:
