@@ -77,15 +77,18 @@ class GaussianMap:
     def opacities(self) -> torch.Tensor:  # [N] in (0, 1)
         return torch.sigmoid(self.params["opacities"])
 
+    @property
+    def sh(self) -> torch.Tensor:  # [N, (sh_degree + 1)^2, 3] all SH coefficients, DC first
+        return torch.cat([self.params["sh0"], self.params["shN"]], 1)
+
     def colors(self, cam_center: torch.Tensor | None = None) -> torch.Tensor:
-        """[N, 3] RGB seen from ``cam_center`` (view-dependent only for sh_degree > 0)."""
+        """[N, 3] RGB seen from ``cam_center`` [3] (world metres); without one, or at sh_degree 0, the DC colour."""
         if self.sh_degree == 0 or cam_center is None:
             return torch.clamp_min(sh0_to_rgb(self.params["sh0"][:, 0]), 0.0)
-        from .render.sh import eval_sh_colors
+        from .render.sh import sh_eval
 
-        dirs = self.means - cam_center[None]
-        sh = torch.cat([self.params["sh0"], self.params["shN"]], 1)
-        return eval_sh_colors(self.sh_degree, sh, dirs)
+        dirs = self.means - torch.as_tensor(cam_center, dtype=self.means.dtype, device=self.device)[None]
+        return sh_eval(self.sh, dirs, self.sh_degree)
 
     # ---- population changes ----------------------------------------------------------------------------
     def add(self, means: torch.Tensor, rgbs: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor | float,
@@ -187,5 +190,11 @@ class GaussianMap:
                 self.optimizers[n].load_state_dict(state["optimizers"][n])
 
     def render_args(self, cam_center: torch.Tensor | None = None) -> tuple:
-        """(means, quats, scales, opacities, colors) in activated units, as every renderer takes them."""
-        return self.means, self.quats, self.scales, self.opacities, self.colors(cam_center)
+        """(means, quats, scales, opacities, colors) in activated units, as every renderer takes them.
+
+        colors: [N, 3] RGB at sh_degree 0, else the SH coefficients [N, K, 3], which every renderer evaluates for
+        the pose it renders (gsplat in its own kernel). ``cam_center`` is accepted for older callers and not needed:
+        the renderer's pose fixes the viewing directions.
+        """
+        colors = self.colors() if self.sh_degree == 0 else self.sh
+        return self.means, self.quats, self.scales, self.opacities, colors

@@ -154,7 +154,9 @@ class Reconstructor:
         """Render a one-Gaussian scene and back-propagate the supervision loss through it, so that first-use costs
         (numba compilation or cache load for ``cpu`` and the CPU D-SSIM, CUDA kernel loading for ``gsplat``) are
         paid before a live stream starts rather than on its first frames. Returns the seconds it took; the map is
-        untouched."""
+        untouched. With an explicit ``gsplat`` renderer whose extension is not built yet, this includes gsplat's
+        one-time JIT compile (minutes), which is logged when it starts and ends (``auto`` compiles it when it
+        chooses the renderer instead)."""
         t0 = time.perf_counter()
         dev = self.device
         means = torch.tensor([[0.0, 0.0, 1.0]], device=dev, requires_grad=True)

@@ -1,5 +1,6 @@
 """3DGS-MCMC in torch: the closed-form relocation, relocation/densification with aligned optimizer state, the cap."""
 
+import copy
 import math
 from fractions import Fraction
 
@@ -124,3 +125,76 @@ def test_regulariser_is_differentiable():
     reg = MCMCRefiner().regulariser(gmap)
     reg.backward()
     assert gmap.params["opacities"].grad.abs().sum() > 0 and gmap.params["scales"].grad.abs().sum() > 0
+
+
+# ---- random numbers on the map's device -----------------------------------------------------------------------------
+
+def test_cpu_draws_are_those_of_before():
+    """On the CPU the generator and its draws are unchanged (results bit-identical to the CPU-generator version):
+    the noise is randn(N, 3) from the refiner's generator, the sampling multinomial over the same weights."""
+    gmap = _map([0.9, 0.6, 0.001, 0.3], spread=0.3)
+    before = gmap.means.detach().clone()
+    inject_noise(gmap, 1.0, torch.Generator().manual_seed(5))
+    z = torch.randn(4, 3, generator=torch.Generator().manual_seed(5))
+    from eligsir_o3d.render.projection import quat_to_rotmat
+    o = gmap.opacities.detach()
+    M = quat_to_rotmat(gmap.quats.detach()) * gmap.scales.detach()[:, None, :]
+    want = torch.einsum("nij,nj->ni", M @ M.transpose(1, 2), z) * torch.sigmoid(100.0 * ((1.0 - o) - 0.995))[:, None]
+    torch.testing.assert_close(gmap.means.detach(), before + want, atol=0, rtol=0)
+    from eligsir_o3d.scheduling.mcmc import _sample
+    w = torch.tensor([0.5, 0.0, float("nan"), 2.0])
+    got = _sample(w, 50, torch.Generator().manual_seed(1))
+    ref = torch.multinomial(torch.tensor([0.5, 0.0, 0.0, 2.0], dtype=torch.float64), 50, replacement=True,
+                            generator=torch.Generator().manual_seed(1))
+    assert torch.equal(got, ref) and got.device == w.device
+    all_dead = _sample(torch.zeros(3), 300, torch.Generator().manual_seed(1))  # uniform, decided without a sync
+    assert set(all_dead.tolist()) == {0, 1, 2}
+
+
+def test_refiner_generator_follows_the_map_and_is_checkpointed():
+    refiner = MCMCRefiner(MCMCConfig(refine_start=1, refine_every=2), seed=3)
+    gmap = _map([0.9, 0.001, 0.5, 0.002, 0.7, 0.3], spread=0.3)
+    for _ in range(3):
+        refiner.post_step(gmap, cap=12)
+    assert refiner.rng.device == gmap.device
+    state = refiner.state_dict()
+    assert state["rng_device"] == "cpu"
+    twin, twin_map = MCMCRefiner(MCMCConfig(refine_start=1, refine_every=2), seed=3), GaussianMap(1)
+    twin.load_state_dict(state)
+    twin_map.load_state_dict(copy.deepcopy(gmap.state_dict()))  # on the CPU state_dict() shares storage
+    for _ in range(3):
+        refiner.post_step(gmap, cap=12)
+        twin.post_step(twin_map, cap=12)
+    torch.testing.assert_close(twin_map.means.detach(), gmap.means.detach(), atol=0, rtol=0)
+    # a state saved on a GPU is kept for that device type and not forced onto the CPU (which reseeds)
+    cuda_state = {"rng": torch.zeros(16, dtype=torch.uint8), "rng_device": "cuda:0", "steps": 7, "counts": {}}
+    moved = MCMCRefiner(seed=3)
+    moved.load_state_dict(cuda_state)
+    assert moved.steps == 7 and moved.generator(torch.device("cpu")).device.type == "cpu"
+    assert torch.equal(moved.rng.get_state(), torch.Generator().manual_seed(3).get_state())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.cuda
+def test_cuda_noise_step_makes_no_host_round_trip():
+    """On CUDA the per-update noise is drawn on the device and the step synchronises nothing (sync debug mode
+    raises on any device-to-host copy or wait); relocation rounds draw on the device too."""
+    gmap = _map([0.9, 0.6, 0.001, 0.3] * 50, spread=0.3)
+    cuda = GaussianMap(1, "cuda")
+    cuda.add(gmap.means.detach().cuda(), torch.rand(200, 3, device="cuda"), torch.full((200,), 0.05, device="cuda"),
+             gmap.opacities.detach().cuda())
+    refiner = MCMCRefiner(MCMCConfig(refine_start=1000), seed=0)
+    refiner.post_step(cuda, cap=400)  # first step: the generator moves to the device
+    assert refiner.rng.device.type == "cuda"
+    before = cuda.means.detach().clone()
+    torch.cuda.synchronize()
+    torch.cuda.set_sync_debug_mode("error")
+    try:
+        refiner.post_step(cuda, cap=400)
+    finally:
+        torch.cuda.set_sync_debug_mode("default")
+    assert float((cuda.means.detach() - before).abs().max()) > 0
+    refiner.cfg.refine_start, refiner.cfg.refine_every = 1, 1
+    refiner.post_step(cuda, cap=400)
+    cuda.check_aligned()
+    assert len(cuda) > 200 and refiner.state_dict()["rng_device"].startswith("cuda")

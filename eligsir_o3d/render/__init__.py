@@ -2,19 +2,24 @@
 
 - ``torch``: pure PyTorch reference (any device, autograd) - the oracle the others are tested against.
 - ``cpu``: compiled CPU tile rasteriser (forward and backward); the default without CUDA.
-- ``gsplat``: ``gsplat.rasterization`` on CUDA; the default with CUDA and gsplat installed.
+- ``gsplat``: ``gsplat.rasterization`` on CUDA; the default with CUDA when gsplat's compiled extension loads
+  (:mod:`.availability`).
 """
 
 from __future__ import annotations
 
 import importlib.util
+import logging
 
 import torch
 
+from .availability import GsplatStatus, GsplatUnavailable, gsplat_status, load_gsplat_extension
 from .base import RenderOutput, TileRenderer
 from .torch_backend import TorchRenderer
 
 __all__ = ["RenderOutput", "TileRenderer", "TorchRenderer", "available_backends", "get_renderer"]
+
+log = logging.getLogger("eligsir_o3d")
 
 
 def _cpu_backend_available() -> bool:
@@ -23,7 +28,7 @@ def _cpu_backend_available() -> bool:
 
 
 def _gsplat_available(device: torch.device) -> bool:
-    return device.type == "cuda" and torch.cuda.is_available() and importlib.util.find_spec("gsplat") is not None
+    return gsplat_status(device).usable
 
 
 def available_backends(device: str | torch.device = "cpu") -> list[str]:
@@ -37,15 +42,26 @@ def available_backends(device: str | torch.device = "cpu") -> list[str]:
 
 
 def resolve_backend(name: str, device: str | torch.device) -> str:
-    """``auto`` -> gsplat on CUDA (when installed), else cpu on the CPU, else torch."""
+    """``auto`` -> gsplat on CUDA when its extension really loads, else cpu on the CPU, else torch.
+
+    When gsplat would first have to JIT-compile its extension, ``auto`` compiles it here (logged), so that a failed
+    build still falls back. A fallback is logged in one line that says why gsplat was not taken.
+    """
     device = torch.device(device)
     if name != "auto":
         return name
-    if _gsplat_available(device):
+    status = gsplat_status(device)
+    if status.usable and status.compile_pending:
+        try:
+            load_gsplat_extension()
+        except GsplatUnavailable as err:
+            status = GsplatStatus(False, err.reason)
+    if status.usable:
         return "gsplat"
-    if device.type == "cpu" and _cpu_backend_available():
-        return "cpu"
-    return "torch"
+    fallback = "cpu" if device.type == "cpu" and _cpu_backend_available() else "torch"
+    level = logging.WARNING if device.type == "cuda" else logging.INFO
+    log.log(level, "renderer auto -> %s, not gsplat: %s", fallback, status.reason)
+    return fallback
 
 
 def get_renderer(name: str = "auto", device: str | torch.device = "cpu"):
@@ -60,9 +76,6 @@ def get_renderer(name: str = "auto", device: str | torch.device = "cpu"):
         from .cpu_backend import CpuRenderer
         return CpuRenderer(device)
     if name == "gsplat":
-        if not _gsplat_available(device):
-            raise RuntimeError("the 'gsplat' renderer needs a CUDA device and gsplat "
-                               "(pip install 'eligsir-o3d[cuda]'); use --renderer cpu or torch")
-        from .gsplat_backend import GsplatRenderer
+        from .gsplat_backend import GsplatRenderer  # checks gsplat_status and says what to install
         return GsplatRenderer(device)
     raise ValueError(f"unknown renderer {name!r}; choose from auto, torch, cpu, gsplat")

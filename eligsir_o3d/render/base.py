@@ -9,6 +9,7 @@ import torch
 
 from ..camera import Camera
 from .projection import TILE, Projection, TileBins, bin_tiles, project
+from .sh import sh_eval, view_dirs
 
 ALPHA_MAX = 0.999  # gsplat 1.5 clamps per-Gaussian alpha here
 ALPHA_MIN = 1.0 / 255.0  # contributions below this are skipped
@@ -17,17 +18,47 @@ T_MIN = 1e-4  # compositing stops before transmittance falls to this
 
 @dataclass
 class RenderOutput:
-    """One rendered view. Images are [H, W(, 3)] on the renderer's device."""
+    """One rendered view. Images are [H, W(, 3)] on the renderer's device.
+
+    ``color``, ``depth`` and ``alpha`` agree across backends (tested against the torch reference). The per-Gaussian
+    screen-space fields do not mean the same on every backend, so policies and the loss must not read them (a test
+    holds ``eligsir_o3d.scheduling`` to that):
+
+    - ``radii``: torch and cpu: ``ceil(3 sqrt(lambda_max))`` of the 2D covariance, one per Gaussian, > 0 for every
+      Gaussian in front of the near plane whose 3-sigma box touches the image, whatever its opacity.
+      gsplat: the larger of gsplat's per-axis extents ``ceil(e sqrt(cov_ii))`` with the opacity-aware
+      ``e = min(3.33, sqrt(2 ln(255 o)))``; 0 also for Gaussians with opacity below 1/255 (gsplat skips them).
+    - ``visible`` (``radii > 0``): therefore "was projected onto the image", not "contributed to a pixel": an
+      on-screen Gaussian hidden behind opaque ones is visible on every backend, a nearly transparent one only on
+      torch and cpu.
+    - ``means2d``: projected centres in pixels with integer pixel centres (Open3D's convention) on every backend;
+      NaN in the rows of culled Gaussians (``radii == 0``) on every backend (gsplat leaves them uninitialised),
+      so that a consumer that forgets the ``visible`` mask fails loudly instead of reading garbage.
+    """
 
     color: torch.Tensor  # [H, W, 3] in [0, 1], background composited
     depth: torch.Tensor  # [H, W] expected z-depth in metres (accumulated depth / alpha; 0 where alpha ~ 0)
     alpha: torch.Tensor  # [H, W] accumulated opacity
-    radii: torch.Tensor  # [N] int32 screen radius; 0 = the Gaussian was not rendered
-    means2d: torch.Tensor | None = None  # [N, 2] (for screen-space statistics)
+    radii: torch.Tensor  # [N] int32 screen radius; 0 = the Gaussian was culled (see the class docstring)
+    means2d: torch.Tensor | None = None  # [N, 2] pixels, meaningful where visible (screen-space statistics)
 
     @property
-    def visible(self) -> torch.Tensor:  # [N] bool
+    def visible(self) -> torch.Tensor:  # [N] bool: projected onto the image (see the class docstring)
         return self.radii > 0
+
+
+def view_colors(colors: torch.Tensor, means: torch.Tensor, T_world_cam, sh_degree: int | None = None) -> torch.Tensor:
+    """[N, 3] colours for the camera at ``T_world_cam``: ``colors`` itself when it is [N, 3] RGB, else [N, K, 3]
+    spherical-harmonic coefficients evaluated along the viewing directions (:func:`.sh.sh_eval`, degree
+    ``sh_degree`` or all that K holds). Gradients reach the coefficients and, through the directions, the means."""
+    if colors.dim() == 2:
+        return colors
+    return sh_eval(colors, view_dirs(means, T_world_cam).to(colors.dtype), sh_degree)
+
+
+def mask_culled(means2d: torch.Tensor, radii: torch.Tensor) -> torch.Tensor:
+    """``means2d`` [N, 2] with NaN in the rows of culled Gaussians (``radii`` [N] == 0)."""
+    return torch.where((radii > 0)[:, None], means2d, torch.full_like(means2d, float("nan")))
 
 
 def finish(color_acc, depth_acc, alpha_acc, background) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -49,15 +80,17 @@ class TileRenderer(ABC):
         self.device = torch.device(device)
 
     def render(self, means, quats, scales, opacities, colors, camera: Camera, T_world_cam,
-               background: torch.Tensor | None = None) -> RenderOutput:
-        """means [N, 3], quats [N, 4] wxyz, scales [N, 3] metres, opacities [N] in (0, 1), colors [N, 3]."""
+               background: torch.Tensor | None = None, sh_degree: int | None = None) -> RenderOutput:
+        """means [N, 3], quats [N, 4] wxyz, scales [N, 3] metres, opacities [N] in (0, 1), colors [N, 3] RGB or
+        [N, K, 3] SH coefficients (evaluated from the camera centre, degree ``sh_degree`` or all that K holds)."""
+        colors = view_colors(colors, means, T_world_cam, sh_degree)
         proj = project(means, quats, scales, camera, T_world_cam)
         bins = bin_tiles(proj, camera.width, camera.height)
         color_acc, depth_acc, alpha_acc = self.composite(proj, opacities, colors, bins, camera.width, camera.height)
         if background is not None:
             background = torch.as_tensor(background, dtype=color_acc.dtype, device=color_acc.device)
         color, depth, alpha = finish(color_acc, depth_acc, alpha_acc, background)
-        return RenderOutput(color, depth, alpha, proj.radii, proj.means2d)
+        return RenderOutput(color, depth, alpha, proj.radii, mask_culled(proj.means2d, proj.radii))
 
     @abstractmethod
     def composite(self, proj: Projection, opacities, colors, bins: TileBins, width: int, height: int):

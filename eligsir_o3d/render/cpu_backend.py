@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from ..camera import Camera
-from .base import RenderOutput, TileRenderer, finish
+from .base import RenderOutput, TileRenderer, finish, mask_culled, view_colors
 from .projection import EPS2D, NEAR, TILE, Projection, TileBins, world_to_cam
 
 _warm_seconds: float | None = None
@@ -208,8 +208,10 @@ class CpuRenderer(TileRenderer):
             raise ValueError(f"the 'cpu' renderer runs on the CPU only, not on {self.device}")
 
     def render(self, means, quats, scales, opacities, colors, camera: Camera, T_world_cam,
-               background: torch.Tensor | None = None) -> RenderOutput:
-        """means [N, 3], quats [N, 4] wxyz, scales [N, 3] metres, opacities [N] in (0, 1), colors [N, 3]."""
+               background: torch.Tensor | None = None, sh_degree: int | None = None) -> RenderOutput:
+        """means [N, 3], quats [N, 4] wxyz, scales [N, 3] metres, opacities [N] in (0, 1), colors [N, 3] RGB or
+        [N, K, 3] SH coefficients (evaluated in torch from the camera centre, as :class:`.base.TileRenderer`)."""
+        colors = view_colors(colors, means, T_world_cam, sh_degree)
         _check_shapes(means, quats, scales, opacities, colors)
         warmup()
         proj = project_cpu(means, quats, scales, camera, T_world_cam)
@@ -219,7 +221,7 @@ class CpuRenderer(TileRenderer):
         if background is not None:
             background = torch.as_tensor(background, dtype=color_acc.dtype, device=color_acc.device)
         color, depth, alpha = finish(color_acc, depth_acc, alpha_acc, background)
-        return RenderOutput(color, depth, alpha, proj.radii, proj.means2d)
+        return RenderOutput(color, depth, alpha, proj.radii, mask_culled(proj.means2d, proj.radii))
 
     def composite(self, proj: Projection, opacities, colors, bins: TileBins, width: int, height: int):
         warmup()

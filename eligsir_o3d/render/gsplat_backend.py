@@ -4,11 +4,15 @@ Conventions converted in :meth:`GsplatRenderer.render`:
 - pose: ``T_world_cam`` (camera-to-world) -> gsplat's ``viewmats`` (world-to-camera), [1, 4, 4];
 - pixels: ours have integer centres (Open3D), gsplat's half-integer ones, so ``Ks`` gets ``cx + 0.5, cy + 0.5`` and
   the returned ``means2d`` get ``-0.5``;
+- colour: [N, 3] RGB as is, or [N, K, 3] SH coefficients with ``sh_degree`` passed through: gsplat evaluates them
+  in its kernel from the camera centre of ``viewmats`` (same basis and +0.5 / clamp as :mod:`.sh`, tested);
 - outputs: ``render_mode="RGB+D"`` gives accumulated colour and accumulated z-depth without background; the
   background and the depth normalisation are then applied by :func:`.base.finish`, as for every other backend;
-- radii: gsplat 1.5 returns per-axis radii [C, N, 2]; ours are one radius per Gaussian (the larger axis).
+- radii: gsplat 1.5 returns per-axis radii [C, N, 2]; ours are one radius per Gaussian (the larger axis);
+- means2d: gsplat leaves the rows of culled Gaussians uninitialised; they are set to NaN here (see RenderOutput).
 
-gsplat JIT-compiles or loads its CUDA extension on first use; it is imported only when this renderer is built.
+gsplat loads its CUDA extension on first use, JIT-compiling it when none is built (minutes, logged; see
+:mod:`.availability`); the first render - normally :meth:`Reconstructor.warmup` - pays that.
 Its projection differs from the reference in one documented way: gsplat 1.5 bounds each Gaussian by an opacity-aware
 box (``min(3.33, sqrt(2 ln(255 o)))`` sigma per axis) where the reference uses a 3-sigma circle, so a Gaussian with
 opacity above ~0.35 can reach a few more or fewer pixels at tile borders (each by less than 0.011 in alpha).
@@ -16,43 +20,83 @@ opacity above ~0.35 can reach a few more or fewer pixels at tile borders (each b
 
 from __future__ import annotations
 
+from collections import OrderedDict
+from typing import Callable
+
+import numpy as np
 import torch
 
 from ..camera import Camera
-from .base import RenderOutput, finish
+from .availability import gsplat_status, load_gsplat_extension
+from .base import RenderOutput, finish, mask_culled
 from .projection import EPS2D, NEAR, TILE, world_to_cam
 
 
-def _gsplat():
-    try:
-        import gsplat
-    except ImportError as err:  # pragma: no cover - depends on the install
-        raise ImportError("the 'gsplat' renderer needs gsplat 1.5.3: pip install 'eligsir-o3d[cuda]'") from err
-    return gsplat
+def gsplat_intrinsics(camera: Camera, device) -> torch.Tensor:
+    """[3, 3] K in gsplat's pixel convention: pixel centres at +0.5, so the principal point moves by half a pixel."""
+    return torch.tensor([[camera.fx, 0.0, camera.cx + 0.5], [0.0, camera.fy, camera.cy + 0.5], [0.0, 0.0, 1.0]],
+                        dtype=torch.float32, device=device)
 
 
 class GsplatRenderer:
-    """Same interface and outputs as :class:`.base.TileRenderer`, rasterised by gsplat's CUDA kernels."""
+    """Same interface and outputs as :class:`.base.TileRenderer`, rasterised by gsplat's CUDA kernels.
+
+    ``rasterization``: a stand-in for ``gsplat.rasterization`` with its signature (tests run the conversions on the
+    CPU through one); by default gsplat's own, after checking that its CUDA extension can be had.
+    """
 
     name = "gsplat"
 
-    def __init__(self, device="cuda"):
+    def __init__(self, device="cuda", rasterization: Callable | None = None):
         self.device = torch.device(device)
-        if self.device.type != "cuda":
-            raise ValueError(f"the 'gsplat' renderer needs a CUDA device, got {self.device}")
-        self._rasterization = _gsplat().rasterization
+        self.compile_s = 0.0  # seconds the first render spent JIT-compiling gsplat's extension (0: none needed)
+        self._rasterization = rasterization
+        self._cameras: OrderedDict[tuple, tuple[torch.Tensor, torch.Tensor]] = OrderedDict()
+        if rasterization is None:
+            status = gsplat_status(self.device)
+            if not status.usable:
+                raise status.error()
+
+    def _load(self) -> Callable:
+        if self._rasterization is None:
+            self.compile_s = load_gsplat_extension()
+            from gsplat import rasterization
+
+            self._rasterization = rasterization
+        return self._rasterization
+
+    def _camera_tensors(self, camera: Camera, T_world_cam, device) -> tuple[torch.Tensor, torch.Tensor]:
+        """viewmats [1, 4, 4] and Ks [1, 3, 3] on ``device``, kept for the views seen recently: a host-to-device copy
+        from pageable memory waits for the GPU, and training revisits the same retained views over and over."""
+        T = np.asarray(T_world_cam, dtype=np.float64)
+        key = (T.tobytes(), camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, str(device))
+        hit = self._cameras.get(key)
+        if hit is None:
+            hit = (world_to_cam(T, device, torch.float32)[None], gsplat_intrinsics(camera, device)[None])
+            self._cameras[key] = hit
+            if len(self._cameras) > 1024:
+                self._cameras.popitem(last=False)
+        else:
+            self._cameras.move_to_end(key)
+        return hit
 
     def render(self, means, quats, scales, opacities, colors, camera: Camera, T_world_cam,
-               background: torch.Tensor | None = None) -> RenderOutput:
-        """means [N, 3], quats [N, 4] wxyz, scales [N, 3] metres, opacities [N] in (0, 1), colors [N, 3]."""
+               background: torch.Tensor | None = None, sh_degree: int | None = None) -> RenderOutput:
+        """means [N, 3], quats [N, 4] wxyz, scales [N, 3] metres, opacities [N] in (0, 1), colors [N, 3] RGB or
+        [N, K, 3] SH coefficients (degree ``sh_degree``, default all that K holds, at most 3)."""
+        rasterization = self._load()
         dtype, device = means.dtype, means.device
-        viewmats = world_to_cam(T_world_cam, device, torch.float32)[None]  # [1, 4, 4]
-        Ks = torch.tensor([[camera.fx, 0.0, camera.cx + 0.5], [0.0, camera.fy, camera.cy + 0.5], [0.0, 0.0, 1.0]],
-                          dtype=torch.float32, device=device)[None]  # [1, 3, 3]
-        rendered, alphas, meta = self._rasterization(
+        if colors.dim() == 3 and sh_degree is None:
+            from .sh import sh_degree_of
+
+            sh_degree = sh_degree_of(colors.shape[1])
+        if colors.dim() == 2:
+            sh_degree = None
+        viewmats, Ks = self._camera_tensors(camera, T_world_cam, device)  # [1, 4, 4], [1, 3, 3]
+        rendered, alphas, meta = rasterization(
             means.float(), quats.float(), scales.float(), opacities.float(), colors.float(), viewmats, Ks,
-            camera.width, camera.height, near_plane=NEAR, eps2d=EPS2D, radius_clip=0.0, packed=False,
-            tile_size=TILE, render_mode="RGB+D", rasterize_mode="classic")
+            camera.width, camera.height, near_plane=NEAR, eps2d=EPS2D, radius_clip=0.0, sh_degree=sh_degree,
+            packed=False, tile_size=TILE, render_mode="RGB+D", rasterize_mode="classic")
         color_acc = rendered[0, ..., :3].to(dtype)  # [H, W, 3]
         depth_acc = rendered[0, ..., 3].to(dtype)  # [H, W]
         alpha_acc = alphas[0, ..., 0].to(dtype)  # [H, W]
@@ -62,5 +106,6 @@ class GsplatRenderer:
         radii = meta["radii"][0]  # [N, 2] in gsplat 1.5 ([N] in older releases)
         if radii.dim() == 2:
             radii = radii.max(dim=-1).values
-        means2d = meta["means2d"][0] - 0.5  # [N, 2], back to integer pixel centres
-        return RenderOutput(color, depth, alpha, radii.to(torch.int32), means2d)
+        radii = radii.to(torch.int32)
+        means2d = mask_culled(meta["means2d"][0] - 0.5, radii)  # [N, 2], integer pixel centres, NaN where culled
+        return RenderOutput(color, depth, alpha, radii, means2d)

@@ -54,12 +54,11 @@ def relocation_params(opacities: torch.Tensor, scales: torch.Tensor, ratios: tor
 
 
 def _sample(weights: torch.Tensor, n: int, generator: torch.Generator | None) -> torch.Tensor:
-    """n indices drawn with replacement in proportion to ``weights`` (on the CPU for a seeded generator)."""
-    w = weights.detach().double().cpu()
+    """n indices drawn with replacement in proportion to ``weights``, on their device (``generator`` lives there)."""
+    w = weights.detach().double()
     w = torch.where(torch.isfinite(w) & (w > 0), w, torch.zeros_like(w))
-    if float(w.sum()) <= 0:
-        w = torch.ones_like(w)
-    return torch.multinomial(w, n, replacement=True, generator=generator).to(weights.device)
+    w = torch.where(w.sum() > 0, w, torch.ones_like(w))  # all dead or broken: uniform (decided on the device)
+    return torch.multinomial(w, n, replacement=True, generator=generator)
 
 
 def _split(gmap: GaussianMap, sources: torch.Tensor, min_opacity: float, n_max: int) -> None:
@@ -113,19 +112,43 @@ def inject_noise(gmap: GaussianMap, scaler: float, generator: torch.Generator | 
     R = quat_to_rotmat(gmap.quats)
     M = R * gmap.scales[:, None, :]
     cov = M @ M.transpose(1, 2)  # [N, 3, 3]
-    z = torch.randn(len(gmap), 3, generator=generator).to(o.device)
+    z = torch.randn(len(gmap), 3, generator=generator, device=o.device)  # generator on the map's device
     noise = torch.einsum("nij,nj->ni", cov, z) * (gate * scaler)[:, None]
     gmap.params["means"].add_(noise)
 
 
 class MCMCRefiner:
-    """The 3DGS-MCMC hooks: regularisers before backward, relocation/densification/noise after the step."""
+    """The 3DGS-MCMC hooks: regularisers before backward, relocation/densification/noise after the step.
+
+    Its random numbers (position noise every update, sampling every refinement round) come from one generator on
+    the map's device, so an update builds no tensor on the host and copies none over. On the CPU that generator is
+    the seeded CPU generator of before (results unchanged); on CUDA it is created at the first step, seeded with
+    ``seed``, and checkpointed with its device.
+    """
 
     def __init__(self, cfg: MCMCConfig | None = None, seed: int = 0):
         self.cfg = cfg or MCMCConfig()
+        self.seed = seed
         self.rng = torch.Generator().manual_seed(seed)
+        self._saved_rng: tuple[torch.device, torch.Tensor] | None = None  # a checkpointed non-CPU generator state
         self.steps = 0
         self.counts = {"relocated": 0, "added": 0}
+
+    def generator(self, device: torch.device) -> torch.Generator:
+        """The refiner's generator, moved to ``device`` on first use there (restored from a checkpoint of the same
+        device type, else seeded with ``seed``)."""
+        device = torch.device(device)
+        if device.type == "cuda" and device.index is None:
+            device = torch.device("cuda", torch.cuda.current_device())
+        if self.rng.device != device:
+            rng = torch.Generator(device=device)
+            saved = self._saved_rng
+            if saved is not None and saved[0].type == device.type:
+                rng.set_state(saved[1])
+            else:
+                rng.manual_seed(self.seed)
+            self.rng, self._saved_rng = rng, None
+        return self.rng
 
     def regulariser(self, gmap: GaussianMap) -> torch.Tensor | None:
         if len(gmap) == 0 or (self.cfg.opacity_reg <= 0 and self.cfg.scale_reg <= 0):
@@ -135,18 +158,26 @@ class MCMCRefiner:
     def post_step(self, gmap: GaussianMap, cap: int) -> None:
         self.steps += 1
         c = self.cfg
+        rng = self.generator(gmap.device)
         if self.steps >= c.refine_start and self.steps % c.refine_every == 0 and len(gmap):
             dead = gmap.opacities.detach() <= c.min_opacity
-            self.counts["relocated"] += relocate(gmap, dead, self.rng, c.min_opacity, c.n_max)
-            self.counts["added"] += sample_add(gmap, math.ceil(c.growth_rate * len(gmap)), cap, self.rng,
+            self.counts["relocated"] += relocate(gmap, dead, rng, c.min_opacity, c.n_max)
+            self.counts["added"] += sample_add(gmap, math.ceil(c.growth_rate * len(gmap)), cap, rng,
                                                c.min_opacity, c.n_max)
         if c.noise_lr > 0:
-            inject_noise(gmap, gmap.lrs.means * c.noise_lr, self.rng)
+            inject_noise(gmap, gmap.lrs.means * c.noise_lr, rng)
 
     def state_dict(self) -> dict:
-        return {"rng": self.rng.get_state(), "steps": self.steps, "counts": dict(self.counts)}
+        return {"rng": self.rng.get_state(), "rng_device": str(self.rng.device), "steps": self.steps,
+                "counts": dict(self.counts)}
 
     def load_state_dict(self, state: dict) -> None:
-        self.rng.set_state(state["rng"])
+        device = torch.device(state.get("rng_device", "cpu"))
+        if device.type == "cpu":
+            self.rng = torch.Generator()
+            self.rng.set_state(state["rng"])
+        else:  # put on its device at the next step (that device may not exist while loading)
+            self.rng = torch.Generator().manual_seed(self.seed)
+            self._saved_rng = (device, state["rng"])
         self.steps = int(state["steps"])
         self.counts.update(state.get("counts", {}))
