@@ -1,6 +1,7 @@
 """Held-out comparison pictures: what a person looks at to judge a map.
 
-One PNG per chosen held-out view, ``heldout/<frame index, 6 digits>.png``, a 3 x 2 grid:
+One PNG per chosen held-out view, ``heldout/<frame index, 6 digits>.png``, a 3 x 2 grid (panels at most
+480 pixels wide):
 
     reference image   | render                 | |colour error| (inferno, 0 .. 0.25)
     sensor depth      | rendered depth         | |depth error| (inferno, 0 .. 0.25 m)
@@ -22,6 +23,7 @@ import torch
 COLOR_ERROR_MAX = 0.25  # mean absolute RGB error shown at full scale
 DEPTH_ERROR_MAX_M = 0.25
 TITLE_PX = 34
+PANEL_WIDTH = 480  # 640x480 views become 480x360 panels: ~1.4 MB a picture instead of ~2.4 MB
 
 
 def spread(n: int, count: int) -> list[int]:
@@ -50,7 +52,7 @@ def _label(panel: np.ndarray, text: str) -> np.ndarray:
     """Write ``text`` on a dark band at the top-left of ``panel`` (scaled to the panel's width)."""
     import cv2
 
-    s = max(panel.shape[1] / 640.0, 0.5)
+    s = max(panel.shape[1] / 560.0, 0.5)
     (w, h), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6 * s, max(1, round(1.5 * s)))
     out = panel.copy()
     out[: h + base + int(10 * s), : w + int(12 * s)] //= 3
@@ -59,9 +61,11 @@ def _label(panel: np.ndarray, text: str) -> np.ndarray:
     return out
 
 
-def comparison_picture(ref_color, ref_depth, color, depth, alpha, title: str) -> np.ndarray:
-    """The 3 x 2 comparison grid as [2H + title, 3W, 3] uint8 RGB. Inputs are [H, W(, 3)] arrays or tensors:
-    reference colour and sensor depth (metres, 0 = none), rendered colour, depth and alpha."""
+def comparison_picture(ref_color, ref_depth, color, depth, alpha, title: str,
+                       max_panel_width: int | None = PANEL_WIDTH) -> np.ndarray:
+    """The 3 x 2 comparison grid as [2h + title, 3w, 3] uint8 RGB, panels h x w (the image size, shrunk to
+    ``max_panel_width`` wide if larger; scores are computed at full size). Inputs are [H, W(, 3)] arrays or
+    tensors: reference colour and sensor depth (metres, 0 = none), rendered colour, depth and alpha."""
     import cv2
 
     from ..eval.metrics import depth_errors, psnr
@@ -79,13 +83,20 @@ def comparison_picture(ref_color, ref_depth, color, depth, alpha, title: str) ->
     dmax = float(np.percentile(valid_depth, 98)) if valid_depth.size else max(float(np.nanmax(depth)), 1.0)
     err = np.abs(np.clip(color, 0, 1) - ref_color).mean(-1)
     derr = np.abs(depth - ref_depth)
+    h, w = ref_color.shape[:2]
+    size = (w, h) if max_panel_width is None or w <= max_panel_width else \
+        (max_panel_width, max(1, round(h * max_panel_width / w)))
+
+    def fit(img):
+        return img if size == (w, h) else cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+
     panels = [
-        _label(_u8(ref_color), "reference"),
-        _label(_u8(color), f"render  PSNR {p:.2f} dB"),
-        _label(_colormap(err, COLOR_ERROR_MAX, cv2.COLORMAP_INFERNO), f"|colour error|  0-{COLOR_ERROR_MAX:g}"),
-        _label(_colormap(ref_depth, dmax, cv2.COLORMAP_TURBO, no_sensor), f"sensor depth  0-{dmax:.1f} m"),
-        _label(_colormap(depth, dmax, cv2.COLORMAP_TURBO, no_render), "rendered depth"),
-        _label(_colormap(derr, DEPTH_ERROR_MAX_M, cv2.COLORMAP_INFERNO, no_sensor | no_render),
+        _label(fit(_u8(ref_color)), "reference"),
+        _label(fit(_u8(color)), f"render  PSNR {p:.2f} dB"),
+        _label(fit(_colormap(err, COLOR_ERROR_MAX, cv2.COLORMAP_INFERNO)), f"|colour error|  0-{COLOR_ERROR_MAX:g}"),
+        _label(fit(_colormap(ref_depth, dmax, cv2.COLORMAP_TURBO, no_sensor)), f"sensor depth  0-{dmax:.1f} m"),
+        _label(fit(_colormap(depth, dmax, cv2.COLORMAP_TURBO, no_render)), "rendered depth"),
+        _label(fit(_colormap(derr, DEPTH_ERROR_MAX_M, cv2.COLORMAP_INFERNO, no_sensor | no_render)),
                f"|depth error|  0-{DEPTH_ERROR_MAX_M:g} m  RMSE {rmse:.3f} m"),
     ]
     grid = np.concatenate([np.concatenate(panels[:3], 1), np.concatenate(panels[3:], 1)], 0)
