@@ -150,7 +150,7 @@ class MapViewer:
                                                        thickness_units="screen")
             self._layer("Trajectory", path)
         pick = np.unique(np.linspace(0, len(self.poses) - 1, min(max_cameras, len(self.poses))).round().astype(int))
-        scale = 0.03 * self.scene_size
+        scale = 0.012 * self.scene_size
         if self._cameras is not None:
             self._cameras.remove()
         self._cameras = self.server.gui.add_folder("Go to camera", expand_by_default=False)
@@ -262,7 +262,7 @@ def open_map_viewer(map_ply: str | Path, host: str = "127.0.0.1", port: int = 80
         layers["Point cloud"] = Path(point_cloud)
     geometry = {label: read_geometry(p) for label, p in layers.items()}  # fail before the server starts
     camera = _camera_next_to(map_ply) or DEFAULT_CAMERA
-    viewer = MapViewer(host, port, title=str(map_ply))
+    viewer = MapViewer(host, port, title=f"{map_ply.parent.name}/{map_ply.name}")
     viewer.set_splats(splats)
     for label, g in geometry.items():
         viewer.add_geometry(label, g)
