@@ -3,7 +3,6 @@ pictures of `eligsir map`, and the live view's bookkeeping. The browser test is 
 
 import json
 import math
-import threading
 import time
 
 import numpy as np

@@ -11,7 +11,6 @@ want H.264, which OpenCV's wheels do not encode).
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -19,8 +18,6 @@ import numpy as np
 import torch
 
 from ..camera import Camera, check_pose
-
-log = logging.getLogger("eligsir_o3d")
 
 
 def _quat_wxyz(R: np.ndarray) -> np.ndarray:
