@@ -1,4 +1,4 @@
-"""The ``eligsir`` command line: map, demo, eval, export. Thin: heavy modules are imported inside commands."""
+"""The ``eligsir`` command line: map, demo, eval, export, view, render. Thin: heavy modules are imported inside commands."""
 
 from __future__ import annotations
 
@@ -68,6 +68,10 @@ def map_cmd(
     depth_info_topic: Optional[str] = typer.Option(None, help="ROS bag: CameraInfo topic of the depth camera."),
     pose_topic: Optional[str] = typer.Option(None, help="ROS bag: PoseStamped/Odometry topic of the camera's optical frame."),
     pose_frames: Optional[str] = typer.Option(None, help="ROS bag: poses from tf, 'world_frame:camera_optical_frame'."),
+    pictures: bool = typer.Option(True, "--pictures/--no-pictures", help="Write heldout/*.png comparisons and flythrough.mp4."),
+    view: bool = typer.Option(False, "--view", help="Serve a live browser view of the map while mapping (needs viser); it stays up afterwards until Ctrl-C."),
+    view_port: int = typer.Option(8080, help="--view: port (the next free one if taken)."),
+    view_host: str = typer.Option("127.0.0.1", help="--view: address to listen on."),
 ) -> None:
     """Map a recorded RGB-D sequence into a 3D Gaussian map and evaluate it on held-out views."""
     from .config import Config
@@ -90,18 +94,37 @@ def map_cmd(
                       speed=speed, eval_every=eval_every, refine=refine, offline_reference=offline_reference,
                       offline_updates=offline_updates,
                       on_bad_frame=on_bad_frame.value if on_bad_frame else None, checkpoint_every=checkpoint_every, resume=resume,
-                      progress=not quiet)
+                      progress=not quiet, pictures=pictures)
     seq_opts = dict(rgb_topic=rgb_topic, depth_topic=depth_topic, rgb_info_topic=rgb_info_topic,
                     depth_info_topic=depth_info_topic, pose_topic=pose_topic, pose_frames=pose_frames)
     seq_opts = {k: v for k, v in seq_opts.items() if v is not None}
     if no_register:
         seq_opts["register"] = False
     opts.sequence_options = seq_opts or None
+    if view:
+        opts.view = _live_view(view_host, view_port)
     try:
         m = run_mapping(path, out, cfg, opts)
     except (ValueError, OSError, RuntimeError) as e:
+        if opts.view is not None:
+            opts.view.close()
         _fail(str(e))
     _summary(m, out)
+    if opts.view is not None:
+        opts.view.show_results(out)
+        typer.echo(f"the map stays in view at {opts.view.url}  (Ctrl-C to stop)")
+        _serve_until_interrupted(opts.view)
+
+
+def _live_view(host: str, port: int):
+    from .visual.live import LiveView
+
+    try:
+        live = LiveView(host, port)
+    except RuntimeError as e:
+        _fail(str(e))
+    typer.echo(f"live view at {live.url}")
+    return live
 
 
 def _summary(m: dict, out: Path) -> None:
@@ -229,6 +252,66 @@ def export(
         summary = export_from_ply(map_ply, mesh, point_cloud, poses=poses, voxel_size=voxel_size,
                                   depth_max=depth_max, min_opacity=min_opacity, device=device)
     except (ValueError, OSError) as e:
+        _fail(str(e))
+    for k, v in summary.items():
+        typer.echo(f"{k}: {v}")
+
+
+@app.command()
+def view(
+    map_ply: Path = typer.Argument(..., help="A 3DGS PLY (e.g. runs/kitchen/map.ply, or one written by gsplat / 3DGS)."),
+    port: int = typer.Option(8080, help="Port to serve on (the next free one if taken; 0: any free port)."),
+    host: str = typer.Option("127.0.0.1", help="Address to listen on (0.0.0.0 serves the whole network)."),
+    trajectory: Optional[Path] = typer.Option(None, help="TUM trajectory to show as cameras [default: trajectory.txt beside the map]."),
+    mesh: Optional[Path] = typer.Option(None, help="A mesh to show as a layer [default: mesh.ply/.obj beside the map]."),
+    point_cloud: Optional[Path] = typer.Option(None, "--point-cloud", help="A point cloud layer [default: cloud.ply beside the map]."),
+    max_cameras: int = typer.Option(40, help="Camera frustums (and go-to buttons) spread along the trajectory."),
+) -> None:
+    """Look at a map in the browser: the splats, the trajectory's cameras, the mesh / point cloud."""
+    from .visual.viewer import open_map_viewer
+
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    try:
+        viewer = open_map_viewer(map_ply, host, port, trajectory, mesh, point_cloud, max_cameras)
+    except (ValueError, OSError, RuntimeError) as e:
+        _fail(str(e))
+    typer.echo(f"viewer at {viewer.url}  (Ctrl-C to stop)")
+    _serve_until_interrupted(viewer)
+
+
+def _serve_until_interrupted(viewer) -> None:
+    import time
+
+    try:
+        while True:
+            time.sleep(1.0)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.close()
+
+
+@app.command()
+def render(
+    map_ply: Path = typer.Argument(..., help="A 3DGS PLY (e.g. runs/kitchen/map.ply)."),
+    poses: Path = typer.Option(..., help="TUM trajectory (camera-to-world) to render the map along."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for the frames (000000.png, ...)."),
+    video: Optional[Path] = typer.Option(None, help="Also (or only) write an MP4 video here."),
+    scale: float = typer.Option(1.0, help="Image size relative to the map's camera (config.json beside it, else 640x480)."),
+    smooth: float = typer.Option(0.0, help="Smooth the path first with a Gaussian of this many poses (0: as given)."),
+    fps: float = typer.Option(24.0, help="Video frame rate."),
+    renderer: Renderer = typer.Option(Renderer.auto, help="Renderer backend."),
+    device: str = typer.Option("cpu"),
+) -> None:
+    """Render a map along a camera path into PNG frames and/or a video."""
+    from .visual.video import render_map_file
+
+    if out is None and video is None:
+        _fail("nothing to do: give --out and/or --video")
+    try:
+        summary = render_map_file(map_ply, poses, out, video, scale=scale, smooth=smooth, fps=fps,
+                                  renderer=renderer.value, device=device)
+    except (ValueError, OSError, RuntimeError) as e:
         _fail(str(e))
     for k, v in summary.items():
         typer.echo(f"{k}: {v}")

@@ -42,6 +42,8 @@ class RunOptions:
     checkpoint_every: int = 0  # frames between checkpoints (0 = none)
     resume: bool = False
     plots: bool = True
+    pictures: bool = True  # heldout/*.png comparisons and flythrough.mp4 (eligsir_o3d.visual.results)
+    view: object | None = None  # a live viewer (eligsir_o3d.visual.live.LiveView) fed while mapping
     progress: bool = True
 
 
@@ -64,6 +66,7 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
     from .datasets import open_sequence
     from .eval import HeldoutEvaluator, write_plots
     from .reconstructor import Reconstructor
+    from .visual.results import write_result_pictures
 
     opts = opts or RunOptions()
     for k, v in overrides.items():
@@ -124,6 +127,8 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
             checkpoint(r)
 
     rec.callbacks.append(maybe_checkpoint)
+    if opts.view is not None:
+        opts.view.attach(rec)  # a callback like evaluation's: its time is excluded from mapping
 
     def save_state(next_source: int) -> None:
         t0 = time.perf_counter()
@@ -168,6 +173,8 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
     def on_release(frame: Frame) -> None:
         t0 = time.perf_counter()
         evaluator.observe_source(frame)  # evaluation bookkeeping (cell eligibility): not mapping time
+        if opts.view is not None:
+            opts.view.observe(frame)
         rec.stats.excluded_s += time.perf_counter() - t0
 
     clock = _clock(opts, config)
@@ -203,6 +210,7 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
     cam = rec.camera
     (out / "config.json").write_text(json.dumps({**config.to_dict(), "camera": {
         "width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy}}, indent=2))
+    pictures = write_result_pictures(out, rec, heldout_frames, trajectory) if opts.pictures else None
     acq = _acquisition_time(seq, n)
     if clock.name == "realtime":
         mapping_s = wall_s  # the mapper's elapsed wall-clock time: tracking included; decoding, evaluation excluded
@@ -241,6 +249,7 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
         "dropped_frames": report.dropped,
         "skipped_frames": skipped + list(report.skipped_bad),
         "peak_rss_mb": _peak_rss_mb(),
+        "pictures": pictures,
         "curve": evaluator.curve,
         "cells": final.get("cells"),
         "per_view": final.get("per_view"),

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Set up eligsir_o3d on a fresh Debian/Ubuntu machine with Python >= 3.10:
 #   system libraries Open3D needs, a virtual environment in .venv, the CPU build of torch, the package.
-#   --test  also installs the test extras;  --all  also installs the optional pose sources (kiss-icp, pycolmap).
+#   --test  also installs the test extras (and Debian's chromium, which the viewer's browser test drives, if absent);
+#   --all  also installs the optional pose sources (kiss-icp, pycolmap).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
@@ -28,5 +29,12 @@ for a in "$@"; do
     --all) extras="${extras:+$extras,}test,pose,eval" ;;
   esac
 done
+case " $* " in
+  *" --test "*|*" --all "*)
+    if ! command -v chromium >/dev/null 2>&1; then  # tests/test_viewer_browser.py skips, saying so, without it
+      { $SUDO apt-get update -q && $SUDO apt-get install -y -q chromium; } ||
+        echo "chromium could not be installed: the viewer's browser test will be skipped"
+    fi ;;
+esac
 if [ -n "$extras" ]; then .venv/bin/python -m pip install -q -e ".[$extras]"; else .venv/bin/python -m pip install -q -e .; fi
 echo "eligsir_o3d installed in $(pwd)/.venv"

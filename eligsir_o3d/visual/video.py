@@ -1,0 +1,155 @@
+"""Fly-throughs: render a map along a camera path into PNG frames and / or an MP4 video.
+
+    path = smooth_path(poses, n_out=240)                               # jitter-free camera path
+    render_path(render_fn, path, camera, out_dir="frames", video="fly.mp4", fps=24)
+
+The path is the mapping trajectory smoothed (Gaussian weights over positions and sign-aligned quaternions), then
+resampled to ``n_out`` poses by arc index; a hand-held recording's shake would otherwise shake the video.
+Videos are MPEG-4 Part 2 (``mp4v``) through OpenCV: every desktop player and QuickTime plays them (browsers
+want H.264, which OpenCV's wheels do not encode).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from ..camera import Camera, check_pose
+
+
+def _quat_wxyz(R: np.ndarray) -> np.ndarray:
+    from ..camera import rotmat_to_quat
+
+    x, y, z, w = rotmat_to_quat(R)
+    return np.array([w, x, y, z])
+
+
+def _rot(q: np.ndarray) -> np.ndarray:
+    from ..camera import quat_to_rotmat
+
+    w, x, y, z = q
+    return quat_to_rotmat(np.array([x, y, z, w]))
+
+
+def smooth_path(poses: Sequence[np.ndarray], n_out: int | None = None, sigma: float | None = None) -> list[np.ndarray]:
+    """Camera-to-world poses smoothed with a Gaussian of ``sigma`` poses (default: 1/40 of the path, at least 2)
+    and resampled to ``n_out`` poses (default: as many as given)."""
+    P = np.stack([check_pose(T, f"path pose {i}") for i, T in enumerate(poses)])  # [N, 4, 4]
+    n = len(P)
+    n_out = n if n_out is None else int(n_out)
+    if n_out < 1:
+        raise ValueError(f"n_out must be >= 1, got {n_out}")
+    if n == 1:
+        return [P[0].copy() for _ in range(n_out)]
+    sigma = max(2.0, n / 40.0) if sigma is None else float(sigma)
+    q = np.stack([_quat_wxyz(T[:3, :3]) for T in P])  # [N, 4]
+    for i in range(1, n):  # one hemisphere, so that averaging neighbours does not cancel
+        if q[i] @ q[i - 1] < 0:
+            q[i] = -q[i]
+    t = P[:, :3, 3]
+    samples = np.linspace(0.0, n - 1.0, n_out)
+    out = []
+    idx = np.arange(n)
+    for s in samples:
+        w = np.exp(-0.5 * ((idx - s) / sigma) ** 2) if sigma > 0 else (idx == round(s)).astype(float)
+        w /= w.sum()
+        qm = w @ q
+        T = np.eye(4)
+        T[:3, :3] = _rot(qm / np.linalg.norm(qm))
+        T[:3, 3] = w @ t
+        out.append(T)
+    return out
+
+
+class VideoWriter:
+    """Frames ([H, W, 3] uint8 RGB, all one size) -> an MP4 file (OpenCV, ``mp4v``), written atomically."""
+
+    def __init__(self, path: str | Path, fps: float):
+        self.path = Path(path)
+        self.fps = float(fps)
+        self._tmp = self.path.with_name(f".{self.path.stem}.tmp{self.path.suffix or '.mp4'}")
+        self._writer = None
+        self.frames = 0
+
+    def write(self, rgb: np.ndarray) -> None:
+        import cv2
+
+        if self._writer is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            h, w = rgb.shape[:2]
+            self._writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h))
+            if not self._writer.isOpened():
+                raise OSError(f"could not open a video writer for {self.path} (OpenCV without FFmpeg?)")
+        self._writer.write(np.ascontiguousarray(rgb[..., ::-1]))
+        self.frames += 1
+
+    def close(self) -> Path:
+        if self._writer is None:
+            raise ValueError(f"{self.path}: no frames to write")
+        self._writer.release()
+        self._tmp.replace(self.path)
+        return self.path
+
+
+@torch.no_grad()
+def render_path(render_fn: Callable, poses: Sequence[np.ndarray], camera: Camera, out_dir: str | Path | None = None,
+                video: str | Path | None = None, fps: float = 24.0) -> dict:
+    """Render ``render_fn(camera, T_world_cam)`` -> RenderOutput at every pose; write ``out_dir/NNNNNN.png``
+    and / or ``video``. Returns a summary (frames, size, paths)."""
+    from .pictures import _u8, write_png
+
+    if out_dir is None and video is None:
+        raise ValueError("render_path: give an output folder and/or a video path")
+    writer = VideoWriter(video, fps) if video is not None else None
+    for k, T in enumerate(poses):
+        rgb = _u8(render_fn(camera, T).color.detach().float().cpu().numpy())
+        if out_dir is not None:
+            write_png(Path(out_dir) / f"{k:06d}.png", rgb)
+        if writer is not None:
+            writer.write(rgb)
+    summary = {"frames": len(poses), "size": f"{camera.width}x{camera.height}"}
+    if out_dir is not None:
+        summary["frames_dir"] = str(out_dir)
+    if writer is not None:
+        summary["video"] = str(writer.close())
+    return summary
+
+
+def map_render_fn(gmap, renderer: str = "auto", device: str = "cpu", background=(0.0, 0.0, 0.0)) -> Callable:
+    """``render_fn(camera, T_world_cam)`` for a :class:`GaussianMap` (e.g. one read from a PLY)."""
+    from ..render import get_renderer
+
+    rend = get_renderer(renderer, device)
+    bg = torch.tensor(background, dtype=torch.float32, device=gmap.device)
+
+    def render_fn(cam: Camera, T: np.ndarray):
+        centre = torch.as_tensor(np.asarray(T)[:3, 3], dtype=torch.float32, device=gmap.device)
+        return rend.render(*gmap.render_args(centre), cam, T, bg)
+
+    return render_fn
+
+
+def render_map_file(map_ply: str | Path, poses_file: str | Path, out_dir: str | Path | None = None,
+                    video: str | Path | None = None, scale: float = 1.0, smooth: float = 0.0, fps: float = 24.0,
+                    renderer: str = "auto", device: str = "cpu") -> dict:
+    """What ``eligsir render`` runs: a PLY rendered at every pose of a TUM trajectory (camera from the
+    ``config.json`` beside the map, else 640x480 fx = fy = 525), scaled by ``scale``; ``smooth`` > 0 smooths the
+    path with a Gaussian of that many poses first."""
+    from ..export import DEFAULT_CAMERA, _camera_next_to
+    from ..ply import load_ply
+    from ..pose.trajectory import read_tum_trajectory
+
+    if not scale > 0:
+        raise ValueError(f"scale must be positive, got {scale}")
+    if not fps > 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    gmap = load_ply(map_ply, device)
+    _, poses = read_tum_trajectory(poses_file)
+    if smooth > 0:
+        poses = smooth_path(poses, sigma=smooth)
+    camera = (_camera_next_to(Path(map_ply)) or DEFAULT_CAMERA).scaled(scale)
+    summary = render_path(map_render_fn(gmap, renderer, device), poses, camera, out_dir, video, fps)
+    return {"map": str(map_ply), "gaussians": len(gmap), **summary}
