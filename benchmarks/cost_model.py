@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from eligsir_o3d import Config, Reconstructor  # noqa: E402
-from eligsir_o3d.clock import CostModel  # noqa: E402
+from eligsir_o3d.budget import CostModel  # noqa: E402
 from eligsir_o3d.datasets import open_sequence  # noqa: E402
 
 KITCHEN = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_jpg1000"

@@ -49,7 +49,7 @@ def map_cmd(
     pose: str = typer.Option("gt", help="gt | odometry (Open3D frame-to-model) | kiss-icp | colmap (runs SfM over the whole recording BEFORE mapping) | PATH to a TUM trajectory file or a COLMAP model folder."),
     realtime: bool = typer.Option(False, "--realtime", help="Real-time replay against the wall clock (frames can drop)."),
     speed: Optional[float] = typer.Option(None, help="Replay speed: 0.1 gives the mapper 10x the recording's duration (both clocks) [default: the config's, else 1]."),
-    updates_per_frame: Optional[int] = typer.Option(None, help="Deterministic budget: updates per source frame."),
+    updates_per_frame: Optional[int] = typer.Option(None, help="Deterministic budget of N updates per source frame (switches the clock to mode 'updates')."),
     ablate: List[Mechanism] = typer.Option([], help="Swap a mechanism for its plain policy (repeatable) [default: the config's, else none]."),
     refine: int = typer.Option(0, help="Extra post-mapping updates (+N PM map state)."),
     offline_reference: bool = typer.Option(False, "--offline-reference", help="Offline reference: all frames at once, long full-res schedule."),
@@ -76,8 +76,9 @@ def map_cmd(
         cfg.seed = seed
     if ablate:
         cfg.ablate = tuple(sorted({a.value for a in ablate}))
-    if updates_per_frame is not None:
-        cfg.optim.updates_per_frame = updates_per_frame
+    if updates_per_frame is not None:  # a fixed number of updates per frame is the "updates" clock
+        cfg.clock.updates_per_frame = updates_per_frame
+        cfg.clock.mode = "updates"
     opts = RunOptions(max_frames=max_frames, holdout_every=holdout_every,
                       holdout_list=str(holdout_list) if holdout_list else None, pose=pose, realtime=realtime,
                       speed=speed, eval_every=eval_every, refine=refine, offline_reference=offline_reference,

@@ -11,7 +11,7 @@ from typing import Any
 from .gaussians import LearningRates
 from .optim import LossConfig
 from .scheduling.plain import SeedingConfig, StrideConfig
-from .clock import ClockConfig
+from .budget.config import ClockConfig
 from .scheduling.fidelity import FidelityConfig
 from .scheduling.growth import GrowthConfig
 from .scheduling.support import ProbeConfig
@@ -22,9 +22,6 @@ from .scheduling.views import ViewConfig
 class OptimConfig:
     lrs: LearningRates = field(default_factory=LearningRates)
     loss: LossConfig = field(default_factory=LossConfig)
-    updates_per_frame: int = 8  # deterministic budget: optimisation updates granted per released source frame
-    drain_updates: int = 100  # finalize(): bounded drain after the stream (the paper's ME state)
-    realtime_drain_fraction: float = 0.03  # real-time replay: the drain also stops after this share of the stream
     refine_scale: float = 1.0  # refine(): supervision scale of post-mapping updates (+N PM)
 
 
@@ -47,7 +44,7 @@ class Config:
     fidelity: FidelityConfig = field(default_factory=FidelityConfig)  # Load-Adaptive Fidelity
     growth: GrowthConfig = field(default_factory=GrowthConfig)  # Targeted Geometry Growth (+ 3DGS-MCMC)
     support: ProbeConfig = field(default_factory=ProbeConfig)  # the low-res support render admission and growth share
-    clock: ClockConfig = field(default_factory=ClockConfig)  # which clock releases a recorded stream (get_clock)
+    clock: ClockConfig = field(default_factory=ClockConfig)  # the budget: clock mode, per-frame/drain/offline budgets
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

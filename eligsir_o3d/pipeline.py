@@ -175,13 +175,14 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
     wall0 = time.perf_counter()
     report = clock.run(rec, frames(), on_release=on_release)
     if opts.offline_reference:
-        rec.optimize(opts.offline_updates or 30 * len(source), scale=1.0)
+        from .budget import offline_updates
+
+        if opts.offline_updates:
+            config.clock.offline_updates = opts.offline_updates
+        rec.optimize(offline_updates(config.clock, len(source)), scale=1.0)
         map_state = "offline-reference"
     else:
-        # In real-time replay the drain is also bounded in time, so the ME map is ready about when the stream ends.
-        deadline = rec.clock_now() + config.optim.realtime_drain_fraction * _acquisition_time(seq, n) \
-            if clock.name == "realtime" else None
-        rec.finalize(deadline)
+        clock.drain(rec, _acquisition_time(seq, n))
         map_state = "ME"
     if opts.refine:
         rec.refine(opts.refine)
@@ -227,7 +228,7 @@ def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, op
         "ate_rmse_m": accuracy.get("ate_rmse_m"),
         "rpe_trans_m": accuracy.get("rpe_trans_m"),
         "wall_time_s": wall_s,
-        "modelled_time_s": report.elapsed_s if clock.name == "budget" else None,
+        "modelled_time_s": report.elapsed_s if clock.name != "realtime" else None,
         "eval_time_s": evaluator.eval_seconds,
         "decode_time_s": decode_s[0],
         "acquisition_time_s": acq,
@@ -267,18 +268,16 @@ def _pose_source(spec: str, seq):
 
 
 def _clock(opts: RunOptions, config: Config):
-    """The clock of this run: real-time replay, or the deterministic budget (config.clock)."""
-    from .clock import BudgetClock, get_clock
+    """The clock of this run: ``config.clock`` (options given to the run override it), or the offline reference's."""
+    from .budget import get_clock
 
     if opts.on_bad_frame is not None:
         config.clock.on_bad_frame = opts.on_bad_frame
-    if opts.offline_reference:
-        return BudgetClock(0, on_bad_frame=config.clock.on_bad_frame)
     if opts.speed is not None:
         config.clock.speed = opts.speed
     if opts.realtime:
         config.clock.mode = "realtime"
-    return get_clock(config)
+    return get_clock(config, offline=opts.offline_reference)
 
 
 def _trajectory_accuracy(seq, trajectory: dict, out: Path, opts: RunOptions) -> dict:

@@ -67,9 +67,10 @@ class Reconstructor:
         self.ctx = MapContext(self.gmap, self._render, self.device, self.config.max_gaussians)
         self.pose_source = pose_source
         self.stats = MappingStats()
-        self.backlog = 0  # frames waiting to be integrated (set by a real-time driver)
+        self.backlog = 0  # frames waiting to be integrated (set_load, by a clock)
         self.callbacks: list[Callable[["Reconstructor"], None]] = []  # after every update; time excluded
         self._background = torch.tensor(self.config.background, dtype=torch.float32, device=self.device)
+        self.set_load(0, self.config.clock.frame_period_s)
 
     # ---- the online loop -------------------------------------------------------------------------------
     def integrate(self, rgbd, pose=None, timestamp: float | None = None, *, updates: int | None = None,
@@ -90,7 +91,7 @@ class Reconstructor:
         added = self.growth.on_frame(frame, admitted, self.ctx)
         self.stats.mapping_s += time.perf_counter() - t0
         if updates is None and deadline is None:
-            updates = self.config.optim.updates_per_frame
+            updates = self.config.clock.updates_per_frame
         done = self.optimize(updates, deadline)
         return {"index": frame.index, "admitted": admitted, "added": added, "updates": done,
                 "gaussians": len(self.gmap)}
@@ -106,9 +107,9 @@ class Reconstructor:
         return done
 
     def finalize(self, deadline: float | None = None) -> None:
-        """The bounded drain after the stream (the paper's ME map state): ``config.optim.drain_updates`` updates,
+        """The bounded drain after the stream (the paper's ME map state): ``config.clock.drain_updates`` updates,
         or fewer if the :meth:`clock_now` ``deadline`` comes first (real-time replay bounds it in time)."""
-        self.optimize(self.config.optim.drain_updates, deadline)
+        self.optimize(self.config.clock.drain_updates, deadline)
 
     def refine(self, steps: int, scale: float | None = None) -> None:
         """``steps`` post-mapping updates (the paper's +N PM), at ``scale`` (default: config.optim.refine_scale)."""
@@ -140,6 +141,15 @@ class Reconstructor:
             for cb in self.callbacks:
                 cb(self)
             self.stats.excluded_s += time.perf_counter() - t1
+
+    def set_load(self, backlog: int, period_s: float | None = None, cost=None) -> None:
+        """The load a clock reports: ``backlog`` frames waiting, ``period_s`` seconds that one source frame grants
+        (None: unchanged) and, under a deterministic budget, the ``CostModel`` that prices an update (None: the
+        fidelity policy measures seconds). The one route by which load reaches the fidelity policy."""
+        self.backlog = int(backlog)
+        if period_s is not None:
+            cost_fn = None if cost is None else (lambda pixels: cost.update(pixels, len(self.gmap)))
+            self.fidelity.attach(period_s, cost_fn)
 
     def policy_counters(self) -> dict:
         """Each policy's name and what it decided so far (admissions, seeds, insertions, relocations, scales)."""
@@ -186,7 +196,7 @@ class Reconstructor:
     # ---- input -----------------------------------------------------------------------------------------
     def _to_frame(self, rgbd, pose, timestamp) -> Frame:
         index = self.stats.frames_released
-        ts = float(timestamp) if timestamp is not None else index / 30.0
+        ts = float(timestamp) if timestamp is not None else index * self.config.clock.frame_period_s
         if isinstance(rgbd, Frame):
             frame = rgbd
             if pose is not None:

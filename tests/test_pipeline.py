@@ -11,9 +11,9 @@ from eligsir_o3d.pipeline import RunOptions, heldout_indices, run_mapping
 
 def _cfg():
     cfg = Config(renderer="cpu")
-    cfg.optim.updates_per_frame = 3
-    cfg.optim.drain_updates = 10
-    cfg.clock.budget = "updates"  # a fixed number of updates per frame, so counts are exact
+    cfg.clock.updates_per_frame = 3
+    cfg.clock.drain_updates = 10
+    cfg.clock.mode = "updates"  # a fixed number of updates per frame, so counts are exact
     return cfg
 
 

@@ -38,7 +38,7 @@ def _rec(seed=0, **kw):
     cfg = eo3d.Config(renderer="torch", seed=seed, ablate=("scheduling", "fidelity", "growth"), **kw)
     cfg.stride.every = 1
     cfg.seeding.stride = 3
-    cfg.optim.updates_per_frame = 6
+    cfg.clock.updates_per_frame = 6
     return eo3d.Reconstructor(_intrinsic(), "cpu", cfg)
 
 

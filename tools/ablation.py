@@ -63,13 +63,12 @@ def make_config(args, variant: str):
     from eligsir_o3d import Config
 
     cfg = Config(renderer=args.renderer, device=args.device, seed=args.seed, ablate=VARIANTS[variant])
-    cfg.clock.mode = "realtime" if args.realtime else "budget"
-    cfg.clock.budget = args.budget
+    cfg.clock.mode = "realtime" if args.realtime else args.budget
     cfg.clock.speed = args.speed
     if args.updates_per_frame is not None:
-        cfg.optim.updates_per_frame = args.updates_per_frame
+        cfg.clock.updates_per_frame = args.updates_per_frame
     if args.drain is not None:
-        cfg.optim.drain_updates = args.drain
+        cfg.clock.drain_updates = args.drain
     for item in args.set:
         apply_override(cfg, item)
     return cfg

@@ -85,6 +85,11 @@ class FidelityPolicy(Policy):
     def observe(self, seconds: float, pixels: int, backlog: int) -> None:
         """After an update: its measured cost and the current backlog of unprocessed frames."""
 
+    def attach(self, period_s: float | None, cost_fn: Callable[[int], float] | None = None) -> None:
+        """When the load changes (``Reconstructor.set_load``): the seconds one source frame grants and, under a
+        deterministic budget, the modelled seconds of an update of ``pixels`` supervised pixels. A policy that does
+        not adapt to load ignores it."""
+
 
 class GrowthPolicy(Policy):
     """Where the Gaussian population grows, moves or shrinks."""
