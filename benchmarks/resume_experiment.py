@@ -29,7 +29,7 @@ def child(args) -> None:
 
     import eligsir_o3d as eo3d
     from eligsir_o3d.camera import pose_to_tum
-    from eligsir_o3d.checkpoint import load_checkpoint, save_checkpoint
+    from eligsir_o3d.checkpoint import read_checkpoint, save_checkpoint
     from eligsir_o3d.budget import CostModel
     from eligsir_o3d.datasets import open_sequence
     from eligsir_o3d.eval.metrics import depth_rmse, psnr
@@ -44,8 +44,9 @@ def child(args) -> None:
     cost = CostModel()
     t_start = time.perf_counter()
     if args.resume:
-        rec = load_checkpoint(args.ck, sequence=seq)
-        pos = int(rec.checkpoint_extra["pos"])
+        ck = read_checkpoint(args.ck, sequence=seq)
+        rec = eo3d.Reconstructor.from_checkpoint(ck)
+        pos = int(ck["extra"]["pos"])
         saves = []  # this process's own saves
         print(f"resumed at source position {pos} (frame {source[pos]}) in {time.perf_counter() - t_start:.2f} s",
               flush=True)

@@ -15,13 +15,13 @@ def frames():
     return seq, [seq.frame(i) for i in range(FRAMES)]
 
 
-@pytest.mark.parametrize("ablate", [(), ("scheduling", "fidelity", "growth")], ids=["eligsir", "plain"])
+@pytest.mark.parametrize("ablate", [(), ("views", "fidelity", "growth")], ids=["eligsir", "plain"])
 def test_long_stream_stays_within_caps(frames, ablate):
     seq, fs = frames
     cfg = eo3d.Config(ablate=ablate, max_gaussians=CAP)
     cfg.depth_scale = seq.depth_scale
-    cfg.seeding.stride = 2  # seeds far more than the cap allows
-    cfg.stride.every, cfg.stride.max_views = 1, MAX_VIEWS
+    cfg.seeding.pixel_stride = 2  # seeds far more than the cap allows
+    cfg.keyframes.every, cfg.keyframes.max_views = 1, MAX_VIEWS
     if hasattr(cfg, "views"):  # the EliGSiR policies (issue 5)
         cfg.views.max_views = MAX_VIEWS
         cfg.support.scale, cfg.growth.seed_stride = 1.0, 1

@@ -35,9 +35,9 @@ def _legacy_rgbd(shift=0):
 
 def _rec(seed=0, **kw):
     # the plain policies: every frame kept, native resolution, new-space seeding (exact, easy-to-count behaviour)
-    cfg = eo3d.Config(renderer="torch", seed=seed, ablate=("scheduling", "fidelity", "growth"), **kw)
-    cfg.stride.every = 1
-    cfg.seeding.stride = 3
+    cfg = eo3d.Config(renderer="torch", seed=seed, ablate=("views", "fidelity", "growth"), **kw)
+    cfg.keyframes.every = 1
+    cfg.seeding.pixel_stride = 3
     cfg.clock.updates_per_frame = 6
     return eo3d.Reconstructor(_intrinsic(), "cpu", cfg)
 

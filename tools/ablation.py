@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-VARIANTS = {"full": (), "fidelity": ("fidelity",), "growth": ("growth",), "scheduling": ("scheduling",)}
+VARIANTS = {"full": (), "fidelity": ("fidelity",), "growth": ("growth",), "scheduling": ("views",)}
 LABELS = {"full": "EliGSiR", "fidelity": "w/o adaptive fidelity", "growth": "w/o targeted growth",
           "scheduling": "w/o view scheduling"}
 COLUMNS = [("PSNR", "psnr", "{:.2f}"), ("CVQ-AUC", "cvq_auc", "{:.2f}"), ("CVQ-AUC common-p", "cvq_auc_common", "{:.2f}"),
@@ -98,7 +98,7 @@ def run_variant(args, variant: str) -> dict:
     out = Path(args.out) / variant
     t0 = time.perf_counter()
     metrics = run_mapping(args.path, out, cfg, max_frames=args.max_frames, holdout_every=args.holdout_every,
-                          eval_every=args.eval_every, realtime=args.realtime, speed=args.speed, progress=False)
+                          eval_every=args.eval_every, progress=False)
     print(f"[{variant}] done in {time.perf_counter() - t0:.0f} s wall", flush=True)
     return metrics
 

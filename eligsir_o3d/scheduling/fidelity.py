@@ -48,6 +48,7 @@ class FidelityConfig:
     up_patience: int = 5  # consecutive "raise" votes before the scale goes up (one step)
     down_patience: int = 2  # consecutive "lower" votes before the scale goes down (to the fitting scale)
     trace_every: int = 1  # keep every k-th decision in ``trace``
+    fixed_scale: float = 1.0  # the supervision scale when fidelity is ablated (1.0 = native, as in the paper)
 
 
 class LoadAdaptiveFidelity(FidelityPolicy):
