@@ -61,6 +61,7 @@ def parse_args(argv=None):
 
 def make_config(args, variant: str):
     from eligsir_o3d import Config
+    from eligsir_o3d.config import apply_override
 
     cfg = Config(renderer=args.renderer, device=args.device, seed=args.seed, ablate=VARIANTS[variant])
     cfg.clock.mode = "realtime" if args.realtime else args.budget
@@ -70,25 +71,11 @@ def make_config(args, variant: str):
     if args.drain is not None:
         cfg.clock.drain_updates = args.drain
     for item in args.set:
-        apply_override(cfg, item)
+        try:
+            apply_override(cfg, item)
+        except ValueError as e:
+            raise SystemExit(str(e)) from None
     return cfg
-
-
-def apply_override(cfg, item: str) -> None:
-    """``a.b.c=value`` on a nested dataclass config; the value is parsed as JSON when it can be."""
-    key, _, raw = item.partition("=")
-    try:
-        value = json.loads(raw)
-    except json.JSONDecodeError:
-        value = raw
-    *path, last = key.strip().split(".")
-    obj = cfg
-    for name in path:
-        obj = getattr(obj, name)
-    if not hasattr(obj, last):
-        raise SystemExit(f"--set {item}: no config field {key!r}")
-    old = getattr(obj, last)
-    setattr(obj, last, tuple(value) if isinstance(old, tuple) and isinstance(value, list) else value)
 
 
 def run_variant(args, variant: str) -> dict:
