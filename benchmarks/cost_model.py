@@ -1,6 +1,7 @@
-"""Calibrate the budget clock's cost model (``clock.cost``) to this machine.
+"""Fit the budget clock's cost model (``clock.cost``) to this machine on a long real recording (the offline,
+thorough counterpart of the few-second ``Reconstructor.calibrate()`` that ``eligsir map`` runs and caches).
 
-The deterministic budget clock (the default ``clock.mode=budget, budget=cost``) replays a recording against
+The deterministic cost clock (the default ``clock.mode=cost``) replays a recording against
 *modelled* time: each update costs ``update_s + gaussian_s*N + P*(pixel_s + pixel_gaussian_s*N)`` seconds and each
 integrated frame ``frame_s + gaussian_s*N``. A model slower than the machine gives the mapper fewer updates than it
 could afford in real time; a faster one lets it fall behind. This script measures the real mapper on a real recording
@@ -16,7 +17,7 @@ and fits the constants:
 
     python benchmarks/cost_model.py                     # table + fitted constants
     python benchmarks/cost_model.py --json runs/cost.json
-    eligsir map ... --config runs/cost.json             # use them (a config file with only {"clock": {"cost": ...}})
+    eligsir map ... --cost-model runs/cost.json         # use them (or --config: a file with only {"clock": {"cost": ...}})
 
 Time measurements are wall clock: run it on an otherwise idle machine (the 1-minute load average is printed).
 """
@@ -36,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from eligsir_o3d import Config, Reconstructor  # noqa: E402
-from eligsir_o3d.clock import CostModel  # noqa: E402
+from eligsir_o3d.budget import CostModel  # noqa: E402
 from eligsir_o3d.datasets import open_sequence  # noqa: E402
 
 KITCHEN = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_jpg1000"

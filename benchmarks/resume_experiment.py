@@ -29,8 +29,8 @@ def child(args) -> None:
 
     import eligsir_o3d as eo3d
     from eligsir_o3d.camera import pose_to_tum
-    from eligsir_o3d.checkpoint import load_checkpoint, save_checkpoint
-    from eligsir_o3d.clock import CostModel
+    from eligsir_o3d.checkpoint import read_checkpoint, save_checkpoint
+    from eligsir_o3d.budget import CostModel
     from eligsir_o3d.datasets import open_sequence
     from eligsir_o3d.eval.metrics import depth_rmse, psnr
     from eligsir_o3d.memory import peak_rss_mb
@@ -44,8 +44,9 @@ def child(args) -> None:
     cost = CostModel()
     t_start = time.perf_counter()
     if args.resume:
-        rec = load_checkpoint(args.ck, sequence=seq)
-        pos = int(rec.checkpoint_extra["pos"])
+        ck = read_checkpoint(args.ck, sequence=seq)
+        rec = eo3d.Reconstructor.from_checkpoint(ck)
+        pos = int(ck["extra"]["pos"])
         saves = []  # this process's own saves
         print(f"resumed at source position {pos} (frame {source[pos]}) in {time.perf_counter() - t_start:.2f} s",
               flush=True)
@@ -54,7 +55,7 @@ def child(args) -> None:
         cfg.depth_scale = seq.depth_scale
         rec = eo3d.Reconstructor(seq.intrinsic, "cpu", cfg)
         pos, saves = 0, []
-    rec.fidelity.attach(seq.frame_period_s, lambda px: cost.update(px, len(rec.gmap)))  # as BudgetClock does
+    rec.set_load(0, seq.frame_period_s, cost)  # as BudgetClock does
     for k in range(pos, len(source)):
         rec.integrate(seq.frame(source[k], depth_max=rec.config.depth_max), updates=args.updates)
         print(f"frame {source[k]} pos {k + 1}", flush=True)

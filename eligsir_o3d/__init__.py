@@ -14,7 +14,7 @@ from .gaussians import GaussianMap
 from .reconstructor import Reconstructor
 from .render import RenderOutput, get_renderer
 
-__version__ = "0.1.0"
+from ._version import __version__  # noqa: E402
 
 __all__ = ["Camera", "Config", "Frame", "FrameError", "GaussianMap", "Reconstructor", "RenderOutput", "get_renderer",
            "__version__"]

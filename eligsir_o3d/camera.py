@@ -57,9 +57,6 @@ class Camera:
     def K(self) -> np.ndarray:  # [3, 3]
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
-    def K_tensor(self, device: torch.device | str = "cpu") -> torch.Tensor:  # [3, 3]
-        return torch.tensor(self.K, dtype=torch.float32, device=device)
-
     @property
     def pixels(self) -> int:
         return self.width * self.height
@@ -75,9 +72,17 @@ class Camera:
         v, u = torch.meshgrid(vs, us, indexing="ij")
         z = depth[v, u]
         valid = z > 0
-        u, v, z = u[valid].float(), v[valid].float(), z[valid]
-        pts = torch.stack([(u - self.cx) * z / self.fx, (v - self.cy) * z / self.fy, z], dim=-1)
-        return pts, (v.long() * w + u.long())
+        u, v, z = u[valid], v[valid], z[valid]
+        return self.unproject(u, v, z), (v.long() * w + u.long())
+
+    def unproject(self, us: torch.Tensor, vs: torch.Tensor, z: torch.Tensor, T_world_cam=None) -> torch.Tensor:
+        """Points [M, 3] at pixels (``us``, ``vs``) (centres at integers) and depths ``z`` [M] metres: in the camera
+        frame, or in the world frame with ``T_world_cam``. The package's one back-projection."""
+        pts = torch.stack([(us.float() - self.cx) * z / self.fx, (vs.float() - self.cy) * z / self.fy, z], -1)
+        if T_world_cam is None:
+            return pts
+        T = torch.as_tensor(T_world_cam, dtype=torch.float32, device=pts.device)
+        return pts @ T[:3, :3].T + T[:3, 3]
 
 
 def check_pose(T: np.ndarray | torch.Tensor, what: str = "pose", tol: float = 1e-3) -> np.ndarray:

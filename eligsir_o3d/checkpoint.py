@@ -1,12 +1,10 @@
-"""Checkpoints of the full mapper state, written atomically, so that a run killed at any moment resumes.
+"""Checkpoint files: encoding a mapper state compactly and writing it atomically, so that a run killed at any moment
+resumes. What the state holds is the Reconstructor's business (``Reconstructor.state_dict``/``load_state_dict``);
+this module only encodes and writes what it is handed, and reads it back.
 
-    save_checkpoint(rec, "runs/kitchen/checkpoint.pt")            # every N frames
-    rec = load_checkpoint("runs/kitchen/checkpoint.pt")           # after a crash: same map, same policies
-
-What is saved: the config and camera, the Gaussians with their Adam moments, the state of the three policies
-(through their ``state_dict``/``load_state_dict``), the retained views, the mapping counters, the random
-generators (the Reconstructor's, torch's global one and the policies' own), an optional pose-source state and a
-caller's ``extra`` dict (a driver's progress: trajectory so far, skipped frames, evaluation curve).
+    rec.save("runs/kitchen/checkpoint.pt")                        # = save_checkpoint(rec.state_dict(), path)
+    rec = Reconstructor.load("runs/kitchen/checkpoint.pt")        # after a crash: same map, same policies
+    read_checkpoint(path)["extra"]                                # a driver's own progress, saved beside it
 
 Retained views are stored once each, compactly and losslessly: colour as uint8 (or uint16) when that reproduces
 the float colour bit for bit (always so for 8-bit sources), depth as uint16 at the config's ``depth_scale`` when
@@ -29,13 +27,13 @@ import os
 import time
 import weakref
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
 
 from .camera import Camera
-from .frame import Frame
+from .frame import DEPTH_MAX, Frame
 
 FORMAT = "eligsir-checkpoint"
 VERSION = 1
@@ -46,46 +44,25 @@ class CheckpointError(ValueError):
 
 
 # ---- save --------------------------------------------------------------------------------------------------
-def save_checkpoint(rec, path: str | Path, *, extra: dict | None = None, sequence=None) -> Path:
-    """Write the full mapper state of Reconstructor ``rec`` to ``path`` (atomic replace). Returns the path.
+def save_checkpoint(state, path: str | Path, *, extra: dict | None = None, sequence=None) -> Path:
+    """Write a mapper state to ``path`` (atomic replace). Returns the path.
 
-    extra: a caller's dict of plain values/tensors, handed back as ``rec.checkpoint_extra`` by
-    :func:`load_checkpoint`. sequence: the RGBDSequence the views came from; views that are unchanged frames of it
-    are stored as references instead of images (the same sequence must then be given to :func:`load_checkpoint`).
+    state: ``Reconstructor.state_dict()`` (or a Reconstructor, whose ``state_dict()`` is taken); its ``config``
+    gives the depth scale and range the views are encoded with. extra: a caller's dict of plain values/tensors,
+    handed back as ``read_checkpoint(path)["extra"]``. sequence: the RGBDSequence the views came from; views that
+    are unchanged frames of it are stored as references instead of images (the same sequence must then be given
+    to :func:`read_checkpoint`).
     """
+    if not isinstance(state, dict):
+        state = state.state_dict()
     path = Path(path)
-    frames = _FrameTable(rec.config.depth_scale, sequence, rec.config.depth_max)
-    retained = list(rec.views.views)
-    for f in retained:
-        frames.add(f)
-    payload = {
-        "format": FORMAT,
-        "version": VERSION,
-        "saved_at": time.time(),
-        "config": rec.config.to_dict(),
-        "camera": dataclasses.asdict(rec.camera),
-        "device": str(rec.device),
-        "gmap": rec.gmap.state_dict(),
-        "policies": {name: {"class": type(p).__name__, "state": p.state_dict()}
-                     for name, p in (("views", rec.views), ("fidelity", rec.fidelity), ("growth", rec.growth))},
-        "retained": [{"index": int(f.index), "timestamp": float(f.timestamp)} for f in retained],
-        "stats": dataclasses.asdict(rec.stats),
-        "backlog": rec.backlog,
-        "rng": rec.rng.get_state(),
-        "torch_rng": torch.get_rng_state(),
-        "cuda_rng": torch.cuda.get_rng_state_all() if rec.device.type == "cuda" else None,
-        "pose_source": _state_of(rec.pose_source),
-        "extra": extra,
-    }
+    cfg = state.get("config", {})
+    frames = _FrameTable(float(cfg.get("depth_scale", 1000.0)), sequence, float(cfg.get("depth_max", DEPTH_MAX)))
+    payload = {"format": FORMAT, "version": VERSION, "saved_at": time.time(), **state, "extra": extra}
     packed = _pack(payload, frames, "checkpoint")
     packed["frames"] = frames.encoded()
     _atomic_write(path, packed)
     return path
-
-
-def _state_of(obj) -> dict | None:
-    fn = getattr(obj, "state_dict", None)
-    return fn() if callable(fn) else None
 
 
 def _serialize(payload: dict, f) -> None:
@@ -119,8 +96,9 @@ def _atomic_write(path: Path, payload: dict) -> None:
 
 # ---- load --------------------------------------------------------------------------------------------------
 def read_checkpoint(path: str | Path, *, sequence=None) -> dict:
-    """The decoded payload of a checkpoint (config dict, stats, extra, policy states ...), without building a
-    Reconstructor. Views saved as sequence references decode to None unless ``sequence`` is given.
+    """The decoded payload of a checkpoint: the state (config dict, stats, policy states ...) and ``extra``, for
+    ``Reconstructor.from_checkpoint``. Views saved as sequence references decode to None unless ``sequence`` is
+    given.
     Raises :class:`CheckpointError` for a missing, truncated, corrupt or foreign file."""
     path = Path(path)
     if not path.is_file():
@@ -136,75 +114,11 @@ def read_checkpoint(path: str | Path, *, sequence=None) -> dict:
         raise CheckpointError(f"{path}: checkpoint version {raw['version']} is newer than this eligsir_o3d reads "
                               f"({VERSION}); upgrade the package")
     cfg = raw.get("config", {})
-    frames = _decode_frames(raw.get("frames", []), path, sequence, float(cfg.get("depth_max", 10.0)))
+    frames = _decode_frames(raw.get("frames", []), path, sequence, float(cfg.get("depth_max", DEPTH_MAX)))
     out = _unpack({k: v for k, v in raw.items() if k != "frames"}, frames)
     out["path"] = str(path)
     out["unresolved_views"] = sum(f is None for f in frames)
     return out
-
-
-def load_checkpoint(path: str | Path, device: str | None = None, *, sequence=None, pose_source=None,
-                    setup: Callable[[Any], None] | None = None):
-    """A Reconstructor rebuilt from the checkpoint at ``path``: same config, map, optimizer and policy state, views,
-    counters and random state, so that it continues exactly where the saved one was.
-
-    device: where to put it (default: where it was saved; the renderer is re-chosen when the device type changes).
-    sequence: needed when the checkpoint was saved with ``sequence=``. pose_source: the pose source to attach
-    (its ``load_state_dict`` receives the saved state when it has one). setup: called with the fresh
-    Reconstructor before any state is restored, for a driver that replaces policies after construction (the
-    offline reference does) to do the same again. The caller's ``extra`` dict is ``rec.checkpoint_extra``.
-    """
-    from .config import Config
-    from .reconstructor import Reconstructor
-
-    path = Path(path)
-    ck = read_checkpoint(path, sequence=sequence)
-    if ck["unresolved_views"]:
-        raise CheckpointError(f"{path}: {ck['unresolved_views']} views were saved as references to a sequence; "
-                              f"pass sequence= (the one given to save_checkpoint) to load it")
-    cfg = Config.from_dict(ck["config"])
-    saved_dev = torch.device(ck["device"])
-    dev = torch.device(device) if device is not None else saved_dev
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise CheckpointError(f"{path}: saved on {saved_dev}, but CUDA is not available here; "
-                              f"pass device='cpu' to load it on the CPU")
-    if dev.type != saved_dev.type:
-        cfg.renderer = "auto"
-    rec = Reconstructor(Camera(**ck["camera"]), str(dev), cfg, pose_source=pose_source)
-    if setup is not None:
-        setup(rec)
-    for name, policy in (("views", rec.views), ("fidelity", rec.fidelity), ("growth", rec.growth)):
-        saved = ck["policies"][name]
-        if type(policy).__name__ != saved["class"]:
-            raise CheckpointError(f"{path}: the {name} policy was {saved['class']} when saved but the config builds "
-                                  f"{type(policy).__name__} (a policy replaced after construction must be replaced "
-                                  f"again: load_checkpoint(..., setup=fn))")
-    rec.gmap.load_state_dict(ck["gmap"])
-    rec.ctx.gmap = rec.gmap
-    for name, policy in (("views", rec.views), ("fidelity", rec.fidelity), ("growth", rec.growth)):
-        policy.load_state_dict(ck["policies"][name]["state"])
-    restored = [(int(f.index), float(f.timestamp)) for f in rec.views.views]
-    expected = [(int(v["index"]), float(v["timestamp"])) for v in ck["retained"]]
-    if restored != expected:
-        raise CheckpointError(
-            f"{path}: the {ck['policies']['views']['class']} view policy restored {len(restored)} retained views "
-            f"but {len(expected)} were saved: its state_dict() must include its retained views (Frame objects or "
-            f"their tensors) and load_state_dict() must put them back")
-    known = {f.name for f in dataclasses.fields(rec.stats)}
-    for k, v in ck["stats"].items():
-        if k in known:
-            setattr(rec.stats, k, v)
-    rec.ctx.updates = rec.stats.updates
-    rec.ctx.frames_released = rec.stats.frames_released
-    rec.backlog = ck.get("backlog", 0)
-    rec.rng.set_state(ck["rng"])
-    torch.set_rng_state(ck["torch_rng"])
-    if ck.get("cuda_rng") is not None and dev.type == "cuda":
-        torch.cuda.set_rng_state_all(ck["cuda_rng"])
-    if pose_source is not None and ck.get("pose_source") is not None and hasattr(pose_source, "load_state_dict"):
-        pose_source.load_state_dict(ck["pose_source"])
-    rec.checkpoint_extra = ck.get("extra")
-    return rec
 
 
 # ---- retained views, stored once each ----------------------------------------------------------------------

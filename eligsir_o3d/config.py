@@ -1,30 +1,53 @@
-"""Nested dataclass configuration: one place for defaults, written with every result as config.json."""
+"""Nested dataclass configuration: one place for defaults, written with every result as config.json.
+
+One vocabulary, checked: :meth:`Config.from_dict` (config files) and :func:`apply_override` (``--set a.b=v``)
+reject an unknown key with its path and the nearest valid name; keys of older versions that were renamed are
+moved to their new name (:data:`RENAMED`). Derived values (device spelling, renderer for the device) are computed
+in one step, :meth:`Config.resolve`, which returns a copy.
+"""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import difflib
 import json
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from .budget.config import ClockConfig
+from .frame import DEPTH_MAX
 from .gaussians import LearningRates
 from .optim import LossConfig
-from .scheduling.plain import SeedingConfig, StrideConfig
-from .clock import ClockConfig
 from .scheduling.fidelity import FidelityConfig
 from .scheduling.growth import GrowthConfig
+from .scheduling.plain import SeedingConfig, StrideConfig
 from .scheduling.support import ProbeConfig
 from .scheduling.views import ViewConfig
+
+log = logging.getLogger("eligsir_o3d")
+
+# old key path -> new key path (config files and checkpoints written by earlier versions)
+RENAMED = {
+    "optim.updates_per_frame": "clock.updates_per_frame",
+    "optim.drain_updates": "clock.drain_updates",
+    "optim.realtime_drain_fraction": "clock.realtime_drain_fraction",
+    "fidelity.frame_period_s": "clock.frame_period_s",
+    "fixed_scale": "fidelity.fixed_scale",
+    "stride": "keyframes",
+    "seeding.stride": "seeding.pixel_stride",
+    "seeding.render_scale": "support.scale",
+    "seeding.alpha_threshold": "support.alpha_min",
+}
+ABLATION_RENAMED = {"scheduling": "views"}
 
 
 @dataclass
 class OptimConfig:
     lrs: LearningRates = field(default_factory=LearningRates)
     loss: LossConfig = field(default_factory=LossConfig)
-    updates_per_frame: int = 8  # deterministic budget: optimisation updates granted per released source frame
-    drain_updates: int = 100  # finalize(): bounded drain after the stream (the paper's ME state)
-    realtime_drain_fraction: float = 0.03  # real-time replay: the drain also stops after this share of the stream
     refine_scale: float = 1.0  # refine(): supervision scale of post-mapping updates (+N PM)
 
 
@@ -35,19 +58,49 @@ class Config:
     sh_degree: int = 0
     max_gaussians: int = 300_000
     depth_scale: float = 1000.0  # integer depth / depth_scale = metres (Open3D's spelling)
-    depth_max: float = 8.0  # metres; farther depth counts as no measurement
+    depth_max: float = DEPTH_MAX  # metres; farther depth counts as no measurement
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seed: int = 0
-    ablate: tuple[str, ...] = ()  # any of: scheduling, fidelity, growth (each swaps in the plain policy)
-    fixed_scale: float = 1.0  # supervision scale when fidelity is ablated (1.0 = native, as in the paper)
+    ablate: tuple[str, ...] = ()  # any of: views, fidelity, growth (each swaps in the plain policy)
     optim: OptimConfig = field(default_factory=OptimConfig)
-    stride: StrideConfig = field(default_factory=StrideConfig)
-    seeding: SeedingConfig = field(default_factory=SeedingConfig)
+    keyframes: StrideConfig = field(default_factory=StrideConfig)  # plain view policy (views ablated)
+    seeding: SeedingConfig = field(default_factory=SeedingConfig)  # plain growth policy (growth ablated)
     views: ViewConfig = field(default_factory=ViewConfig)  # Map-Guided View Scheduling
     fidelity: FidelityConfig = field(default_factory=FidelityConfig)  # Load-Adaptive Fidelity
     growth: GrowthConfig = field(default_factory=GrowthConfig)  # Targeted Geometry Growth (+ 3DGS-MCMC)
     support: ProbeConfig = field(default_factory=ProbeConfig)  # the low-res support render admission and growth share
-    clock: ClockConfig = field(default_factory=ClockConfig)  # which clock releases a recorded stream (get_clock)
+    clock: ClockConfig = field(default_factory=ClockConfig)  # the budget: clock mode, per-frame/drain/offline budgets
+
+    def resolve(self, **changes) -> "Config":
+        """A copy with ``changes`` (top-level fields) applied and every derived value computed, in this one
+        place: the device in torch's spelling (``CUDA:0`` -> ``cuda:0``), the renderer chosen for it (``auto`` ->
+        ``gsplat`` on CUDA, else ``cpu``), the ablation names checked, the clock checked. The caller's Config is
+        not changed. Resolving a resolved config changes nothing."""
+        import torch
+
+        from .budget.config import check_clock_config
+        from .render import resolve_backend
+        from .scheduling import ABLATIONS
+
+        cfg = copy.deepcopy(self)
+        names = {f.name for f in dataclasses.fields(cfg)}
+        for k, v in changes.items():
+            if k not in names:
+                raise ValueError(f"Config has no field {k!r}")
+            setattr(cfg, k, v)
+        try:
+            device = torch.device(str(cfg.device).strip().lower())
+        except RuntimeError:
+            raise ValueError(f"device {cfg.device!r} is not a device name ('cpu', 'cuda', 'cuda:0', ...)") from None
+        cfg.device = str(device)
+        cfg.renderer = resolve_backend(cfg.renderer, device)
+        cfg.ablate = tuple(ABLATION_RENAMED.get(a, a) for a in cfg.ablate)
+        unknown = [a for a in cfg.ablate if a not in ABLATIONS]
+        if unknown:
+            raise ValueError(f"unknown ablation(s) {unknown}; choose from {', '.join(ABLATIONS)}")
+        cfg.ablate = tuple(cfg.ablate)
+        check_clock_config(cfg.clock)
+        return cfg
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -56,28 +109,117 @@ class Config:
         Path(path).write_text(json.dumps(self.to_dict(), indent=2))
 
     @classmethod
-    def from_dict(cls, data: dict) -> "Config":
-        return _build(cls, data)
+    def from_dict(cls, data: dict, where: str = "config") -> "Config":
+        """A Config from a dict (a config file's content). Unknown keys are an error naming their path and the
+        nearest valid name; renamed keys of older versions (:data:`RENAMED`) are moved to their new name."""
+        if not isinstance(data, dict):
+            raise ValueError(f"{where}: a config must be a JSON object, got {type(data).__name__}")
+        return _build(cls, _migrate(copy.deepcopy(data)), where, "")
 
     @classmethod
     def load(cls, path: str | Path) -> "Config":
-        return cls.from_dict(json.loads(Path(path).read_text()))
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValueError(f"{path}: not a readable JSON config file ({e})") from None
+        return cls.from_dict(data, str(path))
 
 
-def _build(tp, data: Any):
-    """Recursively rebuild a dataclass from a dict, ignoring unknown keys (older/newer config files)."""
-    if not dataclasses.is_dataclass(tp) or not isinstance(data, dict):
-        return data
+def _build(tp, data: Any, where: str, prefix: str):
+    """Recursively rebuild dataclass ``tp`` from a dict; an unknown key is an error."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{where}: {prefix.rstrip('.') or 'config'} must be an object, got {data!r}")
+    fields = {f.name: f for f in dataclasses.fields(tp)}
+    for key in data:
+        if key not in fields:
+            raise ValueError(f"{where}: unknown key {prefix + key!r}{_nearest(key, fields, prefix)}")
     kwargs = {}
-    hints = {f.name: f for f in dataclasses.fields(tp)}
-    for name, f in hints.items():
+    for name, f in fields.items():
         if name not in data:
             continue
         default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
         value = data[name]
         if dataclasses.is_dataclass(default):
-            value = _build(type(default), value)
+            value = _build(type(default), value, where, f"{prefix}{name}.")
         elif isinstance(default, tuple) and isinstance(value, list):
             value = tuple(value)
         kwargs[name] = value
     return tp(**kwargs)
+
+
+def _nearest(key: str, names, prefix: str) -> str:
+    close = difflib.get_close_matches(key, list(names), n=1, cutoff=0.5)
+    return f"; did you mean {prefix + close[0]!r}?" if close else f"; valid keys here: {', '.join(sorted(names))}"
+
+
+def _migrate(data: dict) -> dict:
+    """Move the keys that earlier versions spelled differently to today's names (in place; returns ``data``)."""
+    data.pop("camera", None)  # results folders of earlier versions recorded the camera here (now run.json)
+    clock = data.get("clock")
+    if isinstance(clock, dict) and "budget" in clock:  # mode "budget" + budget "cost"|"updates" -> mode
+        budget = clock.pop("budget")
+        if clock.get("mode", "budget") == "budget":
+            clock["mode"] = budget
+    for old, new in RENAMED.items():
+        *opath, olast = old.split(".")
+        parent = _walk(data, opath)
+        if not isinstance(parent, dict) or olast not in parent:
+            continue
+        value = parent.pop(olast)
+        *npath, nlast = new.split(".")
+        target = _walk(data, npath, create=True)
+        if nlast not in target:
+            target[nlast] = value
+        elif target[nlast] != value:
+            log.warning("config: %s (an older name) = %r ignored in favour of %s = %r", old, value, new, target[nlast])
+    if isinstance(data.get("ablate"), (list, tuple)):
+        data["ablate"] = [ABLATION_RENAMED.get(a, a) for a in data["ablate"]]
+    return data
+
+
+def _walk(data: dict, path: list[str], create: bool = False):
+    for name in path:
+        if not isinstance(data, dict):
+            return None
+        if name not in data and create:
+            data[name] = {}
+        data = data.get(name)
+    return data
+
+
+def apply_override(cfg: Config, item: str) -> None:
+    """Apply ``a.b.c=value`` to ``cfg`` in place; the value is parsed as JSON when it can be (``16``, ``true``,
+    ``[0.25, 1]``), else taken as a string. An unknown key is a ValueError naming the nearest valid one."""
+    key, eq, raw = item.partition("=")
+    key = key.strip()
+    if not eq or not key:
+        raise ValueError(f"--set {item!r}: expected KEY=VALUE, e.g. views.active_size=16")
+    try:
+        value = json.loads(raw)
+    except json.JSONDecodeError:
+        value = raw
+    key = RENAMED.get(key, key)
+    *path, last = key.split(".")
+    obj, prefix = cfg, ""
+    for name in path + [last]:
+        if not dataclasses.is_dataclass(obj):
+            raise ValueError(f"--set {item}: {prefix.rstrip('.')} is a value, not a section")
+        names = [f.name for f in dataclasses.fields(obj)]
+        if name not in names:
+            raise ValueError(f"--set {item}: unknown key {prefix + name!r}{_nearest(name, names, prefix)}")
+        if prefix.count(".") < len(path):
+            obj, prefix = getattr(obj, name), prefix + name + "."
+    old = getattr(obj, last)
+    if dataclasses.is_dataclass(old):
+        raise ValueError(f"--set {item}: {key} is a section; set one of its keys ({key}.<name>=...)")
+    if isinstance(old, tuple) and isinstance(value, list):
+        value = tuple(value)
+    elif isinstance(old, bool) and not isinstance(value, bool):
+        raise ValueError(f"--set {item}: {key} takes true or false")
+    elif isinstance(old, float) and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    elif old is not None and not isinstance(value, type(old)) and not (isinstance(old, float) and
+                                                                       isinstance(value, float)):
+        raise ValueError(f"--set {item}: {key} takes a {type(old).__name__}, got {raw!r}")
+    setattr(obj, last, value)

@@ -185,9 +185,9 @@ def _subsample(poses: list[np.ndarray], max_views: int) -> list[np.ndarray]:
 
 
 def _camera_next_to(map_ply: Path) -> Camera | None:
-    """The camera recorded in a ``config.json`` (key ``camera`` or ``intrinsic``) or ``intrinsics.json`` beside
-    the map, if any."""
-    for name in ("config.json", "intrinsics.json"):
+    """The camera recorded in a results folder's ``run.json`` (key ``camera``), a ``config.json`` (key ``camera``
+    or ``intrinsic``, as older versions wrote it) or ``intrinsics.json`` beside the map, if any."""
+    for name in ("run.json", "config.json", "intrinsics.json"):
         f = map_ply.parent / name
         if not f.is_file():
             continue

@@ -12,6 +12,9 @@ import torch.nn.functional as F
 from .camera import Camera, check_pose
 
 
+DEPTH_MAX = 8.0  # metres: the one default range of measured depth (farther counts as no measurement)
+
+
 class FrameError(ValueError):
     """A frame that cannot be used (bad size, dtype, pose, depth). The message names the frame and the field."""
 
@@ -39,7 +42,7 @@ class Frame:
         T_world_cam,
         *,
         depth_scale: float = 1000.0,
-        depth_max: float = 10.0,
+        depth_max: float = DEPTH_MAX,
         timestamp: float = 0.0,
         index: int = 0,
     ) -> "Frame":
@@ -63,7 +66,7 @@ class Frame:
 
     @classmethod
     def from_arrays(cls, color: np.ndarray, depth: np.ndarray, camera: Camera, T_world_cam, *,
-                    depth_scale: float = 1000.0, depth_max: float = 10.0, timestamp: float = 0.0,
+                    depth_scale: float = 1000.0, depth_max: float = DEPTH_MAX, timestamp: float = 0.0,
                     index: int = 0) -> "Frame":
         where = f"frame {index}"
         color, depth = np.asarray(color), np.asarray(depth)

@@ -2,7 +2,7 @@
 
 What bounds memory in a long run (nothing else grows with the number of frames):
 - Gaussians: ``config.max_gaussians`` - growth policies never add beyond it (MCMC relocates instead).
-- Retained views: ``max_views`` of the view policy (``config.views.max_views``, or ``config.stride.max_views``
+- Retained views: ``max_views`` of the view policy (``config.views.max_views``, or ``config.keyframes.max_views``
   for the plain policy); beyond it a view is *dropped* (the plain policy evicts the oldest, Map-Guided View
   Scheduling the lowest-priority inactive one). Nothing is spilled to disk: a dropped view is gone, and a
   checkpoint stores only the views retained when it is written. One view at source resolution costs

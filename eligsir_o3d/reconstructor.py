@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,11 +19,12 @@ import open3d as o3d
 import torch
 
 from .camera import Camera, check_pose
+from .checkpoint import CheckpointError, read_checkpoint, save_checkpoint
 from .config import Config
 from .frame import Frame, FrameError
 from .gaussians import GaussianMap
 from .optim import supervision_loss
-from .render import RenderOutput, get_renderer, resolve_backend
+from .render import RenderOutput, get_renderer
 from .scheduling import MapContext, get_policies
 
 
@@ -36,6 +38,7 @@ class MappingStats:
     supervised_pixels: int = 0  # sum of image sizes of every supervised view over all updates
     mapping_s: float = 0.0
     tracking_s: float = 0.0
+    frames_tracked: int = 0  # frames whose pose came from the pose source (the first one is anchored)
     excluded_s: float = 0.0  # wall time of evaluation callbacks, checkpoint I/O and (pipeline) decoding the recording
     last_timestamp: float | None = None  # of the last integrated frame: timestamps must increase
 
@@ -48,28 +51,30 @@ class Reconstructor:
     """Online RGB-D -> 3D Gaussian map under a bounded optimisation budget (EliGSiR).
 
     intrinsic: ``o3d.camera.PinholeCameraIntrinsic`` of the incoming images; device: ``"cpu"`` or ``"cuda:0"``.
-    ``config`` selects the renderer, the policies (``config.ablate``) and the budget; ``pose_source`` tracks
-    frames integrated with ``pose=None``.
+    ``config`` selects the renderer, the policies (``config.ablate``) and the budget (the Reconstructor keeps a
+    resolved copy, ``rec.config``); ``pose_source`` tracks frames integrated with ``pose=None``; ``depth_scale``:
+    integer depth / depth_scale = metres (Open3D's spelling; default ``config.depth_scale``, 1000).
     """
 
     def __init__(self, intrinsic: o3d.camera.PinholeCameraIntrinsic, device: str = "cpu",
-                 config: Config | None = None, pose_source=None):
-        self.config = config if config is not None else Config()
-        self.config.device = str(device)
-        self.device = torch.device(device)
+                 config: Config | None = None, pose_source=None, *, depth_scale: float | None = None):
+        changes = {"device": str(device)} if depth_scale is None else {"device": str(device),
+                                                                        "depth_scale": float(depth_scale)}
+        self.config = (config if config is not None else Config()).resolve(**changes)  # a resolved copy
+        self.device = torch.device(self.config.device)
         self.camera = intrinsic if isinstance(intrinsic, Camera) else Camera.from_o3d(intrinsic)
-        self.config.renderer = resolve_backend(self.config.renderer, self.device)
         self.renderer = get_renderer(self.config.renderer, self.device)
         torch.manual_seed(self.config.seed)
         self.rng = torch.Generator().manual_seed(self.config.seed)
         self.gmap = GaussianMap(self.config.sh_degree, self.device, self.config.optim.lrs)
         self.views, self.fidelity, self.growth = get_policies(self.config)
-        self.ctx = MapContext(self.gmap, self._render, self.device, self.config.max_gaussians)
+        self.ctx = MapContext(self)
         self.pose_source = pose_source
         self.stats = MappingStats()
-        self.backlog = 0  # frames waiting to be integrated (set by a real-time driver)
+        self.backlog = 0  # frames waiting to be integrated (set_load, by a clock)
         self.callbacks: list[Callable[["Reconstructor"], None]] = []  # after every update; time excluded
         self._background = torch.tensor(self.config.background, dtype=torch.float32, device=self.device)
+        self.set_load(0, self.config.clock.frame_period_s)
 
     # ---- the online loop -------------------------------------------------------------------------------
     def integrate(self, rgbd, pose=None, timestamp: float | None = None, *, updates: int | None = None,
@@ -84,13 +89,12 @@ class Reconstructor:
         frame = self._to_frame(rgbd, pose, timestamp)
         self.stats.last_timestamp = frame.timestamp
         self.stats.frames_released += 1
-        self.ctx.frames_released = self.stats.frames_released
         admitted = self.views.admit(frame, self.ctx)
         self.stats.frames_admitted += int(admitted)
         added = self.growth.on_frame(frame, admitted, self.ctx)
         self.stats.mapping_s += time.perf_counter() - t0
         if updates is None and deadline is None:
-            updates = self.config.optim.updates_per_frame
+            updates = self.config.clock.updates_per_frame
         done = self.optimize(updates, deadline)
         return {"index": frame.index, "admitted": admitted, "added": added, "updates": done,
                 "gaussians": len(self.gmap)}
@@ -106,9 +110,9 @@ class Reconstructor:
         return done
 
     def finalize(self, deadline: float | None = None) -> None:
-        """The bounded drain after the stream (the paper's ME map state): ``config.optim.drain_updates`` updates,
+        """The bounded drain after the stream (the paper's ME map state): ``config.clock.drain_updates`` updates,
         or fewer if the :meth:`clock_now` ``deadline`` comes first (real-time replay bounds it in time)."""
-        self.optimize(self.config.optim.drain_updates, deadline)
+        self.optimize(self.config.clock.drain_updates, deadline)
 
     def refine(self, steps: int, scale: float | None = None) -> None:
         """``steps`` post-mapping updates (the paper's +N PM), at ``scale`` (default: config.optim.refine_scale)."""
@@ -133,7 +137,6 @@ class Reconstructor:
         self.stats.updates += 1
         self.stats.supervised_pixels += cam.pixels
         self.stats.mapping_s += dt
-        self.ctx.updates = self.stats.updates
         self.fidelity.observe(dt, cam.pixels, self.backlog)
         if self.callbacks:
             t1 = time.perf_counter()
@@ -141,10 +144,18 @@ class Reconstructor:
                 cb(self)
             self.stats.excluded_s += time.perf_counter() - t1
 
+    def set_load(self, backlog: int, period_s: float | None = None, cost=None) -> None:
+        """The load a clock reports: ``backlog`` frames waiting, ``period_s`` seconds that one source frame grants
+        (None: unchanged) and, under a deterministic budget, the ``CostModel`` that prices an update (None: the
+        fidelity policy measures seconds). The one route by which load reaches the fidelity policy."""
+        self.backlog = int(backlog)
+        if period_s is not None:
+            cost_fn = None if cost is None else (lambda pixels: cost.update(pixels, len(self.gmap)))
+            self.fidelity.attach(period_s, cost_fn)
+
     def policy_counters(self) -> dict:
         """Each policy's name and what it decided so far (admissions, seeds, insertions, relocations, scales)."""
-        return {kind: {"policy": p.name, **p.counters()}
-                for kind, p in (("views", self.views), ("fidelity", self.fidelity), ("growth", self.growth))}
+        return {kind: {"policy": p.name, **p.counters()} for kind, p in self._policies()}
 
     def clock_now(self) -> float:
         """``time.perf_counter()`` minus the time spent in callbacks: the mapper's own clock for real-time replay."""
@@ -169,6 +180,15 @@ class Reconstructor:
         (loss + out.alpha.sum()).backward()  # the loss's own compiled kernels (D-SSIM on the CPU) load here too
         return time.perf_counter() - t0
 
+    def calibrate(self, frames=None, *, cache: bool = True, **kw):
+        """Fit the budget's cost model to this machine, device and renderer: time a few updates at each
+        supervision scale in a scratch Reconstructor (this one's map is untouched) on ``frames`` (Frames with
+        poses; default: the embedded synthetic room at this camera's size). With ``cache``, the fit is cached per
+        machine/device/renderer under the user's cache directory and reused. Returns (CostModel, info)."""
+        from .budget.calibrate import cached_cost_model, calibrate
+
+        return cached_cost_model(self, frames, **kw) if cache else calibrate(self, frames, **kw)
+
     # ---- rendering -------------------------------------------------------------------------------------
     def _render(self, camera: Camera, T_world_cam) -> RenderOutput:
         cam_center = torch.as_tensor(np.asarray(T_world_cam)[:3, 3], dtype=torch.float32, device=self.device)
@@ -188,7 +208,7 @@ class Reconstructor:
     # ---- input -----------------------------------------------------------------------------------------
     def _to_frame(self, rgbd, pose, timestamp) -> Frame:
         index = self.stats.frames_released
-        ts = float(timestamp) if timestamp is not None else index / 30.0
+        ts = float(timestamp) if timestamp is not None else index * self.config.clock.frame_period_s
         if isinstance(rgbd, Frame):
             frame = rgbd
             if pose is not None:
@@ -199,7 +219,7 @@ class Reconstructor:
             frame = Frame.from_rgbd(rgbd, self.camera, given, depth_scale=self.config.depth_scale,
                                     depth_max=self.config.depth_max, timestamp=ts, index=index)
             if pose is None:
-                frame.T_world_cam = self._track(frame)
+                frame.T_world_cam = self.track(frame)
         if frame.camera != self.camera:
             raise FrameError(f"frame {frame.index}: camera {frame.camera} differs from the reconstructor's {self.camera}")
         last = self.stats.last_timestamp
@@ -214,14 +234,23 @@ class Reconstructor:
         except ValueError as e:
             raise FrameError(str(e)) from None
 
-    def _track(self, frame: Frame) -> np.ndarray:
+    def track(self, frame: Frame, gt_pose: np.ndarray | None = None) -> np.ndarray:
+        """``frame``'s T_world_cam from the pose source, timed as tracking. The first tracked frame is anchored at
+        ``gt_pose`` when one is given (so the map lives in the ground truth's frame and fixed evaluation poses see
+        it); later frames ignore it. Raises :class:`FrameError` without a pose source or for an invalid pose."""
         if self.pose_source is None:
             raise FrameError(f"frame {frame.index}: no pose given and no pose source configured "
                              "(pass T_world_cam, or Reconstructor(..., pose_source=get_pose_source('odometry')))")
+        anchor = gt_pose if self.stats.frames_tracked == 0 else None
         t0 = time.perf_counter()
-        T = self.pose_source.track(frame.index, frame.timestamp, frame.color, frame.depth, frame.camera)
-        self.stats.tracking_s += time.perf_counter() - t0
-        return self._checked(T, frame.index)
+        try:
+            T = self.pose_source.track(frame.index, frame.timestamp, frame.color, frame.depth, frame.camera,
+                                       gt_pose=anchor)
+        finally:
+            self.stats.tracking_s += time.perf_counter() - t0
+        T = self._checked(T, frame.index)
+        self.stats.frames_tracked += 1
+        return T
 
     # ---- persistence -----------------------------------------------------------------------------------
     def save_ply(self, path: str | Path) -> Path:
@@ -236,21 +265,102 @@ class Reconstructor:
 
         gmap = load_ply(path, self.device, self.config.optim.lrs)
         self.gmap = gmap
-        self.ctx.gmap = gmap
         self.config.sh_degree = gmap.sh_degree
 
-    def save(self, path: str | Path, **kw) -> Path:
-        """Checkpoint the full mapper state (map, Adam moments, policies, views, counters, RNG), atomically."""
-        from .checkpoint import save_checkpoint
-
-        return save_checkpoint(self, path, **kw)
+    def save(self, path: str | Path, *, extra: dict | None = None, sequence=None) -> Path:
+        """Checkpoint the full mapper state (:meth:`state_dict`) to ``path``, atomically; ``extra``: a caller's
+        plain dict stored beside it; ``sequence``: views that are its frames are stored as references."""
+        return save_checkpoint(self.state_dict(), path, extra=extra, sequence=sequence)
 
     @classmethod
-    def load(cls, path: str | Path, device: str | None = None, **kw) -> "Reconstructor":
+    def load(cls, path: str | Path, device: str | None = None, *, sequence=None, pose_source=None,
+             setup: Callable[["Reconstructor"], None] | None = None) -> "Reconstructor":
         """A Reconstructor restored from :meth:`save`'s checkpoint; it continues where the saved one stopped."""
-        from .checkpoint import load_checkpoint
+        return cls.from_checkpoint(read_checkpoint(path, sequence=sequence), device, pose_source=pose_source,
+                                   setup=setup)
 
-        return load_checkpoint(path, device, **kw)
+    @classmethod
+    def from_checkpoint(cls, ck: dict, device: str | None = None, *, pose_source=None,
+                        setup: Callable[["Reconstructor"], None] | None = None) -> "Reconstructor":
+        """A Reconstructor built from a decoded checkpoint (``read_checkpoint``'s dict; its ``extra`` is the
+        caller's). device: default where it was saved (the renderer is re-chosen when the device type changes).
+        setup: called with the fresh Reconstructor before the state is restored, for a driver that replaces
+        policies after construction (the offline reference does) to do the same again."""
+        path = ck.get("path", "checkpoint")
+        if ck.get("unresolved_views"):
+            raise CheckpointError(f"{path}: {ck['unresolved_views']} views were saved as references to a sequence; "
+                                  f"pass sequence= (the one given when saving) to load it")
+        cfg = Config.from_dict(ck["config"])
+        saved_dev = torch.device(ck["device"])
+        dev = torch.device(device) if device is not None else saved_dev
+        if dev.type == "cuda" and not torch.cuda.is_available():
+            raise CheckpointError(f"{path}: saved on {saved_dev}, but CUDA is not available here; "
+                                  f"pass device='cpu' to load it on the CPU")
+        if dev.type != saved_dev.type:
+            cfg.renderer = "auto"
+        rec = cls(Camera(**ck["camera"]), str(dev), cfg, pose_source=pose_source)
+        if setup is not None:
+            setup(rec)
+        try:
+            rec.load_state_dict(ck)
+        except ValueError as e:
+            raise CheckpointError(f"{path}: {e}") from None
+        return rec
+
+    def state_dict(self) -> dict:
+        """Everything the next decisions depend on: config and camera, the Gaussians with their Adam moments, the
+        three policies' states, the retained views, the counters, the random generators and the pose source's
+        state. Plain containers, tensors, arrays, Frames and Cameras (what ``save_checkpoint`` encodes)."""
+        return {
+            "config": self.config.to_dict(),
+            "camera": dataclasses.asdict(self.camera),
+            "device": str(self.device),
+            "retained_views": list(self.views.views),  # first, so a policy state holding their tensors refers to them
+            "gmap": self.gmap.state_dict(),
+            "policies": {name: {"class": type(p).__name__, "state": p.state_dict()}
+                         for name, p in self._policies()},
+            "retained": [{"index": int(f.index), "timestamp": float(f.timestamp)} for f in self.views.views],
+            "stats": dataclasses.asdict(self.stats),
+            "backlog": self.backlog,
+            "rng": self.rng.get_state(),
+            "torch_rng": torch.get_rng_state(),
+            "cuda_rng": torch.cuda.get_rng_state_all() if self.device.type == "cuda" else None,
+            "pose_source": self.pose_source.state_dict() if hasattr(self.pose_source, "state_dict") else None,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`'s output into this Reconstructor (built with the same config and policies).
+        Raises ValueError when a policy class differs or the view policy does not restore its retained views."""
+        for name, policy in self._policies():
+            saved = state["policies"][name]
+            if type(policy).__name__ != saved["class"]:
+                raise ValueError(f"the {name} policy was {saved['class']} when saved but the config builds "
+                                 f"{type(policy).__name__} (a policy replaced after construction must be replaced "
+                                 f"again: Reconstructor.load(..., setup=fn))")
+        self.gmap.load_state_dict(state["gmap"])
+        for name, policy in self._policies():
+            policy.load_state_dict(state["policies"][name]["state"])
+        restored = [(int(f.index), float(f.timestamp)) for f in self.views.views]
+        expected = [(int(v["index"]), float(v["timestamp"])) for v in state["retained"]]
+        if restored != expected:
+            raise ValueError(
+                f"the {state['policies']['views']['class']} view policy restored {len(restored)} retained views "
+                f"but {len(expected)} were saved: its state_dict() must include its retained views (Frame objects "
+                f"or their tensors) and load_state_dict() must put them back")
+        known = {f.name for f in dataclasses.fields(self.stats)}
+        for k, v in state["stats"].items():
+            if k in known:
+                setattr(self.stats, k, v)
+        self.backlog = state.get("backlog", 0)
+        self.rng.set_state(state["rng"])
+        torch.set_rng_state(state["torch_rng"])
+        if state.get("cuda_rng") is not None and self.device.type == "cuda":
+            torch.cuda.set_rng_state_all(state["cuda_rng"])
+        if state.get("pose_source") is not None and hasattr(self.pose_source, "load_state_dict"):
+            self.pose_source.load_state_dict(state["pose_source"])
+
+    def _policies(self):
+        return (("views", self.views), ("fidelity", self.fidelity), ("growth", self.growth))
 
     # ---- geometry export -------------------------------------------------------------------------------
     def extract_point_cloud(self, min_opacity: float = 0.1, **kw) -> o3d.geometry.PointCloud:

@@ -46,7 +46,7 @@ for i in range(len(seq) if args.frames is None else min(args.frames, len(seq))):
     rec.integrate(frame, updates=args.updates)
     poses.append(frame.T_world_cam)
 if args.drain is not None:
-    rec.config.optim.drain_updates = args.drain
+    rec.config.clock.drain_updates = args.drain
 rec.finalize()
 
 args.out.mkdir(parents=True, exist_ok=True)

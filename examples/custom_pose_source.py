@@ -72,7 +72,7 @@ for i in range(min(args.frames, len(seq))):
     if seq.poses is not None:
         gt[frame.timestamp] = seq.poses[i]
 if args.drain is not None:
-    rec.config.optim.drain_updates = args.drain
+    rec.config.clock.drain_updates = args.drain
 rec.finalize()
 print(f"{tracker.name}: {tracker.frames_tracked} frames at {tracker.ms_per_frame:.0f} ms, {len(rec.gmap)} Gaussians")
 if len(gt) >= 3:

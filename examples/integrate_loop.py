@@ -28,7 +28,7 @@ for i in range(min(args.frames, len(seq))):
     item = seq[i]                                          # o3d.t.geometry.RGBDImage + camera-to-world pose
     rec.integrate(item.rgbd, item.T_world_cam, timestamp=item.timestamp, updates=args.updates)
 if args.drain is not None:
-    rec.config.optim.drain_updates = args.drain
+    rec.config.clock.drain_updates = args.drain
 rec.finalize()                                             # a bounded drain: the map as the stream ends
 
 args.out.mkdir(parents=True, exist_ok=True)

@@ -268,7 +268,7 @@ def test_cli_skips_or_stops_on_a_bad_frame(tmp_path):
     _write_folder(root)
     (root / "color" / "000003.png").write_bytes(b"garbage")
     cfg = eo3d.Config()
-    cfg.optim.updates_per_frame, cfg.optim.drain_updates = 1, 0
+    cfg.clock.updates_per_frame, cfg.clock.drain_updates = 1, 0
     cfg.save(tmp_path / "cfg.json")
     common = [str(root), "--holdout-every", "5", "--eval-every", "0", "--config", str(tmp_path / "cfg.json"), "-q"]
     runner = CliRunner()

@@ -81,7 +81,7 @@ def test_bag_without_poses_maps_with_odometry(tmp_path, src, caplog):
     assert seq.poses is None and seq.default_pose == "odometry"
     _same_frames(seq, src, n=8, poses=False)
     cfg = Config(renderer="cpu")
-    cfg.optim.updates_per_frame, cfg.optim.drain_updates, cfg.clock.budget = 1, 2, "updates"
+    cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 1, 2
     with caplog.at_level("INFO", logger="eligsir_o3d"):
         m = run_mapping(str(out), tmp_path / "run", cfg, RunOptions(holdout_every=4, eval_every=0, progress=False,
                                                                     plots=False))
@@ -153,7 +153,7 @@ def test_cli_maps_a_bag_and_reports_bad_ones_without_traceback(tmp_path, src):
     bag = tmp_path / "k.bag"
     write_rosbag(src, bag, ros=1, frames=range(6), extra_topics=["/other/image"])
     cfg = eo3d.Config()
-    cfg.optim.updates_per_frame, cfg.optim.drain_updates = 1, 0
+    cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 1, 0
     cfg.save(tmp_path / "cfg.json")
     common = ["--holdout-every", "3", "--eval-every", "0", "--config", str(tmp_path / "cfg.json"), "-q"]
     runner = CliRunner()

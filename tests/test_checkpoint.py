@@ -16,11 +16,13 @@ import torch
 
 import eligsir_o3d as eo3d
 from eligsir_o3d import checkpoint as ckpt
-from eligsir_o3d.checkpoint import CheckpointError, load_checkpoint, read_checkpoint, save_checkpoint
+from eligsir_o3d.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
+
+load_checkpoint = eo3d.Reconstructor.load
 from eligsir_o3d.datasets import open_sequence
 
 W, H, N = 40, 30, 10
-PLAIN = ("scheduling", "fidelity", "growth")
+PLAIN = ("views", "fidelity", "growth")
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +46,7 @@ def _deterministic(rec):
 def _rec(seq, ablate=(), seed=0):
     cfg = eo3d.Config(ablate=ablate, seed=seed)
     cfg.depth_scale = seq.depth_scale
-    cfg.stride.every = 2
+    cfg.keyframes.every = 2
     return _deterministic(eo3d.Reconstructor(seq.intrinsic, "cpu", cfg))
 
 
@@ -77,7 +79,7 @@ def test_round_trip_renders_and_continues_identically(tmp_path, seq, frames, abl
         a.integrate(f, updates=3)
     path = save_checkpoint(a, tmp_path / "ck.pt", extra={"next": 5, "trajectory": {"3": [0.1, 0.2]}})
     b = _deterministic(load_checkpoint(path))
-    assert b.checkpoint_extra == {"next": 5, "trajectory": {"3": [0.1, 0.2]}}
+    assert read_checkpoint(path)["extra"] == {"next": 5, "trajectory": {"3": [0.1, 0.2]}}
     assert b.config.to_dict() == a.config.to_dict() and b.camera == a.camera
     assert [type(p) for p in (b.views, b.fidelity, b.growth)] == [type(p) for p in (a.views, a.fidelity, a.growth)]
     _assert_same_state(a, b)
@@ -193,7 +195,8 @@ MAPPER = textwrap.dedent("""
     import json, sys, time
     import torch
     import eligsir_o3d as eo3d
-    from eligsir_o3d.checkpoint import load_checkpoint, save_checkpoint
+    from eligsir_o3d.checkpoint import save_checkpoint
+    load_checkpoint = eo3d.Reconstructor.load
     from eligsir_o3d.datasets import open_sequence
 
     def run(ck, n, every, stall_after=-1, resume=False):

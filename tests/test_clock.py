@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import eligsir_o3d as eo3d
-from eligsir_o3d.clock import BudgetClock, ClockConfig, CostModel, RealtimeClock, get_clock
+from eligsir_o3d.budget import BudgetClock, ClockConfig, CostModel, RealtimeClock, get_clock
 from eligsir_o3d.frame import Frame, FrameError
 
 
@@ -21,12 +21,16 @@ class StubMapper:
         self.integrated = []
         self.stats = SimpleNamespace(updates=0, supervised_pixels=0)
         self.gmap = [0] * 100
-        self.fidelity = SimpleNamespace(attach=lambda period, cost_fn=None: self.attached.append((period, cost_fn)))
-        self.attached = []
+        self.attached = []  # (period_s, cost model) of every load report that carried a period
         self.t0 = time.perf_counter()
 
     def clock_now(self):
         return time.perf_counter()
+
+    def set_load(self, backlog, period_s=None, cost=None):
+        self.backlog = backlog
+        if period_s is not None:
+            self.attached.append((period_s, cost))
 
     def integrate(self, frame, pose=None, timestamp=None, *, updates=None, deadline=None):
         if frame.index in self.bad:
@@ -95,8 +99,8 @@ def test_budget_clock_replays_against_modelled_time_deterministically():
     # a 4 ms frame + a 25 ms update (the first update overruns the deadline) per 10 ms period: most are dropped
     assert r1.dropped > 5 and r1.integrated + r1.dropped == 20
     assert r1.elapsed_s >= r1.stream_s
-    period, cost_fn = m1.attached[-1]
-    assert period == pytest.approx(0.01) and cost_fn(1000) == pytest.approx(0.025)
+    period, cost = m1.attached[-1]
+    assert period == pytest.approx(0.01) and cost.update(1000, 100) == pytest.approx(0.025)
 
 
 def test_budget_clock_with_fixed_updates_integrates_every_frame():
@@ -141,8 +145,8 @@ def test_a_failing_reader_is_skipped():
 def test_get_clock_from_config():
     cfg = eo3d.Config()
     assert isinstance(get_clock(cfg), BudgetClock) and get_clock(cfg).updates_per_frame is None
-    cfg.clock = ClockConfig(mode="budget", budget="updates")
-    assert get_clock(cfg).updates_per_frame == cfg.optim.updates_per_frame
+    cfg.clock = ClockConfig(mode="updates")
+    assert get_clock(cfg).updates_per_frame == cfg.clock.updates_per_frame
     cfg.clock = ClockConfig(mode="realtime", speed=0.5, queue_size=3)
     clock = get_clock(cfg)
     assert isinstance(clock, RealtimeClock) and clock.speed == 0.5 and clock.queue_size == 3

@@ -47,7 +47,7 @@ def rec(scene):
     """A map of the room built by the Reconstructor: dense depth seeding (growth ablated), one update per frame."""
     cfg = eo3d.Config(ablate=("growth",))
     cfg.depth_scale = scene.seq.depth_scale
-    cfg.seeding.stride = 4
+    cfg.seeding.pixel_stride = 4
     r = eo3d.Reconstructor(scene.seq.intrinsic, "cpu", cfg)
     for f in scene.frames:
         r.integrate(f, updates=1)

@@ -11,9 +11,9 @@ from eligsir_o3d.pipeline import RunOptions, heldout_indices, run_mapping
 
 def _cfg():
     cfg = Config(renderer="cpu")
-    cfg.optim.updates_per_frame = 3
-    cfg.optim.drain_updates = 10
-    cfg.clock.budget = "updates"  # a fixed number of updates per frame, so counts are exact
+    cfg.clock.updates_per_frame = 3
+    cfg.clock.drain_updates = 10
+    cfg.clock.mode = "updates"  # a fixed number of updates per frame, so counts are exact
     return cfg
 
 
@@ -112,7 +112,7 @@ def test_cli_keeps_the_config_files_values_unless_an_option_overrides_them(tmp_p
     from eligsir_o3d.cli import app
 
     cfg = _cfg()
-    cfg.seed, cfg.renderer, cfg.ablate = 3, "torch", ("scheduling",)
+    cfg.seed, cfg.renderer, cfg.ablate = 3, "torch", ("views",)
     cfg.clock.speed, cfg.clock.on_bad_frame = 0.5, "stop"
     cfg.save(tmp_path / "cfg.json")
     common = ["map", "synthetic", "--max-frames", "6", "--eval-every", "0", "--config", str(tmp_path / "cfg.json"), "-q"]
@@ -120,7 +120,7 @@ def test_cli_keeps_the_config_files_values_unless_an_option_overrides_them(tmp_p
     r = runner.invoke(app, [*common, "--out", str(tmp_path / "a")])
     assert r.exit_code == 0, r.output
     kept = json.loads((tmp_path / "a" / "config.json").read_text())
-    assert (kept["seed"], kept["renderer"], kept["ablate"]) == (3, "torch", ["scheduling"])
+    assert (kept["seed"], kept["renderer"], kept["ablate"]) == (3, "torch", ["views"])
     assert (kept["clock"]["speed"], kept["clock"]["on_bad_frame"]) == (0.5, "stop")
     r = runner.invoke(app, [*common, "--out", str(tmp_path / "b"), "--seed", "5", "--renderer", "cpu",
                             "--speed", "2", "--on-bad-frame", "skip", "--ablate", "growth"])

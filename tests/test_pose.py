@@ -336,3 +336,16 @@ def test_colmap_failure_is_clear():
     blank = Blank(seq.seq, 3)
     with pytest.raises(RuntimeError, match="incremental mapping failed"):
         get_pose_source("colmap").prepare(blank)
+
+
+def test_one_tum_reader_one_rule(tmp_path):
+    """Trajectory files and datasets' ground truth are read by the same reader: timestamps must increase."""
+    from eligsir_o3d.datasets.base import DatasetError
+
+    p = tmp_path / "unsorted.txt"
+    p.write_text("0.2 0 0 0 0 0 0 1\n0.1 0 0 0 0 0 0 1\n")
+    with pytest.raises(DatasetError, match=r"unsorted\.txt:2: timestamp 0\.100000 is not after"):
+        read_tum_trajectory(p)
+    p.write_text("# only a header\n")
+    with pytest.raises(ValueError, match="no poses"):
+        read_tum_trajectory(p)

@@ -58,7 +58,7 @@ def test_mapping_never_reads_the_backend_specific_fields(ablate):
     color = (((u // 6 + v // 6) % 2)[..., None] * np.array([180, 40, 60]) + 50).astype(np.uint8)
     rgbd = o3d.t.geometry.RGBDImage(o3d.t.geometry.Image(color), o3d.t.geometry.Image(np.full((h, w), 1500, np.uint16)))
     cfg = eo3d.Config(renderer="cpu", ablate=ablate)
-    cfg.optim.updates_per_frame = 4
+    cfg.clock.mode, cfg.clock.updates_per_frame = "updates", 4
     cfg.growth.seed_stride = 1
     cfg.growth.mcmc.refine_start = cfg.growth.mcmc.refine_every = 4
     rec = eo3d.Reconstructor(o3d.camera.PinholeCameraIntrinsic(w, h, 40.0, 40.0, 23.5, 17.5), "cpu", cfg)

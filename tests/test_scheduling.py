@@ -23,7 +23,7 @@ def _ctx(cap=100_000):
     def render(camera, T):
         return renderer.render(*gmap.render_args(), camera, T, torch.zeros(3))
 
-    return MapContext(gmap, render, torch.device("cpu"), cap)
+    return MapContext.standalone(gmap, render, torch.device("cpu"), cap)
 
 
 def _pose(x=0.0, y=0.0, z=0.0, yaw_deg=0.0):
@@ -189,11 +189,11 @@ def test_get_policies_swaps_each_ablated_mechanism():
     v, f, g = get_policies(eo3d.Config())
     assert isinstance(v, MapGuidedViews) and isinstance(f, LoadAdaptiveFidelity) and isinstance(g, TargetedGrowth)
     assert v.probe is g.probe  # one support render per frame
-    v, f, g = get_policies(eo3d.Config(ablate=("scheduling", "fidelity", "growth")))
+    v, f, g = get_policies(eo3d.Config(ablate=("views", "fidelity", "growth")))
     assert isinstance(v, StrideKeyframes) and isinstance(f, FixedFidelity) and f.scale() == 1.0
     assert isinstance(g, NewSpaceSeeding) and g.cfg.dense
     with pytest.raises(ValueError, match="unknown ablation"):
-        get_policies(eo3d.Config(ablate=("views",)))
+        get_policies(eo3d.Config(ablate=("scheduling",)))  # the old name of "views": config files are migrated
 
 
 # ---- Targeted Geometry Growth -------------------------------------------------------------------------------------

@@ -25,7 +25,7 @@ import sys
 import time
 from pathlib import Path
 
-VARIANTS = {"full": (), "fidelity": ("fidelity",), "growth": ("growth",), "scheduling": ("scheduling",)}
+VARIANTS = {"full": (), "fidelity": ("fidelity",), "growth": ("growth",), "scheduling": ("views",)}
 LABELS = {"full": "EliGSiR", "fidelity": "w/o adaptive fidelity", "growth": "w/o targeted growth",
           "scheduling": "w/o view scheduling"}
 COLUMNS = [("PSNR", "psnr", "{:.2f}"), ("CVQ-AUC", "cvq_auc", "{:.2f}"), ("CVQ-AUC common-p", "cvq_auc_common", "{:.2f}"),
@@ -61,35 +61,21 @@ def parse_args(argv=None):
 
 def make_config(args, variant: str):
     from eligsir_o3d import Config
+    from eligsir_o3d.config import apply_override
 
     cfg = Config(renderer=args.renderer, device=args.device, seed=args.seed, ablate=VARIANTS[variant])
-    cfg.clock.mode = "realtime" if args.realtime else "budget"
-    cfg.clock.budget = args.budget
+    cfg.clock.mode = "realtime" if args.realtime else args.budget
     cfg.clock.speed = args.speed
     if args.updates_per_frame is not None:
-        cfg.optim.updates_per_frame = args.updates_per_frame
+        cfg.clock.updates_per_frame = args.updates_per_frame
     if args.drain is not None:
-        cfg.optim.drain_updates = args.drain
+        cfg.clock.drain_updates = args.drain
     for item in args.set:
-        apply_override(cfg, item)
+        try:
+            apply_override(cfg, item)
+        except ValueError as e:
+            raise SystemExit(str(e)) from None
     return cfg
-
-
-def apply_override(cfg, item: str) -> None:
-    """``a.b.c=value`` on a nested dataclass config; the value is parsed as JSON when it can be."""
-    key, _, raw = item.partition("=")
-    try:
-        value = json.loads(raw)
-    except json.JSONDecodeError:
-        value = raw
-    *path, last = key.strip().split(".")
-    obj = cfg
-    for name in path:
-        obj = getattr(obj, name)
-    if not hasattr(obj, last):
-        raise SystemExit(f"--set {item}: no config field {key!r}")
-    old = getattr(obj, last)
-    setattr(obj, last, tuple(value) if isinstance(old, tuple) and isinstance(value, list) else value)
 
 
 def run_variant(args, variant: str) -> dict:
@@ -99,7 +85,7 @@ def run_variant(args, variant: str) -> dict:
     out = Path(args.out) / variant
     t0 = time.perf_counter()
     metrics = run_mapping(args.path, out, cfg, max_frames=args.max_frames, holdout_every=args.holdout_every,
-                          eval_every=args.eval_every, realtime=args.realtime, speed=args.speed, progress=False)
+                          eval_every=args.eval_every, progress=False)
     print(f"[{variant}] done in {time.perf_counter() - t0:.0f} s wall", flush=True)
     return metrics
 

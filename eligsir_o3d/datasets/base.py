@@ -16,7 +16,7 @@ import numpy as np
 import open3d as o3d
 
 from ..camera import Camera, check_pose, pose_from_tum
-from ..frame import Frame
+from ..frame import DEPTH_MAX, Frame
 
 
 class DatasetError(ValueError):
@@ -186,7 +186,7 @@ class RGBDSequence:
                              self.color_paths[i] if self.color_paths else None,
                              self.depth_paths[i] if self.depth_paths else None)
 
-    def frame(self, i: int, depth_max: float = 10.0, T_world_cam: np.ndarray | None = None) -> Frame:
+    def frame(self, i: int, depth_max: float = DEPTH_MAX, T_world_cam: np.ndarray | None = None) -> Frame:
         """Frame i as a :class:`Frame` (float colour, metric depth, capped at ``depth_max`` metres).
 
         Its pose is ``T_world_cam`` if given, else the ground truth; a sequence without poses gets the identity

@@ -25,22 +25,10 @@ import open3d.core as o3c
 import torch
 
 from ..frame import Frame
+from ..voxels import unique_keys
 from .metrics import EPS, squared_errors
 
 
-_OFF, _BITS = 1 << 20, 21  # packing offset / bits per axis: keys within +-2^20 cells (+-524 km at 0.5 m)
-
-
-def unique_keys(keys: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Deduplicate Int32 cell keys [M, 3] -> (unique keys [C, 3], inverse [M]); torch.unique(dim=0) is ~50x slower."""
-    k = keys.long() + _OFF
-    if keys.numel() and (k.min() < 0 or k.max() >= (1 << _BITS)):
-        raise ValueError("cell keys out of range: points farther than 2^20 cells from the origin")
-    packed = (k[:, 0] << (2 * _BITS)) | (k[:, 1] << _BITS) | k[:, 2]
-    uniq, inverse = torch.unique(packed, return_inverse=True)
-    mask = (1 << _BITS) - 1
-    out = torch.stack([uniq >> (2 * _BITS), (uniq >> _BITS) & mask, uniq & mask], dim=1) - _OFF
-    return out.to(torch.int32), inverse
 
 
 class RegionalQuality:

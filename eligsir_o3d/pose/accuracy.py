@@ -81,6 +81,24 @@ def umeyama_alignment(src: np.ndarray, dst: np.ndarray, with_scale: bool = False
     return T, s
 
 
+def pose_alignment(est: Sequence[np.ndarray], gt: Sequence[np.ndarray]) -> np.ndarray:
+    """T_gt_est from whole poses (matched lists): rotation = SVD projection of sum_i R_gt,i R_est,i^T, then the
+    mean translation.
+
+    Unlike a positions-only (Umeyama) fit, this stays well conditioned on short, nearly straight trajectories,
+    where many rotations explain the camera centres equally well but disagree on where the cameras look.
+    """
+    P = np.stack([np.asarray(T, dtype=np.float64) for T in est])
+    Q = np.stack([np.asarray(T, dtype=np.float64) for T in gt])
+    M = np.einsum("nij,nkj->ik", Q[:, :3, :3], P[:, :3, :3])
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = (Q[:, :3, 3] - P[:, :3, 3] @ R.T).mean(0)
+    return T
+
+
 def _angle_deg(R: np.ndarray) -> np.ndarray:  # R [..., 3, 3] -> [...]
     c = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
     return np.degrees(np.arccos(np.clip(c, -1.0, 1.0)))

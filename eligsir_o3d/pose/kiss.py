@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..voxels import pack
 from .base import PoseSource, TrackingLost, as_float_tensor, check_jump, first_pose
 
 
 def _voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:  # [N, 3] -> [N] int64
-    v = np.floor(points / voxel).astype(np.int64) + (1 << 20)
-    return (v[:, 0] << 42) | (v[:, 1] << 21) | v[:, 2]
+    return pack(np.floor(points / voxel).astype(np.int64))
 
 
 class KissICPSource(PoseSource):

@@ -13,45 +13,27 @@ from typing import Sequence
 
 import numpy as np
 
-from ..camera import check_pose, pose_from_tum, pose_to_tum
+from ..camera import check_pose, pose_to_tum
 from .base import PoseSource, TrackingLost
 
 
 def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, list[np.ndarray]]:
-    """(timestamps [N] float64, camera-to-world poses [4, 4] list) of a TUM file, sorted by time.
+    """(timestamps [N] float64, camera-to-world poses [4, 4] list) of a TUM file.
 
-    Raises ValueError naming ``file:line`` for a malformed line, FileNotFoundError for a missing file.
+    The package has one TUM reader, the datasets' (``datasets.base.read_tum_trajectory``), with one rule for
+    ground-truth and trajectory files alike: 8 finite numbers per line, a non-zero quaternion, timestamps strictly
+    increasing. Raises ValueError (DatasetError) naming ``file:line`` for a line that breaks it,
+    FileNotFoundError for a missing file and ValueError for a file without poses.
     """
+    from ..datasets.base import read_tum_trajectory as read
+
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"trajectory file {path} does not exist")
-    stamps, poses = [], []
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        fields = line.replace(",", " ").split()
-        if len(fields) != 8:
-            raise ValueError(f"{path}:{lineno}: expected 8 fields 'timestamp tx ty tz qx qy qz qw', got "
-                             f"{len(fields)}: {line[:80]!r}")
-        try:
-            v = np.array([float(f) for f in fields], dtype=np.float64)
-        except ValueError:
-            raise ValueError(f"{path}:{lineno}: not a number in {line[:80]!r}") from None
-        if not np.all(np.isfinite(v)):
-            raise ValueError(f"{path}:{lineno}: non-finite value in {line[:80]!r}")
-        if np.linalg.norm(v[4:]) < 1e-9:
-            raise ValueError(f"{path}:{lineno}: zero quaternion")
-        stamps.append(v[0])
-        poses.append(pose_from_tum(v[1:4], v[4:8]))
-    if not stamps:
+    stamps, poses = read(path)
+    if not len(stamps):
         raise ValueError(f"{path}: no poses (empty trajectory file)")
-    stamps = np.asarray(stamps)
-    order = np.argsort(stamps, kind="stable")
-    if np.any(np.diff(stamps[order]) == 0):
-        dup = stamps[order][np.flatnonzero(np.diff(stamps[order]) == 0)[0]]
-        raise ValueError(f"{path}: timestamp {dup:.6f} appears more than once")
-    return stamps[order], [poses[i] for i in order]
+    return stamps, poses
 
 
 def write_tum_trajectory(path: str | Path, timestamps: Sequence[float], poses: Sequence[np.ndarray]) -> Path:

@@ -16,27 +16,27 @@ __all__ = ["ABLATIONS", "FidelityConfig", "FidelityPolicy", "GrowthConfig", "Gro
            "MCMCConfig", "MapContext", "MapGuidedViews", "ProbeConfig", "TargetedGrowth", "ViewConfig", "ViewPolicy",
            "get_policies"]
 
-ABLATIONS = ("scheduling", "fidelity", "growth")
+ABLATIONS = ("views", "fidelity", "growth")
 
 
 def get_policies(cfg) -> tuple[ViewPolicy, FidelityPolicy, GrowthPolicy]:
     """The (views, fidelity, growth) policies for a Config: EliGSiR's, or the plain one for each mechanism named in
-    ``cfg.ablate`` (scheduling -> fixed-stride keyframes with uniform replay, fidelity -> fixed native resolution,
+    ``cfg.ablate`` (views -> fixed-stride keyframes with uniform replay, fidelity -> fixed native resolution,
     growth -> dense per-frame depth insertion). Views and growth share one support probe (one render per frame)."""
     unknown = [a for a in cfg.ablate if a not in ABLATIONS]
     if unknown:
         raise ValueError(f"unknown ablation(s) {unknown}; choose from {', '.join(ABLATIONS)}")
     probe = SupportProbe(cfg.support)
-    if "scheduling" in cfg.ablate:
-        views = StrideKeyframes(cfg.stride)
+    if "views" in cfg.ablate:
+        views = StrideKeyframes(cfg.keyframes)
     else:
         views = MapGuidedViews(cfg.views, probe)
     if "fidelity" in cfg.ablate:
-        fidelity = FixedFidelity(cfg.fixed_scale)
+        fidelity = FixedFidelity(cfg.fidelity.fixed_scale)
     else:
         fidelity = LoadAdaptiveFidelity(cfg.fidelity)
     if "growth" in cfg.ablate:
-        growth = NewSpaceSeeding(dataclasses.replace(cfg.seeding, dense=True), seed=cfg.seed)
+        growth = NewSpaceSeeding(dataclasses.replace(cfg.seeding, dense=True), seed=cfg.seed, probe=cfg.support)
     else:
         growth = TargetedGrowth(cfg.growth, probe, seed=cfg.seed)
     return views, fidelity, growth

@@ -8,7 +8,7 @@ policy is active.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Callable
 
 import torch
@@ -19,16 +19,46 @@ from ..gaussians import GaussianMap
 from ..render import RenderOutput
 
 
-@dataclass
 class MapContext:
-    """What a policy may read or change: the map, a renderer call and the running counters."""
+    """What a policy may read or change: the map, a renderer call and the running counters. It holds no copies:
+    every attribute reads through to its owner (the Reconstructor: ``gmap``, ``device``, ``config.max_gaussians``,
+    ``stats.updates``, ``stats.frames_released``, ``_render``), so a map replaced by ``load_ply`` or a restored
+    checkpoint is what the policies see next."""
 
-    gmap: GaussianMap
-    render: Callable[[Camera, object], RenderOutput]  # (camera, T_world_cam) -> RenderOutput, differentiable
-    device: torch.device
-    max_gaussians: int
-    updates: int = 0
-    frames_released: int = 0
+    def __init__(self, owner):
+        self._owner = owner
+
+    @classmethod
+    def standalone(cls, gmap: GaussianMap, render: Callable[[Camera, object], RenderOutput], device: torch.device,
+                   max_gaussians: int) -> "MapContext":
+        """A context over a bare map and renderer (tests, tools that drive a policy without a Reconstructor)."""
+        stats = SimpleNamespace(updates=0, frames_released=0)
+        return cls(SimpleNamespace(gmap=gmap, _render=render, device=device, stats=stats,
+                                   config=SimpleNamespace(max_gaussians=max_gaussians)))
+
+    @property
+    def gmap(self) -> GaussianMap:
+        return self._owner.gmap
+
+    @property
+    def device(self) -> torch.device:
+        return self._owner.device
+
+    @property
+    def max_gaussians(self) -> int:
+        return int(self._owner.config.max_gaussians)
+
+    @property
+    def updates(self) -> int:
+        return self._owner.stats.updates
+
+    @property
+    def frames_released(self) -> int:
+        return self._owner.stats.frames_released
+
+    def render(self, camera: Camera, T_world_cam) -> RenderOutput:
+        """(camera, T_world_cam) -> RenderOutput of the current map, differentiable."""
+        return self._owner._render(camera, T_world_cam)
 
 
 class Policy(ABC):
@@ -84,6 +114,11 @@ class FidelityPolicy(Policy):
 
     def observe(self, seconds: float, pixels: int, backlog: int) -> None:
         """After an update: its measured cost and the current backlog of unprocessed frames."""
+
+    def attach(self, period_s: float | None, cost_fn: Callable[[int], float] | None = None) -> None:
+        """When the load changes (``Reconstructor.set_load``): the seconds one source frame grants and, under a
+        deterministic budget, the modelled seconds of an update of ``pixels`` supervised pixels. A policy that does
+        not adapt to load ignores it."""
 
 
 class GrowthPolicy(Policy):

@@ -9,7 +9,8 @@ only load takes it lower. The decision is reversible and has hysteresis: lowerin
 resamples them (and scales the intrinsics) per update via ``Frame.at_scale``.
 
 Cost comes from one of two places: measured seconds per update (real-time replay, the default), or a deterministic
-cost model of the supervised pixels that a budget clock attaches (:meth:`attach`), so runs are reproducible.
+cost model of the supervised pixels that the Reconstructor hands over with the load (:meth:`attach`, called by
+``Reconstructor.set_load``), so runs are reproducible.
 With measured seconds only the current scale's cost is fresh; other scales are predicted from it as
 ``cost * (pixels_other / pixels_now) ** gamma``, where the exponent ``gamma`` is learned at every scale change from
 the costs measured just before and just after it (per-update overheads make gamma well below 1 on small images).
@@ -21,6 +22,7 @@ import math
 from dataclasses import dataclass
 from typing import Callable
 
+from ..budget.config import DEFAULT_FRAME_PERIOD_S
 from .base import FidelityPolicy
 
 
@@ -28,7 +30,6 @@ from .base import FidelityPolicy
 class FidelityConfig:
     scales: tuple[float, ...] = (0.125, 0.25, 0.5, 1.0)  # the paper's discrete supervision scales, ascending
     start_scale: float = 0.25  # before anything is measured (cheap, raised within a few updates if it fits)
-    frame_period_s: float = 1.0 / 30.0  # time one source frame grants, until a clock attaches the real one
     # a scale fits if this many of its updates fit in one frame period: below ~3 updates per frame a finer scale
     # loses more to the missing updates than it gains in detail (7-Scenes, 200 frames, 2-core CPU: 3 vs 2 updates
     # +0.78 dB at 0.1x speed, +0.29 dB at 0.3x; in real time the floor below decides)
@@ -47,6 +48,7 @@ class FidelityConfig:
     up_patience: int = 5  # consecutive "raise" votes before the scale goes up (one step)
     down_patience: int = 2  # consecutive "lower" votes before the scale goes down (to the fitting scale)
     trace_every: int = 1  # keep every k-th decision in ``trace``
+    fixed_scale: float = 1.0  # the supervision scale when fidelity is ablated (1.0 = native, as in the paper)
 
 
 class LoadAdaptiveFidelity(FidelityPolicy):
@@ -63,7 +65,7 @@ class LoadAdaptiveFidelity(FidelityPolicy):
         self.scales = scales
         self.level = min(range(len(scales)), key=lambda i: abs(scales[i] - self.cfg.start_scale))
         self.floor_level = min(range(len(scales)), key=lambda i: abs(scales[i] - self.cfg.idle_floor_scale))
-        self.period_s = float(self.cfg.frame_period_s)
+        self.period_s = DEFAULT_FRAME_PERIOD_S  # until the Reconstructor hands over the real one (set_load)
         self.cost_fn: Callable[[int], float] | None = None
         self.cost: float | None = None  # EMA seconds per update at the current level
         self.pixels: list[int | None] = [None] * len(scales)  # supervised pixels of one update at each level
@@ -79,8 +81,9 @@ class LoadAdaptiveFidelity(FidelityPolicy):
         self.trace: list[dict] = []
 
     def attach(self, period_s: float | None, cost_fn: Callable[[int], float] | None = None) -> None:
-        """Called by a clock: the time one frame grants (after the replay speed) and, for a deterministic budget,
-        the modelled seconds of an update of ``pixels`` supervised pixels (replaces measured seconds)."""
+        """From ``Reconstructor.set_load``: the time one frame grants (after the replay speed) and, for a
+        deterministic budget, the modelled seconds of an update of ``pixels`` supervised pixels (replaces measured
+        seconds)."""
         if period_s is not None:
             self.period_s = float(period_s)
         self.cost_fn = cost_fn

@@ -160,10 +160,7 @@ class TargetedGrowth(GrowthPolicy):
 
 def _world(depth: torch.Tensor, camera: Camera, T_world_cam, vs: torch.Tensor, us: torch.Tensor) -> torch.Tensor:
     """World points [M, 3] of pixels (vs, us) of a depth image [h, w] (pixel centres at integers)."""
-    z = depth[vs, us]
-    pts = torch.stack([(us.float() - camera.cx) * z / camera.fx, (vs.float() - camera.cy) * z / camera.fy, z], -1)
-    T = torch.as_tensor(T_world_cam, dtype=torch.float32)
-    return pts @ T[:3, :3].T + T[:3, 3]
+    return camera.unproject(us, vs, depth[vs, us], T_world_cam)
 
 
 def _raw_params(gmap, means, rgbs, scales, opacity: float) -> dict[str, torch.Tensor]:

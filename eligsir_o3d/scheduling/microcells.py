@@ -16,8 +16,8 @@ import open3d.core as o3c
 import torch
 
 from ..camera import Camera
+from ..voxels import unique_keys
 
-_OFF = 1 << 20  # keys are packed into one int64 (21 bits per axis) for a fast torch.unique
 
 
 def _to_o3d(t: torch.Tensor) -> o3c.Tensor:
@@ -67,11 +67,7 @@ class VoxelHash:
         keys = self.keys_of(points)
         if keys.shape[0] == 0:
             return torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.bool)
-        k = keys.long() + _OFF
-        codes = (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
-        ucodes, inverse = torch.unique(codes, return_inverse=True)
-        ukeys = torch.stack([(ucodes >> 42) & 0x1FFFFF, (ucodes >> 21) & 0x1FFFFF, ucodes & 0x1FFFFF], 1) - _OFF
-        ukeys = ukeys.to(torch.int32)
+        ukeys, inverse = unique_keys(keys)
         ids, found = self._find(ukeys)
         new = ~found
         if insert and bool(new.any()):
@@ -99,9 +95,6 @@ class VoxelHash:
         out = torch.zeros(self.size, 3, dtype=torch.int32)
         out[ids] = keys
         return out
-
-    def centers(self) -> torch.Tensor:  # [n, 3] metres
-        return (self.keys().float() + 0.5) * self.voxel_size
 
     def state_dict(self) -> dict:
         return {"voxel_size": self.voxel_size, "keys": self.keys()}

@@ -10,6 +10,7 @@ import torch
 from ..frame import Frame
 from .base import FidelityPolicy, GrowthPolicy, MapContext, ViewPolicy
 from .seeding import seeds_from_depth
+from .support import ProbeConfig
 
 
 @dataclass
@@ -77,10 +78,8 @@ class FixedFidelity(FidelityPolicy):
 
 @dataclass
 class SeedingConfig:
-    stride: int = 8  # seed one Gaussian per stride x stride block of unsupported depth pixels
+    pixel_stride: int = 8  # seed one Gaussian per stride x stride block of unsupported depth pixels
     max_per_frame: int = 3000
-    alpha_threshold: float = 0.5  # pixels whose rendered opacity is below this count as unsupported
-    render_scale: float = 0.25  # resolution of the support check
     init_opacity: float = 0.5
     dense: bool = False  # ablation: insert at every frame whether or not the map already supports it
 
@@ -91,8 +90,9 @@ class NewSpaceSeeding(GrowthPolicy):
 
     name = "seeding"
 
-    def __init__(self, cfg: SeedingConfig | None = None, seed: int = 0):
+    def __init__(self, cfg: SeedingConfig | None = None, seed: int = 0, probe: ProbeConfig | None = None):
         self.cfg = cfg or SeedingConfig()
+        self.probe = probe or ProbeConfig()  # the support render's scale and opacity threshold (config.support)
         self.rng = torch.Generator().manual_seed(seed)
         self.seeded = 0
 
@@ -103,11 +103,11 @@ class NewSpaceSeeding(GrowthPolicy):
         if self.cfg.dense or len(ctx.gmap) == 0:
             mask = depth > 0
         else:
-            mask = unsupported_mask(frame, ctx, self.cfg.render_scale, self.cfg.alpha_threshold)
+            mask = unsupported_mask(frame, ctx, self.probe.scale, self.probe.alpha_min)
         room = ctx.max_gaussians - len(ctx.gmap)
         if room <= 0:
             return 0
-        means, rgbs, scales = seeds_from_depth(color, depth, cam, frame.T_world_cam, mask, self.cfg.stride,
+        means, rgbs, scales = seeds_from_depth(color, depth, cam, frame.T_world_cam, mask, self.cfg.pixel_stride,
                                                min(self.cfg.max_per_frame, room), self.rng)
         if means.shape[0]:
             ctx.gmap.add(means, rgbs, scales, self.cfg.init_opacity)

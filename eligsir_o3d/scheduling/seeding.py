@@ -23,8 +23,6 @@ def seeds_from_depth(color: torch.Tensor, depth: torch.Tensor, camera: Camera, T
             else torch.randperm(vs.numel(), generator=generator)[:max_points].to(vs.device)
         vs, us = vs[pick], us[pick]
     z = depth[vs, us]
-    pts = torch.stack([(us.float() - camera.cx) * z / camera.fx, (vs.float() - camera.cy) * z / camera.fy, z], -1)
-    T = torch.as_tensor(T_world_cam, dtype=torch.float32, device=pts.device)
-    means = pts @ T[:3, :3].T + T[:3, 3]
+    means = camera.unproject(us, vs, z, T_world_cam)
     scales = z * stride / (0.5 * (camera.fx + camera.fy)) * 0.5
     return means, color[vs, us], scales
