@@ -223,3 +223,31 @@ def apply_override(cfg: Config, item: str) -> None:
                                                                        isinstance(value, float)):
         raise ValueError(f"--set {item}: {key} takes a {type(old).__name__}, got {raw!r}")
     setattr(obj, last, value)
+
+
+def _guard_sections(cls: type, seen: set) -> None:
+    """Make ``cls`` and every config section below it reject assignments to names they do not have, so that a
+    misspelt or renamed setting (``cfg.optim.updates_per_frame = 4``, now ``cfg.clock.updates_per_frame``) fails
+    loudly instead of being silently ignored."""
+    if cls in seen or cls.__dataclass_params__.frozen:
+        return
+    seen.add(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+
+    def __setattr__(self, name: str, value: Any, _names=names, _cls=cls) -> None:
+        if name not in _names and not name.startswith("_"):
+            moved = RENAMED.get(f"{_SECTION_PATH.get(_cls, '')}{name}")
+            hint = f"; it moved to '{moved}'" if moved else _nearest(name, _names, "")
+            raise AttributeError(f"{_cls.__name__} has no setting {name!r}{hint}")
+        object.__setattr__(self, name, value)
+
+    cls.__setattr__ = __setattr__
+    for f in dataclasses.fields(cls):
+        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        if dataclasses.is_dataclass(default) and not isinstance(default, type):
+            _SECTION_PATH.setdefault(type(default), f"{_SECTION_PATH.get(cls, '')}{f.name}.")
+            _guard_sections(type(default), seen)
+
+
+_SECTION_PATH: dict[type, str] = {Config: ""}  # a section's key path in config files, for the hint
+_guard_sections(Config, set())

@@ -132,6 +132,7 @@ class MappingPipeline:
             raise ValueError(f"{self.path}: every frame is held out; nothing left to map")
         self.config = self.config.resolve(depth_scale=float(seq.depth_scale))
         self.skipped = list(getattr(seq, "skipped_frames", ()))  # frames the reader left out (e.g. invalid poses)
+        self.pose_name = pose_source_name(self.opts.pose, seq)  # what metrics.json names
         self.pose_source = _pose_source(self.opts.pose, seq)
         log.info("loading %d held-out views", len(self.held))
         self.heldout_frames = [seq.frame(i, depth_max=self.config.depth_max) for i in self.held]

@@ -20,7 +20,6 @@ RUN_FILE = "run.json"  # read back by pipeline.read_run
 def collect_metrics(p) -> dict:
     """metrics.json of a finished :class:`~eligsir_o3d.pipeline.MappingPipeline` ``p``."""
     from .memory import peak_rss_mb
-    from .pipeline import pose_source_name
 
     rec, final, acc, report = p.rec, p.final, p.accuracy, p.report
     realtime = p.clock.name == "realtime"
@@ -37,7 +36,7 @@ def collect_metrics(p) -> dict:
         "device": str(rec.device),
         "renderer": rec.config.renderer,
         "map_state": p.map_state,
-        "pose_source": pose_source_name(p.opts.pose, p.seq),
+        "pose_source": p.pose_name,
         "clock": p.clock.name,
         "cost_model": {**p.cost_model_source, "terms": rec.config.clock.cost.to_dict()}
         if p.cost_model_source.get("source") else None,

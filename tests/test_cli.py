@@ -98,3 +98,18 @@ def test_reconstructor_takes_the_depth_scale():
     rec.integrate(rgbd, np.eye(4), updates=0)
     assert rec.config.depth_scale == 5000.0
     assert float(rec.views.views[0].depth.max()) == pytest.approx(1.0)
+
+
+def test_setting_a_config_attribute_that_does_not_exist_fails_loudly():
+    """A renamed or misspelt setting assigned in Python must not be silently ignored (it used to be)."""
+    from eligsir_o3d import Config
+
+    cfg = Config()
+    with pytest.raises(AttributeError, match=r"moved to 'clock.updates_per_frame'"):
+        cfg.optim.updates_per_frame = 4
+    with pytest.raises(AttributeError, match=r"did you mean 'seed_stride'"):
+        cfg.growth.seed_strid = 1
+    with pytest.raises(AttributeError, match=r"did you mean 'sh_degree'"):
+        cfg.sh_degre = 1
+    cfg.clock.updates_per_frame = 4  # a real setting still assigns
+    assert cfg.resolve().clock.updates_per_frame == 4

@@ -204,7 +204,7 @@ def test_reconstructor_maps_through_gsplat(gs):
     rgbd, color = _checker_rgbd()
     intrinsic = o3d.camera.PinholeCameraIntrinsic(48, 36, 40.0, 40.0, 23.5, 17.5)
     cfg = eo3d.Config(renderer="torch" if gs.kind == "standin" else "gsplat", ablate=("fidelity",))
-    cfg.optim.updates_per_frame = 6
+    cfg.clock.mode, cfg.clock.updates_per_frame = "updates", 6
     cfg.growth.seed_stride = 1  # the probe of a 48x36 view is 12x9 pixels: seed every one
     cfg.growth.mcmc.refine_start = cfg.growth.mcmc.refine_every = 10
     rec = eo3d.Reconstructor(intrinsic, gs.device, cfg)

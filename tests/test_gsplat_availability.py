@@ -104,7 +104,7 @@ def test_cpu_device_says_why_and_mentions_the_gpu(fake_gpu, monkeypatch, caplog,
 
     _fake_backend(monkeypatch, compiled=False)
     cfg = Config(renderer="auto")
-    cfg.optim.updates_per_frame, cfg.optim.drain_updates, cfg.clock.budget = 2, 2, "updates"
+    cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 2, 2
     with caplog.at_level(logging.INFO, logger="eligsir_o3d"):
         m = run_mapping("synthetic", tmp_path, cfg, RunOptions(max_frames=6, holdout_every=3, eval_every=0,
                                                                progress=False, plots=False))

@@ -21,7 +21,7 @@ def _cfg():
     from eligsir_o3d import Config
 
     cfg = Config(renderer="cpu")
-    cfg.optim.drain_updates = 5
+    cfg.clock.drain_updates = 5
     return cfg
 
 

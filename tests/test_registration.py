@@ -236,10 +236,10 @@ def test_map_sees_the_colour_camera_unless_told_not_to(tmp_path, room, monkeypat
 
     root = write_two_camera_room(tmp_path / "cap", room, COLOR_CAM, n=8, color_block=True)
     cfg = Config(renderer="cpu")
-    cfg.optim.updates_per_frame, cfg.optim.drain_updates, cfg.clock.budget = 2, 4, "updates"
+    cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 2, 4
     m = run_mapping(str(root), tmp_path / "reg", cfg, RunOptions(holdout_every=4, eval_every=0, progress=False,
                                                                    plots=False))
-    assert json.loads((tmp_path / "reg" / "config.json").read_text())["camera"]["fx"] == COLOR_CAM.fx
+    assert json.loads((tmp_path / "reg" / "run.json").read_text())["camera"]["fx"] == COLOR_CAM.fx
     assert m["heldout"]["depth_rmse_m"] is not None
     # --no-register reaches open_sequence as register=False (which test_colour_block_registers... checks)
     seen = []

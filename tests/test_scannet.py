@@ -96,7 +96,7 @@ def test_bad_pose_frames_are_reported_by_the_pipeline(tmp_path, src):
 
     path = write_sens(src, tmp_path / "s.sens", frames=range(7), bad_pose_frames=[3])
     cfg = Config(renderer="cpu")
-    cfg.optim.updates_per_frame, cfg.optim.drain_updates, cfg.clock.budget = 1, 0, "updates"
+    cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 1, 0
     with pytest.warns(UserWarning, match="left out 1 of 7"):
         m = run_mapping(str(path), tmp_path / "run", cfg, RunOptions(holdout_every=3, eval_every=0, progress=False,
                                                                      plots=False))

@@ -155,7 +155,7 @@ def test_reconstructor_with_sh_degree_learns_the_higher_bands():
     cfg = eo3d.Config(renderer="cpu", sh_degree=2, ablate=("scheduling", "fidelity", "growth"))
     cfg.stride.every = 1
     cfg.seeding.stride = 3
-    cfg.optim.updates_per_frame = 5
+    cfg.clock.mode, cfg.clock.updates_per_frame = "updates", 5
     rec = eo3d.Reconstructor(o3d.camera.PinholeCameraIntrinsic(w, h, 40.0, 40.0, 23.5, 17.5), "cpu", cfg)
     for i in range(3):
         T = np.eye(4)

@@ -122,9 +122,7 @@ def test_render_command_writes_frames_and_a_video(tmp_path):
 
 def _cfg():
     cfg = Config(renderer="cpu")
-    cfg.optim.updates_per_frame = 3
-    cfg.optim.drain_updates = 10
-    cfg.clock.budget = "updates"
+    cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 3, 10
     return cfg
 
 
