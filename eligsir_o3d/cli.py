@@ -1,4 +1,4 @@
-"""The ``eligsir`` command line: map, demo, eval, export. Thin: heavy modules are imported inside commands."""
+"""The ``eligsir`` command line: map, demo, eval, export, batch. Thin: heavy modules are imported inside commands."""
 
 from __future__ import annotations
 
@@ -167,6 +167,43 @@ def eval_cmd(
     if missing:
         _fail(f"no metrics.json in {', '.join(missing)}")
     typer.echo(compare_results(results))
+
+
+@app.command("batch")
+def batch_cmd(
+    inputs: List[str] = typer.Argument(..., help="Sequence paths and/or manifest files (.txt/.list/.manifest: one sequence a line, optionally with its own --name --max-frames --pose --speed --config --updates-per-frame --eval-every --holdout-every --seed)."),
+    out: Path = typer.Option(Path("runs/batch"), "--out", "-o", help="Batch folder: one results folder per sequence, summary.csv."),
+    address: Optional[str] = typer.Option(None, help="Ray cluster to join: 'auto' or ray://host:port [default: a local Ray in this process, or the cluster of `ray job submit`]."),
+    cpus_per_task: float = typer.Option(1, help="CPUs per sequence (also its torch/numba thread count)."),
+    gpus_per_task: Optional[float] = typer.Option(None, help="GPUs per sequence [default: 1 where the cluster has GPUs, else 0]."),
+    max_retries: int = typer.Option(3, help="Retries of a sequence whose worker died; each resumes from its last checkpoint."),
+    checkpoint_every: int = typer.Option(50, help="Checkpoint every N source frames (what a retry resumes from)."),
+    max_frames: Optional[int] = typer.Option(None, help="Use only the first N frames of each sequence."),
+    pose: str = typer.Option("gt", help="Pose source, as for `eligsir map`."),
+    speed: Optional[float] = typer.Option(None, help="Replay speed, as for `eligsir map`."),
+    updates_per_frame: Optional[int] = typer.Option(None, help="Deterministic budget: updates per source frame."),
+    eval_every: int = typer.Option(100, help="Held-out checkpoint every N updates (0: only at the end)."),
+    holdout_every: int = typer.Option(8, help="Hold out every N-th frame for evaluation."),
+    config: Optional[Path] = typer.Option(None, help="config.json to start every sequence from."),
+    seed: Optional[int] = typer.Option(None, help="Random seed [default: the config's, else 0]."),
+    device: Optional[str] = typer.Option(None, help="Device inside each task [default: cuda:0 with a GPU per task, else the config's]."),
+    plots: bool = typer.Option(True, "--plots/--no-plots", help="Write each sequence's plots."),
+) -> None:
+    """Map many recorded sequences, one Ray task each; re-running skips finished ones and resumes the others."""
+    from .batch import BatchError, format_report, map_many
+
+    try:
+        results = map_many(inputs, out, address=address, cpus_per_task=cpus_per_task, gpus_per_task=gpus_per_task,
+                           max_retries=max_retries, checkpoint_every=checkpoint_every, max_frames=max_frames,
+                           pose=pose, speed=speed, config=str(config) if config else None,
+                           updates_per_frame=updates_per_frame, eval_every=eval_every, holdout_every=holdout_every,
+                           seed=seed, device=device, plots=plots, echo=typer.echo)
+    except (BatchError, ValueError, OSError) as e:
+        _fail(str(e))
+    for line in format_report(results, out):
+        typer.echo(line)
+    if any(r.status == "failed" for r in results):
+        raise typer.Exit(1)
 
 
 def main() -> None:
