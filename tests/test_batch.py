@@ -186,3 +186,25 @@ def test_killed_worker_resumes_from_checkpoint_and_corrupt_sequence_fails_alone(
     rows = _rows(out)
     assert rows["corrupt"]["status"] == "failed" and rows["corrupt"]["error"] == corrupt.error
     assert rows["killed"]["attempts"] == "2" and rows["killed"]["resumed_from"] == str(killed.resumed_from)
+
+
+def test_progress_lines_and_live_redraw(capsys):
+    from eligsir_o3d.batch.report import Progress
+
+    lines = []
+    p = Progress(["a", "bb"], echo=lines.append)
+    p.handle("a", {"event": "resume", "attempt": 2, "resumed_from": 8, "pid": 7, "host": "h", "threads": 1, "t": 0.0})
+    for k in (9, 12, 16, 21, 40):
+        p.handle("a", {"event": "progress", "frames": k, "total": 40})
+    p.handle("bb", {"event": "failed", "error": "x.txt:1: bad"})
+    assert lines[0] == "a: attempt 2 resumes from its checkpoint at source frame 8 on h (pid 7, 1 thread(s))"
+    assert lines[1].startswith("a: 12/40 frames (30%), ETA ") and lines[1].endswith("attempt 2")  # first quarter
+    assert lines[2].startswith("a: 21/40 frames (52%)") and len(lines) == 4  # one line per quarter, not per frame
+    assert lines[3] == "bb: FAILED: x.txt:1: bad"
+    live = Progress(["a", "bb"], echo=print, live=True)
+    live.handle("a", {"event": "start", "attempt": 1, "t": 0.0})
+    live.handle("a", {"event": "progress", "frames": 3, "total": 10})
+    out = capsys.readouterr().out
+    assert "a: attempt 1 maps from frame 0" in out and "\x1b[2F\x1b[J" in out  # the 2-line block redrawn in place
+    assert out.split("\x1b[J")[-1].rstrip().splitlines() == ["  a   3/10 frames (30%), ETA " + out.split("ETA ")[-1].split(",")[0]
+                                              + ", attempt 1", "  bb  queued"]
