@@ -25,20 +25,6 @@ class SequenceResult:
     resumed_from: int | None = None
 
 
-class Board:
-    """Collects the tasks' progress messages; the driver drains them (a Ray actor on a cluster)."""
-
-    def __init__(self):
-        self.events: list[tuple[str, dict]] = []
-
-    def update(self, name: str, info: dict) -> None:
-        self.events.append((name, dict(info, t=time.time())))
-
-    def drain(self) -> list[tuple[str, dict]]:
-        out, self.events = self.events, []
-        return out
-
-
 @dataclass
 class _Line:
     state: str = "queued"

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 from typing import Callable, Iterable
 
-from .report import Board, Progress, SequenceResult, comparison, write_summary
+from .report import Progress, SequenceResult, comparison, write_summary
 from .specs import BatchError, Defaults, build_request, expand_inputs, folder_status, read_state
 from .task import map_sequence, one_line
 
@@ -93,7 +93,11 @@ def _run_tasks(todo: list[dict], out: Path, results: dict, address, cpus_per_tas
         echo(f"batch: {len(todo)} sequence(s) to map on Ray ({cpus:g} CPUs, "
              f"{ray.cluster_resources().get('GPU', 0):g} GPUs; {cpus_per_task:g} CPU and {gpus:g} GPU per task, "
              f"up to {max_retries} retries) into {out}")
-        board = ray.remote(Board).options(num_cpus=0).remote()
+        # progress messages travel through Ray's own queue actor: a worker that imports only Ray (~85 MB), where
+        # an actor class of this package would import torch and Open3D (~430 MB)
+        from ray.util.queue import Queue
+
+        board = Queue(actor_options={"num_cpus": 0})
         task = ray.remote(_ray_task).options(num_cpus=cpus_per_task, num_gpus=gpus, max_retries=max_retries,
                                              retry_exceptions=False)
         refs = {task.remote(req, str(out), cpus_per_task, device, board): req["name"] for req in todo}
@@ -102,7 +106,7 @@ def _run_tasks(todo: list[dict], out: Path, results: dict, address, cpus_per_tas
         pending = list(refs)
         while pending:
             ready, pending = ray.wait(pending, num_returns=len(pending), timeout=0.5)
-            for name, info in ray.get(board.drain.remote()):
+            for name, info in _drain(board):
                 progress.handle(name, info)
             for ref in ready:
                 name = refs[ref]
@@ -117,7 +121,7 @@ def _run_tasks(todo: list[dict], out: Path, results: dict, address, cpus_per_tas
                     continue
                 results[name] = SequenceResult(name, r["path"], r["folder"], r["status"], r["error"], r["metrics"],
                                                r["attempts"], r["resumed_from"])
-        for name, info in ray.get(board.drain.remote()):
+        for name, info in _drain(board):
             progress.handle(name, info)
     finally:
         if started:
@@ -125,8 +129,16 @@ def _run_tasks(todo: list[dict], out: Path, results: dict, address, cpus_per_tas
 
 
 def _ray_task(request: dict, out_root: str, cpus: float, device: str | None, board) -> dict:
-    """The Ray task: map_sequence with progress messages to the driver's Board actor."""
-    return map_sequence(request, out_root, cpus, device, report=lambda name, info: board.update.remote(name, info))
+    """The Ray task: map_sequence with its progress messages put on the driver's queue."""
+    import time
+
+    return map_sequence(request, out_root, cpus, device,
+                        report=lambda name, info: board.put_nowait((name, dict(info, t=time.time()))))
+
+
+def _drain(board) -> list:
+    n = board.qsize()
+    return board.get_nowait_batch(n) if n else []
 
 
 def _connect(ray, address: str | None) -> bool:

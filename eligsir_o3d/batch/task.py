@@ -57,7 +57,13 @@ def map_sequence(request: dict, out_root: str, cpus: float = 1, device: str | No
     """
     name = request["name"]
     folder = Path(out_root) / name
-    send = (lambda info: report(name, info)) if report is not None else (lambda info: None)
+
+    def send(info: dict) -> None:
+        if report is not None:
+            try:
+                report(name, info)
+            except Exception as e:  # noqa: BLE001 - progress is best effort; the mapping goes on
+                log.debug("progress message lost: %s", e)
     result = {"name": name, "path": request["path"], "folder": str(folder), "status": "failed", "error": None,
               "metrics": None, "attempts": 0, "resumed_from": None}
     try:
