@@ -31,7 +31,7 @@ def test_manifest_options_names_and_relative_paths(tmp_path):
     (tmp_path / "rooms").mkdir()
     m = tmp_path / "list.txt"
     m.write_text("# sequences\nrooms/a --max-frames 12 --pose odometry\n\nsynthetic --name room --speed 0.5  # x\n"
-                 f"{tmp_path}/rooms/a --config fast.json\n")
+                 f"'{tmp_path}/rooms/a' --config fast.json\n")
     specs = expand_inputs([m, "synthetic"])
     assert [s.name for s in specs] == ["a", "room", "a-2", "synthetic"]
     assert specs[0].path == str(tmp_path / "rooms" / "a") and specs[0].max_frames == 12 and specs[0].pose == "odometry"
@@ -80,6 +80,14 @@ def test_folder_states(tmp_path):
     assert folder_status(folder, other) == "done"  # where it ran is not what was asked for
     assert folder_status(folder, build_request(SequenceSpec("synthetic", name="synthetic"),
                                                Defaults(max_frames=9))) == "changed"
+
+
+def test_ray_is_imported_only_when_there_is_mapping_to_do():
+    import subprocess
+
+    code = "import sys, eligsir_o3d.batch, eligsir_o3d.cli; print('ray' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() \
+        == "False"
 
 
 def test_without_ray_the_command_prints_an_install_hint(tmp_path, monkeypatch):

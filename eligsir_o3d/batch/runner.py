@@ -98,8 +98,10 @@ def _run_tasks(todo: list[dict], out: Path, results: dict, address, cpus_per_tas
         from ray.util.queue import Queue
 
         board = Queue(actor_options={"num_cpus": 0})
-        task = ray.remote(_ray_task).options(num_cpus=cpus_per_task, num_gpus=gpus, max_retries=max_retries,
-                                             retry_exceptions=False)
+        # max_calls=1: a fresh worker process per sequence, so memory (and a GPU context) is returned between
+        # sequences and metrics.json's peak RSS is this sequence's, not the worker's peak over earlier tasks
+        task = ray.remote(max_calls=1)(_ray_task).options(num_cpus=cpus_per_task, num_gpus=gpus,
+                                                          max_retries=max_retries, retry_exceptions=False)
         refs = {task.remote(req, str(out), cpus_per_task, device, board): req["name"] for req in todo}
         progress = Progress([r["name"] for r in todo], echo=echo,
                             live=sys.stdout.isatty() if live is None else live)

@@ -76,12 +76,12 @@ def read_manifest(path: str | Path) -> list[SequenceSpec]:
         raise BatchError(f"{path}: cannot read the manifest ({e.strerror or e})") from None
     parser, specs = _line_parser(), []
     for no, line in enumerate(text.splitlines(), 1):
-        line = line.split("#", 1)[0].strip() if not line.lstrip().startswith("#") else ""
-        if not line:
-            continue
         where = f"{path}:{no}"
         try:
-            args = vars(parser.parse_args(shlex.split(line)))
+            words = shlex.split(line, comments=True)  # quotes for paths with spaces, '#' starts a comment
+            if not words:
+                continue
+            args = vars(parser.parse_args(words))
         except (BatchError, ValueError) as e:
             raise BatchError(f"{where}: {e}") from None
         seq = args.pop("path")
