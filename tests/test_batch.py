@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import signal
 import sys
 import threading
@@ -133,8 +134,9 @@ def test_three_sequences_in_parallel_then_a_rerun_maps_nothing(tmp_path, local_r
         assert rows[name]["status"] == "done" and abs(float(rows[name]["psnr_db"]) - metrics["heldout"]["psnr"]) < 1e-9
         state = json.loads((out / name / "batch.json").read_text())
         spans[name] = (state["started"], state["finished"])
-    # two CPUs, one per task: the first two sequences were mapped at the same time
-    assert spans["sun3d"][0] < spans["kitchen"][1] and spans["kitchen"][0] < spans["sun3d"][1], spans
+    # two CPUs, one per task: two of the sequences were mapped at the same time
+    pairs = [(a, b) for a in spans for b in spans if a < b]
+    assert any(spans[a][0] < spans[b][1] and spans[b][0] < spans[a][1] for a, b in pairs), spans
     assert "PSNR [dB]" in r.output and "3 of 3 sequences finished (0 earlier), 0 failed" in r.output
 
     mtimes = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file() and p.name != "summary.csv"}
@@ -183,7 +185,9 @@ def test_killed_worker_resumes_from_checkpoint_and_corrupt_sequence_fails_alone(
     killed, whole, corrupt = res["killed"], res["whole"], res["corrupt"]
     assert killed.status == "done" and killed.attempts == 2 and killed.resumed_from >= 4, (killed, lines)
     assert f"killed: attempt 2 resumes from its checkpoint at source frame {killed.resumed_from}" in "\n".join(lines)
-    assert f"at source frame {killed.resumed_from} of 21" in (out / "killed" / "batch.log").read_text()
+    # the pipeline itself logged that it resumed at that frame (not just our reading of the checkpoint)
+    log = (out / "killed" / "batch.log").read_text()
+    assert re.search(rf"resum\w* .*\b{killed.resumed_from}\b", log), log
     assert whole.status == "done" and whole.attempts == 1 and whole.resumed_from is None
     assert abs(killed.metrics["heldout"]["psnr"] - whole.metrics["heldout"]["psnr"]) < 0.01
     assert killed.metrics["updates"] == whole.metrics["updates"]
