@@ -1,4 +1,5 @@
-"""The ``eligsir`` command line: map, demo, eval, export, view, render. Thin: heavy modules are imported inside commands."""
+"""The ``eligsir`` command line: map, demo, eval, export, config, view, render, live, calibrate-color, batch.
+Thin: heavy modules are imported inside commands."""
 
 from __future__ import annotations
 
@@ -9,14 +10,10 @@ from typing import List, Optional
 
 import typer
 
+from .cli_commands import COMMANDS, Renderer, _serve_until_interrupted
+from .cli_commands import fail as _fail
+
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False)
-
-
-class Renderer(str, Enum):
-    auto = "auto"
-    torch = "torch"
-    cpu = "cpu"
-    gsplat = "gsplat"
 
 
 class Mechanism(str, Enum):
@@ -30,9 +27,6 @@ class BadFrame(str, Enum):
     stop = "stop"
 
 
-def _fail(msg: str) -> None:
-    typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
-    raise typer.Exit(2)
 
 
 class ClockMode(str, Enum):
@@ -289,71 +283,6 @@ def demo(
     _summary(m, out)
 
 
-@app.command("calibrate-color")
-def calibrate_color_cmd(
-    path: str = typer.Argument(..., help="Sequence folder with poses (TUM-style or plain folder layout)."),
-    pairs: int = typer.Option(8, help="Frame pairs compared."),
-    gap: Optional[int] = typer.Option(None, help="Pair frame i with i + GAP (default: with the first frame that has turned 6 degrees or moved 12 cm)."),
-    max_frames: Optional[int] = typer.Option(None, help="Use only the first N frames."),
-    stride: int = typer.Option(4, help="Every STRIDE-th depth pixel (x and y) is compared."),
-    principal_point: bool = typer.Option(True, "--principal-point/--focal-only", help="Also search the principal point (kept unless clearly identified)."),
-    write: bool = typer.Option(False, "--write", help="Store the estimate as the \"color\" block of PATH/intrinsics.json."),
-) -> None:
-    """Estimate the colour camera's intrinsics by the photometric consistency of depth-warped colour across frames."""
-    from .color_calibration import calibrate_color, write_estimate
-    from .datasets import open_sequence
-
-    try:
-        seq = open_sequence(path)
-        result = calibrate_color(seq, pairs=pairs, gap=gap, frames=max_frames, stride=stride,
-                                 principal_point=principal_point)
-        typer.echo(result.report())
-        if write:
-            typer.echo(f"wrote the colour camera to {write_estimate(seq, result)}")
-    except (ValueError, OSError) as e:
-        _fail(str(e))
-
-
-@app.command()
-def live(
-    out: Path = typer.Option(Path("runs/live"), "--out", "-o", help="Results folder."),
-    replay: Optional[str] = typer.Option(None, help="Replay a recording (a RealSense .bag through Open3D's reader, or anything `map` reads) instead of a camera, at its own pace."),
-    frames: Optional[int] = typer.Option(None, help="Stop after N frames."),
-    seconds: Optional[float] = typer.Option(None, help="Stop after S seconds."),
-    pose: str = typer.Option("odometry", help="Pose source: odometry | kiss-icp."),
-    device: str = typer.Option("cpu"),
-    config: Optional[Path] = typer.Option(None, help="config.json to start from."),
-) -> None:
-    """Map a connected RealSense camera live (wall clock; frames drop when the mapper falls behind)."""
-    from .config import Config
-    from .live import RSBagReplay, RealSenseCamera, SequenceReplay, run_live
-
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    cfg = Config.load(config) if config else Config()
-    cfg.device = device
-    try:
-        if replay is None:
-            source = RealSenseCamera()
-        elif replay.endswith(".bag") and _is_realsense(replay):
-            source = RSBagReplay(replay)
-        else:
-            from .datasets import open_sequence
-
-            source = SequenceReplay(open_sequence(replay), max_frames=frames)
-        s = run_live(source, out, cfg, pose=pose, max_frames=frames, seconds=seconds)
-    except (ValueError, OSError, RuntimeError) as e:
-        _fail(str(e))
-    typer.echo(f"{s['source']}: captured {s['captured']}, integrated {s['integrated']}, dropped {s['dropped']}, "
-               f"tracking lost {s['lost']}; {s['gaussians']} Gaussians, {s['updates']} updates in {s['wall_s']:.1f} s")
-    typer.echo(f"results in {out.resolve()}")
-
-
-def _is_realsense(path: str) -> bool:
-    from .datasets import rsbag
-
-    return rsbag.detect(Path(path))
-
-
 @app.command()
 def export(
     map_ply: Path = typer.Argument(..., help="A 3DGS PLY (e.g. runs/kitchen/map.ply)."),
@@ -379,66 +308,6 @@ def export(
         typer.echo(f"{k}: {v}")
 
 
-@app.command()
-def view(
-    map_ply: Path = typer.Argument(..., help="A 3DGS PLY (e.g. runs/kitchen/map.ply, or one written by gsplat / 3DGS)."),
-    port: int = typer.Option(8080, help="Port to serve on (the next free one if taken; 0: any free port)."),
-    host: str = typer.Option("127.0.0.1", help="Address to listen on (0.0.0.0 serves the whole network)."),
-    trajectory: Optional[Path] = typer.Option(None, help="TUM trajectory to show as cameras [default: trajectory.txt beside the map]."),
-    mesh: Optional[Path] = typer.Option(None, help="A mesh to show as a layer [default: mesh.ply/.obj beside the map]."),
-    point_cloud: Optional[Path] = typer.Option(None, "--point-cloud", help="A point cloud layer [default: cloud.ply beside the map]."),
-    max_cameras: int = typer.Option(40, help="Camera frustums (and go-to buttons) spread along the trajectory."),
-) -> None:
-    """Look at a map in the browser: the splats, the trajectory's cameras, the mesh / point cloud."""
-    from .visual.viewer import open_map_viewer
-
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    try:
-        viewer = open_map_viewer(map_ply, host, port, trajectory, mesh, point_cloud, max_cameras)
-    except (ValueError, OSError, RuntimeError) as e:
-        _fail(str(e))
-    typer.echo(f"viewer at {viewer.url}  (Ctrl-C to stop)")
-    _serve_until_interrupted(viewer)
-
-
-def _serve_until_interrupted(viewer) -> None:
-    import time
-
-    try:
-        while True:
-            time.sleep(1.0)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        viewer.close()
-
-
-@app.command()
-def render(
-    map_ply: Path = typer.Argument(..., help="A 3DGS PLY (e.g. runs/kitchen/map.ply)."),
-    poses: Path = typer.Option(..., help="TUM trajectory (camera-to-world) to render the map along."),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for the frames (000000.png, ...)."),
-    video: Optional[Path] = typer.Option(None, help="Also (or only) write an MP4 video here."),
-    scale: float = typer.Option(1.0, help="Image size relative to the map's camera (config.json beside it, else 640x480)."),
-    smooth: float = typer.Option(0.0, help="Smooth the path first with a Gaussian of this many poses (0: as given)."),
-    fps: float = typer.Option(24.0, help="Video frame rate."),
-    renderer: Renderer = typer.Option(Renderer.auto, help="Renderer backend."),
-    device: str = typer.Option("cpu"),
-) -> None:
-    """Render a map along a camera path into PNG frames and/or a video."""
-    from .visual.video import render_map_file
-
-    if out is None and video is None:
-        _fail("nothing to do: give --out and/or --video")
-    try:
-        summary = render_map_file(map_ply, poses, out, video, scale=scale, smooth=smooth, fps=fps,
-                                  renderer=renderer.value, device=device)
-    except (ValueError, OSError, RuntimeError) as e:
-        _fail(str(e))
-    for k, v in summary.items():
-        typer.echo(f"{k}: {v}")
-
-
 @app.command("eval")
 def eval_cmd(
     results: List[Path] = typer.Argument(..., help="Results folders to compare (each with metrics.json)."),
@@ -450,6 +319,10 @@ def eval_cmd(
     if missing:
         _fail(f"no metrics.json in {', '.join(missing)}")
     typer.echo(compare_results(results))
+
+
+for _name, _command in COMMANDS.items():  # live, calibrate-color, view, render, batch (cli_commands.py)
+    app.command(_name)(_command)
 
 
 def main() -> None:
