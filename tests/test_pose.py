@@ -349,3 +349,19 @@ def test_one_tum_reader_one_rule(tmp_path):
     p.write_text("# only a header\n")
     with pytest.raises(ValueError, match="no poses"):
         read_tum_trajectory(p)
+
+
+def test_colmap_import_takes_the_largest_of_several_models(tmp_path):
+    """Incremental mapping can leave sparse/0 and sparse/1; the import must take the bigger one, as the SfM run does
+    (taking sparse/0 made the model-import test fail whenever mapping split the images under load)."""
+    from eligsir_o3d.pose.colmap import find_model_dir
+
+    for k, n in (("0", 10), ("1", 1000)):
+        d = tmp_path / "sparse" / k
+        d.mkdir(parents=True)
+        for name in ("cameras", "points3D"):
+            (d / f"{name}.bin").write_bytes(b"x")
+        (d / "images.bin").write_bytes(b"x" * n)
+    assert find_model_dir(tmp_path) == tmp_path / "sparse" / "1"
+    assert find_model_dir(tmp_path / "sparse" / "0") == tmp_path / "sparse" / "0"
+    assert find_model_dir(tmp_path / "nothing") is None

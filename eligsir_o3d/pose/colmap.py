@@ -38,12 +38,26 @@ _MODEL_FILES = ("cameras", "images", "points3D")
 
 
 def find_model_dir(path: str | Path) -> Path | None:
-    """The folder holding a COLMAP model under ``path`` (itself, sparse/0 or 0), or None."""
+    """The folder holding a COLMAP model under ``path`` (itself, sparse/N or N), or None.
+
+    Incremental mapping can leave several models (sparse/0, sparse/1, ...) when it could not connect all images;
+    the largest one is taken (the most image records), as the SfM run of :class:`ColmapPoses` itself does."""
     path = Path(path)
-    for cand in (path, path / "sparse" / "0", path / "0", path / "sparse"):
-        for ext in (".bin", ".txt"):
-            if all((cand / f"{name}{ext}").is_file() for name in _MODEL_FILES):
-                return cand
+    if _model_files(path):
+        return path
+    for parent in (path / "sparse", path):
+        numbered = [d for d in sorted(parent.glob("[0-9]*")) if d.is_dir() and _model_files(d)]
+        if numbered:
+            return max(numbered, key=lambda d: _model_files(d)[0].stat().st_size)
+    return path / "sparse" if _model_files(path / "sparse") else None
+
+
+def _model_files(folder: Path) -> list[Path] | None:
+    """The model's files in ``folder`` (images first), .bin or .txt, or None when it holds no complete model."""
+    for ext in (".bin", ".txt"):
+        files = [folder / f"{name}{ext}" for name in _MODEL_FILES]
+        if all(f.is_file() for f in files):
+            return sorted(files, key=lambda f: f.stem != "images")
     return None
 
 
