@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 from numba import prange
 
-from ._cpu_kernels import ALPHA_MAX, ALPHA_MIN, HALF, ONE, TILE, ZERO, _compile, conic_alpha, gather_tile
+from ._cpu_kernels import (ALPHA_MAX, ALPHA_MIN, HALF, ONE, SOURCE_CRC, TILE, ZERO, _compile, conic_alpha, gather_tile,
+                           reaches)
 
 
 def make(bw: int, bh: int):
@@ -17,6 +18,7 @@ def make(bw: int, bh: int):
     NP = bw * bh
     NBX = TILE // bw
     NB = NBX * (TILE // bh)
+    crc = SOURCE_CRC  # the helpers' source, in the cache key (see _cpu_kernels.SOURCE_CRC)
 
     def composite_backward(means2d, conics, opacities, feats, bounds, offsets, flat_ids, order, tiles_x, width,
                            height, final_T, last, grad_feats, grad_alpha, v_isect):
@@ -30,6 +32,8 @@ def make(bw: int, bh: int):
         behind. The pixels of a block run as one branch-free SIMD batch (float32 throughout, no conditional
         stores); their per-Gaussian gradients are summed in a fixed pairwise order.
         """
+        if crc < 0:  # never (a checksum is >= 0); it makes crc a closure constant of the kernel
+            return
         for i in prange(order.shape[0]):
             t = order[i]
             ty = t // tiles_x
@@ -91,6 +95,13 @@ def make(bw: int, bh: int):
                     o, smax = gp[5, k], gp[6, k]
                     f0, f1, f2, f3 = gf[k, 0], gf[k, 1], gf[k, 2], gf[k, 3]
                     jf = np.float32(j)
+                    # a cheap pass without exp first, for the Gaussians of the list that miss all the block's pixels
+                    # (3-9% of the backward on the benchmark scene; the same pass costs the forward 2-10%)
+                    hit = False
+                    for p in range(NP):
+                        hit = hit | ((jf < walked[p]) & reaches(lx[p], ly[p], mx, my, ca, cb, cc, smax))
+                    if not hit:
+                        continue
                     any_use = False
                     for p in range(NP):
                         dx, dy, sigma, vis, o_vis, alpha = conic_alpha(lx[p], ly[p], mx, my, ca, cb, cc, o)

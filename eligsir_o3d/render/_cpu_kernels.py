@@ -1,4 +1,6 @@
-"""Numba kernels of the ``cpu`` renderer: per-tile front-to-back compositing and its back-to-front gradient.
+"""Numba kernels of the ``cpu`` renderer, shared part: per-Gaussian culling bounds, tile gathering, tile binning,
+the conic/alpha evaluation and exp that the compositing kernels (:mod:`._cpu_forward`, :mod:`._cpu_backward`) inline,
+and the choice of their pixel-block shape.
 
 The math is the reference's (``torch_backend.TorchRenderer._tiles``) written per pixel, in float32, in the same
 order of operations: ``sigma = 0.5 * (a dx^2 + c dy^2) + b dx dy`` with ``(dx, dy) = pixel - mean``, Gaussians with
@@ -7,26 +9,30 @@ Gaussian whose blending would take its transmittance to ``<= 1e-4``. The backwar
 ``rasterize_to_pixels`` backward: it starts from the stored final transmittance and the number of Gaussians the
 forward pass walked through, and recovers each Gaussian's transmittance by dividing by ``1 - alpha``.
 
-Work: pixels run in 4x4 blocks, and a block walks only the part of its tile's list that can reach it: each tile's
-list is culled per block by the bounding box of the ellipse where ``o exp(-sigma) >= 1/255`` (conservatively, so
-the result is the same as walking the whole list; on a real scene this cuts the walk from ~540 to ~80 Gaussians per
-pixel at 160x120). The 16 pixels of a block are processed together without branches, which LLVM turns into SIMD
-code; exp is a branch-free polynomial within 2 ulp of float32 exp (the reference's exp differs from it by rounding
-only, so images agree to ~1e-6).
+Work: pixels run in blocks (4x4, :data:`BLOCKS`), and a block walks only the part of its tile's list that can reach
+it: each tile's list is culled per block by the bounding box of the ellipse where ``o exp(-sigma) >= 1/255``
+(conservatively, so the result is the same as walking the whole list; on a real scene this cuts the walk from ~540
+to ~80 Gaussians per pixel at 160x120). The pixels of a block are processed together without branches, in float32
+only (int64 or bool lanes would narrow LLVM's vectors; conditional stores become masked stores, slow on AVX2), which
+LLVM turns into SIMD code at the target's width: one AVX-512 register, two AVX2 ones; exp is a branch-free
+polynomial within 2 ulp of float32 exp (the reference's exp differs from it by rounding only, so images agree to
+~1e-6). No fast-math: every target computes the same bits (a map built with AVX2 kernels equals the AVX-512 one).
 
 Parallelism: one tile per task (``prange``), heaviest tiles first, in chunks of one so that the cores share uneven
 tiles dynamically. Tiles never write to the same memory: the backward pass writes one gradient row per
 (tile, Gaussian) intersection and the caller sums the rows per Gaussian (``index_add_``), so no atomics are needed.
 
-Compilation is lazy (first call) and cached on disk (``cache=True``): numba writes next to this file when the package
-folder is writable, else to ``$NUMBA_CACHE_DIR`` or the user cache folder; where none is writable the kernels
-still work, compiled once per process.
+Compilation is lazy (first call) and cached on disk (``cache=True``), keyed by numba on the CPU name and features it
+compiles for (``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES``, else the host): numba writes next to this file when the
+package folder is writable, else to ``$NUMBA_CACHE_DIR`` or the user cache folder; where none is writable the
+kernels still work, compiled once per process.
 """
 
 from __future__ import annotations
 
 import math
 import warnings
+import zlib
 
 import numba
 import numpy as np
@@ -54,6 +60,12 @@ _select_threading_layer()
 
 
 _uncached: list[str] = []
+
+# numba's disk cache checks only the source file of the cached function itself; the compositing kernels (in
+# _cpu_forward.py / _cpu_backward.py) inline the helpers of this file, so they carry this file's checksum as a
+# closure constant, which numba hashes into their cache key: an edit here recompiles them.
+with open(__file__, "rb") as _f:
+    SOURCE_CRC = zlib.crc32(_f.read())
 
 
 def _compile(parallel: bool):
@@ -111,12 +123,27 @@ def exp_neg(s):
 
 
 @numba.njit(inline="always", fastmath=False)
+def conic_sigma(x, y, mx, my, ca, cb, cc):
+    """(dx, dy, sigma) of one Gaussian at one pixel centre: ``sigma = 0.5 (a dx^2 + c dy^2) + b dx dy``."""
+    dx = x - mx
+    dy = y - my
+    return dx, dy, HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+
+
+@numba.njit(inline="always", fastmath=False)
+def reaches(x, y, mx, my, ca, cb, cc, smax):
+    """Whether the Gaussian can pass the kernels' tests at this pixel: ``0 <= sigma <= smax`` (the sigma bound of
+    :func:`cull_bounds`; alpha >= 1/255 needs it). Same sigma as :func:`conic_alpha`, bit for bit, so a block whose
+    pixels all fail it can skip the Gaussian without changing any result."""
+    _, _, sigma = conic_sigma(x, y, mx, my, ca, cb, cc)
+    return (sigma >= ZERO) & (sigma <= smax)
+
+
+@numba.njit(inline="always", fastmath=False)
 def conic_alpha(x, y, mx, my, ca, cb, cc, o):
     """One Gaussian at one pixel centre, as the reference computes it: (dx, dy, sigma, exp(-sigma), o exp(-sigma),
     alpha = min(0.999, o exp(-sigma))). Shared by the forward and backward kernels, so both see the same alpha."""
-    dx = x - mx
-    dy = y - my
-    sigma = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+    dx, dy, sigma = conic_sigma(x, y, mx, my, ca, cb, cc)
     vis = exp_neg(sigma)
     o_vis = o * vis
     return dx, dy, sigma, vis, o_vis, min(ALPHA_MAX, o_vis)
