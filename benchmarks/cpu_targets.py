@@ -32,14 +32,24 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(os.environ.get("ELIGSIR_BENCH_ROOT") or Path(__file__).resolve().parents[1])
 
 TARGET_ENV = {"host": {}, "haswell": {"NUMBA_CPU_NAME": "haswell", "NUMBA_CPU_FEATURES": ""},
               "generic": {"NUMBA_CPU_NAME": "generic"}}
 
 
 def target_env(name: str) -> dict:
-    return TARGET_ENV.get(name, {"NUMBA_CPU_NAME": name, "NUMBA_CPU_FEATURES": ""})
+    """Environment of a worker: ``target`` or ``target@DIR`` (the package and scene loader of another checkout,
+    e.g. the code before a change, timed in the same rounds)."""
+    name, _, root = name.partition("@")
+    env = dict(TARGET_ENV.get(name, {"NUMBA_CPU_NAME": name, "NUMBA_CPU_FEATURES": ""}))
+    env["PYTHONPATH"] = env["ELIGSIR_BENCH_ROOT"] = str(Path(root).resolve()) if root else str(ROOT)
+    return env
+
+
+def _label(t: str) -> str:
+    name, _, root = t.partition("@")
+    return f"{name}@{Path(root).name}" if root else name
 
 
 # ------------------------------------------------------------------------------------------------ worker side ----
@@ -178,7 +188,8 @@ def _update_setup():
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--targets", nargs="+", default=["host", "haswell", "generic"])
+    ap.add_argument("--targets", nargs="+", default=["host", "haswell", "generic"],
+                    help="host, haswell, generic or an LLVM CPU name; NAME@DIR runs another checkout's code")
     ap.add_argument("--gaussians", type=int, nargs="+", default=[20000, 5000])
     ap.add_argument("--scales", type=float, nargs="+", default=[0.25, 0.5])
     ap.add_argument("--rounds", type=int, default=5)
@@ -202,7 +213,7 @@ def main(argv=None) -> int:
         base += ["--blocks", *map(str, args.blocks)]
     procs, infos = {}, {}
     for t in args.targets:
-        env = dict(os.environ, PYTHONPATH=str(ROOT), **target_env(t))
+        env = dict(os.environ, **target_env(t))
         if args.threads == 1:
             env["OMP_WAIT_POLICY"] = "PASSIVE"
         procs[t] = subprocess.Popen(base, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
@@ -225,18 +236,18 @@ def main(argv=None) -> int:
     print(f"# loadavg at end {' '.join(open('/proc/loadavg').read().split()[:3])}")
     keys = ["fwd", "fwdbwd", "comp_fwd", "comp_bwd", "proj_fwd", "proj_bwd", "dssim"]
     keys += [f"{kk}_{b}" for b in args.blocks[1:] for kk in ("fwd", "fwdbwd", "comp_fwd", "comp_bwd")]
-    print(f"{'target':>8} {'WxH':>9} {'gauss':>6} " + " ".join(f"{k:>11}" for k in keys) + "   (ms)")
+    print(f"{'target':>16} {'WxH':>9} {'gauss':>6} " + " ".join(f"{k:>11}" for k in keys) + "   (ms)")
     n_cases = len(args.gaussians) * len(args.scales)
     for ci in range(n_cases):
         for t in args.targets:
             rows = [rr[ci] for rr in results[t]]
             w, h = int(round(640 * rows[0]["scale"])), int(round(480 * rows[0]["scale"]))
             med = [1e3 * float(np.median([row[k] for row in rows])) for k in keys]
-            print(f"{t:>8} {w:>4}x{h:<4} {rows[0]['gaussians']:>6} " + " ".join(f"{x:11.2f}" for x in med))
+            print(f"{_label(t):>16} {w:>4}x{h:<4} {rows[0]['gaussians']:>6} " + " ".join(f"{x:11.2f}" for x in med))
     if args.update:
         for t in args.targets:
             u = [rr[-1]["update_q"] for rr in results[t]]
-            print(f"{t:>8} update at 1/4 scale: median {1e3 * float(np.median(u)):.1f} ms "
+            print(f"{_label(t):>16} update at 1/4 scale: median {1e3 * float(np.median(u)):.1f} ms "
                   f"({results[t][-1][-1]['update_gaussians']} Gaussians at the end)")
     if args.json:
         args.json.write_text(json.dumps({"info": infos, "rounds": results}) + "\n")
