@@ -286,7 +286,7 @@ def run(kernel, *args) -> None:
 
 # Pixels per block -> (width, height). One shape serves every target measured (benchmarks/cpu_targets.py): 16
 # float32 lanes are one AVX-512 register and two AVX2 or four SSE/NEON registers, and LLVM vectorises the 16-pixel
-# loop at each target's width. 8-pixel blocks (4x2) were measured 3-5x slower on every target: LLVM unrolls an
+# loop at each target's width. 8-pixel blocks (4x2) were measured 3-6x slower on every target: LLVM unrolls an
 # 8-trip loop fully before its loop vectoriser sees it and the unrolled body stays scalar. The shape is a
 # compile-time parameter of the kernels, so another one is one entry here (and the agreement tests cover it).
 BLOCKS = {16: (4, 4)}
