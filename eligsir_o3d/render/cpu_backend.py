@@ -4,7 +4,8 @@ Three steps, each the reference's twin and each tested against it:
 - projection (:mod:`._cpu_projection`): EWA covariance, Jacobian clamp, conic, radius and culling, per Gaussian, with
   a hand-written backward pass, as a ``torch.autograd.Function`` (the torch version costs ~40% of a 160x120 render);
 - tile binning (:func:`bin_tiles_csr`): the reference's per-tile, front-to-back lists, compressed instead of padded;
-- compositing (:mod:`._cpu_kernels`): forward and backward kernels, as a ``torch.autograd.Function``.
+- compositing (:mod:`._cpu_forward`, :mod:`._cpu_backward`, shared parts in :mod:`._cpu_kernels`): forward and
+  backward kernels, as a ``torch.autograd.Function``.
 The kernels run in parallel on the threads numba may use (``NUMBA_NUM_THREADS`` / ``numba.set_num_threads``).
 Float32 throughout; inputs of other dtypes are cast and the gradients cast back. Background and depth
 normalisation stay in torch (:func:`.base.finish`), shared with every backend.
