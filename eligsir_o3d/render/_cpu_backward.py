@@ -18,6 +18,9 @@ def make(bw: int, bh: int):
     NP = bw * bh
     NBX = TILE // bw
     NB = NBX * (TILE // bh)
+    if NP != 16:
+        raise ValueError(f"the backward kernel's pixel sum is written for 16-pixel blocks, not {bw}x{bh}")
+    H1, H2, H3 = NP // 2, NP // 4, NP // 8
     crc = SOURCE_CRC  # the helpers' source, in the cache key (see _cpu_kernels.SOURCE_CRC)
 
     def composite_backward(means2d, conics, opacities, feats, bounds, offsets, flat_ids, order, tiles_x, width,
@@ -135,15 +138,16 @@ def make(bw: int, bh: int):
                         any_use = any_use | use
                     if not any_use:  # most of a block's list misses most of its pixels
                         continue
-                    # pairwise sum over the block's pixels: NP -> NP / 2 -> ... -> 1
-                    h = NP // 2
-                    while h > 0:
-                        for c in range(10):
-                            for p in range(h):
-                                dv[c, p] += dv[c, p + h]
-                        h //= 2
+                    # pairwise sum over the block's pixels, 16 -> 8 -> 4 -> 2 -> 1, in steps of constant length
+                    # (a loop over a varying length is vectorised with masked loads and stores on AVX2)
                     for c in range(10):
-                        v[k, c] += dv[c, 0]
+                        for p in range(H1):
+                            dv[c, p] += dv[c, p + H1]
+                        for p in range(H2):
+                            dv[c, p] += dv[c, p + H2]
+                        for p in range(H3):
+                            dv[c, p] += dv[c, p + H3]
+                        v[k, c] += dv[c, 0] + dv[c, 1]
             for k in range(n):
                 for c in range(10):
                     v_isect[s + k, c] = v[k, c]

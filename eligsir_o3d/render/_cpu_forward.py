@@ -97,7 +97,10 @@ def make(bw: int, bh: int):
                         a3[p] += w * f3
                         wsum[p] += w
                         T[p] = Tp * (ONE - ab)  # = next_T where blended, Tp (exactly) where not
-                        walked[p] = max(walked[p], jf if blend else ZERO)
+                        # = jf where blended, else unchanged (exact: integers below 2^24); arithmetic, not max() or
+                        # a select, which LLVM turns into a masked store
+                        wp = walked[p]
+                        walked[p] = wp + (jf - wp) * (ONE if blend else ZERO)
                         lp = live[p] - (ONE if stop else ZERO)  # stop implies live = 1
                         live[p] = lp
                         alive = alive | (lp > ZERO)
