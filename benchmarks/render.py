@@ -4,8 +4,11 @@ Gaussians are seeded from the first frames of ``../shared/data/7scenes_redkitche
 to coloured points, isotropic scales from nearest-neighbour spacing, opacity 0.5) and rendered from frame 0's pose
 at 1/8, 1/4, 1/2 and 1x of 640x480. Times are the best of ``--repeats`` runs after one untimed warm-up run (the
 best, not the median: on a machine shared with other jobs, interference only ever adds time; a row whose warm-up
-took over 5 s is timed once). The cpu backend's first-call kernel compile (or cache load) is reported separately. The loss of the backward pass is an
-L1 colour + depth loss against the frame, so every output carries gradient.
+took over 5 s is timed once). The cpu backend's first-call kernel compile (or cache load) is reported separately, and the header names the CPU
+target numba compiles the kernels for (``NUMBA_CPU_NAME``: ``NUMBA_CPU_NAME=haswell`` measures AVX2 code on any
+x86-64 machine, ``generic`` baseline SSE2; the script then compiles for that CPU's own features, where numba alone
+would add the host's). The loss of the backward pass is an L1 colour + depth loss against the frame, so every output
+carries gradient.
 
     python benchmarks/render.py                       # table
     python benchmarks/render.py --json                # one JSON object per line
@@ -28,6 +31,10 @@ from pathlib import Path
 
 if "--omp-passive" in sys.argv:  # must reach libgomp before torch loads it
     os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
+if os.environ.get("NUMBA_CPU_NAME") and "NUMBA_CPU_FEATURES" not in os.environ:
+    # numba would add the *host's* features to the named CPU (haswell + AVX-512 on an AVX-512 host): compile for
+    # the named CPU's own features instead, so that NUMBA_CPU_NAME=haswell measures AVX2 code
+    os.environ["NUMBA_CPU_FEATURES"] = ""
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
@@ -197,7 +204,9 @@ def main(argv=None):
             "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "default"),
             "loadavg_1min": round(os.getloadavg()[0], 2)}
     if "cpu" in backends:
+        from eligsir_o3d.render._cpu_kernels import target_summary
         from eligsir_o3d.render.cpu_backend import warmup
+        info["numba_target"] = target_summary()
         info["cpu_kernel_first_call_s"] = round(warmup(), 3)
     if not args.json:
         print("# " + ", ".join(f"{k}={v}" for k, v in info.items()))

@@ -90,13 +90,20 @@ def assert_grads_close(got, ref, rtol, atol_frac):
 CAMERAS = [Camera(64, 48, 60.0, 60.0, 31.5, 23.5), Camera(70, 45, 55.0, 58.0, 30.0, 25.0)]
 
 
+def _blocks():
+    from eligsir_o3d.render._cpu_kernels import BLOCKS
+    return sorted(BLOCKS)
+
+
+@pytest.mark.parametrize("block", _blocks(), ids=lambda b: f"block{b}")
 @pytest.mark.parametrize("camera", CAMERAS, ids=lambda c: f"{c.width}x{c.height}")
 @pytest.mark.parametrize("seed", [0, 1])
-def test_cpu_matches_reference(camera, seed):
+def test_cpu_matches_reference(camera, seed, block):
+    """Every block shape the kernels can be built with (a compile-time parameter, so all run on any CPU)."""
     params, T = edge_case_scene(seed=seed)
     bg = torch.tensor([0.2, 0.4, 0.6])
     ref_out, ref_g = render_with_grads(get_renderer("torch"), params, camera, T, bg)
-    out, g = render_with_grads(get_renderer("cpu"), params, camera, T, bg)
+    out, g = render_with_grads(CpuRenderer(block=block), params, camera, T, bg)
     # the scene really exercises early termination (alpha stops just short of 1 - 1e-4) and partial coverage
     a = ref_out.alpha.detach()
     assert 0.999 < float(a.max()) <= 1.0 - 1e-4 + 1e-6 and float(a.min()) < 0.5
@@ -233,6 +240,25 @@ def test_cpu_exp_is_within_two_ulp_of_exp():
     ref = np.exp(-s.astype(np.float64))
     ulp = np.spacing(ref.astype(np.float32)).astype(np.float64)
     assert float((np.abs(evaluate(s) - ref) / ulp).max()) < 2.0
+
+
+def test_cpu_kernels_for_avx2_match_reference():
+    """The kernels compiled for an AVX2 CPU (haswell: no AVX-512, whatever this machine has) against the reference,
+    in a fresh process, since numba's target is fixed per process."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[1]
+    code = ("import sys; sys.path.insert(0, 'tests'); import test_render_agreement as t; "
+            "from eligsir_o3d.render._cpu_kernels import target_features, default_block; "
+            "name, feats = target_features(); assert name == 'haswell' and '+avx512f' not in feats, (name, feats); "
+            "[t.test_cpu_matches_reference(t.CAMERAS[1], 0, b) for b in t._blocks()]; "
+            "t.test_cpu_early_termination_and_skip_match_reference(); t.test_cpu_exp_is_within_two_ulp_of_exp(); "
+            "print('haswell ok', default_block())")
+    env = dict(os.environ, NUMBA_CPU_NAME="haswell", NUMBA_CPU_FEATURES="", PYTHONPATH=str(root))
+    res = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True)
+    assert res.returncode == 0 and "haswell ok" in res.stdout, res.stderr[-3000:]
 
 
 def test_cpu_kernels_are_loaded_lazily():

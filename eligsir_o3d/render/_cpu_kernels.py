@@ -1,4 +1,6 @@
-"""Numba kernels of the ``cpu`` renderer: per-tile front-to-back compositing and its back-to-front gradient.
+"""Numba kernels of the ``cpu`` renderer, shared part: per-Gaussian culling bounds, tile gathering, tile binning,
+the conic/alpha evaluation and exp that the compositing kernels (:mod:`._cpu_forward`, :mod:`._cpu_backward`) inline,
+and the choice of their pixel-block shape.
 
 The math is the reference's (``torch_backend.TorchRenderer._tiles``) written per pixel, in float32, in the same
 order of operations: ``sigma = 0.5 * (a dx^2 + c dy^2) + b dx dy`` with ``(dx, dy) = pixel - mean``, Gaussians with
@@ -7,30 +9,36 @@ Gaussian whose blending would take its transmittance to ``<= 1e-4``. The backwar
 ``rasterize_to_pixels`` backward: it starts from the stored final transmittance and the number of Gaussians the
 forward pass walked through, and recovers each Gaussian's transmittance by dividing by ``1 - alpha``.
 
-Work: pixels run in 4x4 blocks, and a block walks only the part of its tile's list that can reach it: each tile's
-list is culled per block by the bounding box of the ellipse where ``o exp(-sigma) >= 1/255`` (conservatively, so
-the result is the same as walking the whole list; on a real scene this cuts the walk from ~540 to ~80 Gaussians per
-pixel at 160x120). The 16 pixels of a block are processed together without branches, which LLVM turns into SIMD
-code; exp is a branch-free polynomial within 2 ulp of float32 exp (the reference's exp differs from it by rounding
-only, so images agree to ~1e-6).
+Work: pixels run in blocks (4x4, :data:`BLOCKS`), and a block walks only the part of its tile's list that can reach
+it: each tile's list is culled per block by the bounding box of the ellipse where ``o exp(-sigma) >= 1/255``
+(conservatively, so the result is the same as walking the whole list; on a real scene this cuts the walk from ~540
+to ~80 Gaussians per pixel at 160x120). The pixels of a block are processed together without branches, in float32
+only (int64 or bool lanes would narrow LLVM's vectors; conditional stores become masked stores, slow on AVX2), which
+LLVM turns into SIMD code at the target's width: one AVX-512 register, two AVX2 ones; exp is a branch-free
+polynomial within 2 ulp of float32 exp (the reference's exp differs from it by rounding only, so images agree to
+~1e-6). No fast-math: every target computes the same bits (a map built with AVX2 kernels equals the AVX-512 one).
 
 Parallelism: one tile per task (``prange``), heaviest tiles first, in chunks of one so that the cores share uneven
 tiles dynamically. Tiles never write to the same memory: the backward pass writes one gradient row per
 (tile, Gaussian) intersection and the caller sums the rows per Gaussian (``index_add_``), so no atomics are needed.
 
-Compilation is lazy (first call) and cached on disk (``cache=True``): numba writes next to this file when the package
-folder is writable, else to ``$NUMBA_CACHE_DIR`` or the user cache folder; where none is writable the kernels
-still work, compiled once per process.
+Compilation is lazy (first call) and cached on disk (``cache=True``), keyed by numba on the CPU name and features it
+compiles for (``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES``, else the host): numba writes next to this file when the
+package folder is writable, else to ``$NUMBA_CACHE_DIR`` or the user cache folder; where none is writable the
+kernels still work, compiled once per process.
 """
 
 from __future__ import annotations
 
 import math
 import warnings
+import zlib
 
 import numba
 import numpy as np
-from numba import prange
+from llvmlite import ir
+from numba import prange, types
+from numba.extending import intrinsic
 
 TILE = 16
 ALPHA_MAX = np.float32(0.999)
@@ -53,6 +61,12 @@ _select_threading_layer()
 
 _uncached: list[str] = []
 
+# numba's disk cache checks only the source file of the cached function itself; the compositing kernels (in
+# _cpu_forward.py / _cpu_backward.py) inline the helpers of this file, so they carry this file's checksum as a
+# closure constant, which numba hashes into their cache key: an edit here recompiles them.
+with open(__file__, "rb") as _f:
+    SOURCE_CRC = zlib.crc32(_f.read())
+
 
 def _compile(parallel: bool):
     """``njit(cache=True)`` decorator; without a writable cache location, fall back to an uncached kernel."""
@@ -74,32 +88,65 @@ _jit = _compile(parallel=True)
 _jit_serial = _compile(parallel=False)
 
 
-SUB = 4  # pixel blocks of SUB x SUB: one SIMD batch of pixels, each with its own culled Gaussian list
-NSUB = TILE // SUB
-NP = SUB * SUB
-
-# exp(-s), float32, branch-free so that loops over a block's 16 pixels vectorise: s = n ln2 + r (Cody-Waite),
-# exp(-r) by its degree-9 Taylor polynomial on [0, ln2) (truncation < 1e-8), 2^-n by selects. Within 2 ulp of
-# float32 exp over [0, 16]; beyond 16 (alpha below 1/255 for any opacity up to 3e4) the value is not used.
+# exp(-s), float32, branch-free so that loops over a block's pixels vectorise: s = n ln2 + r with n the nearest
+# integer (Cody-Waite, r in [-ln2/2, ln2/2]), exp(-r) by its degree-7 Taylor polynomial (truncation < 1e-8), and
+# 2^-n built from its exponent bits. Within 2 ulp of float32 exp over [0, 16]; beyond 16 (alpha below 1/255 for any
+# opacity up to 3e4) the value is not used. Every step is float32 or int32, so a vector of it is as wide as the
+# pixel block's float32 vector (int64 steps would halve the vector width on AVX2).
 SIG_CLAMP = np.float32(16.0)
 LOG2E = np.float32(1.4426950408889634)
 LN2_HI = np.float32(0.693145751953125)
 LN2_LO = np.float32(1.4286068203094173e-06)
-E0, E1, E2, E3, E4, E5, E6, E7, E8, E9 = (np.float32((-1.0) ** i / math.factorial(i)) for i in range(10))
+E0, E1, E2, E3, E4, E5, E6, E7 = (np.float32((-1.0) ** i / math.factorial(i)) for i in range(8))
+
+
+@intrinsic
+def _exp2_neg(typingctx, n):
+    """2^-n for an integer-valued float32 n in [0, 126]: the float32 whose exponent field is 127 - n."""
+    sig = types.float32(types.float32)
+
+    def codegen(context, builder, signature, args):
+        i32 = ir.IntType(32)
+        k = builder.fptosi(args[0], i32)
+        bits = builder.shl(builder.sub(ir.Constant(i32, 127), k), ir.Constant(i32, 23))
+        return builder.bitcast(bits, ir.FloatType())
+    return sig, codegen
 
 
 @numba.njit(inline="always", fastmath=False)
 def exp_neg(s):
     s = min(max(s, ZERO), SIG_CLAMP)
-    n = np.int32(s * LOG2E)  # floor: s >= 0
-    fn = np.float32(n)
+    fn = np.float32(np.int32(s * LOG2E + HALF))  # round to nearest: s >= 0
     r = (s - fn * LN2_HI) - fn * LN2_LO
-    p = ((((((((E9 * r + E8) * r + E7) * r + E6) * r + E5) * r + E4) * r + E3) * r + E2) * r + E1) * r + E0
-    p = p * (np.float32(0.5) if n & 1 else ONE)
-    p = p * (np.float32(0.25) if n & 2 else ONE)
-    p = p * (np.float32(2.0 ** -4) if n & 4 else ONE)
-    p = p * (np.float32(2.0 ** -8) if n & 8 else ONE)
-    return p * (np.float32(2.0 ** -16) if n & 16 else ONE)
+    p = ((((((E7 * r + E6) * r + E5) * r + E4) * r + E3) * r + E2) * r + E1) * r + E0
+    return p * _exp2_neg(fn)
+
+
+@numba.njit(inline="always", fastmath=False)
+def conic_sigma(x, y, mx, my, ca, cb, cc):
+    """(dx, dy, sigma) of one Gaussian at one pixel centre: ``sigma = 0.5 (a dx^2 + c dy^2) + b dx dy``."""
+    dx = x - mx
+    dy = y - my
+    return dx, dy, HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+
+
+@numba.njit(inline="always", fastmath=False)
+def reaches(x, y, mx, my, ca, cb, cc, smax):
+    """Whether the Gaussian can pass the kernels' tests at this pixel: ``0 <= sigma <= smax`` (the sigma bound of
+    :func:`cull_bounds`; alpha >= 1/255 needs it). Same sigma as :func:`conic_alpha`, bit for bit, so a block whose
+    pixels all fail it can skip the Gaussian without changing any result."""
+    _, _, sigma = conic_sigma(x, y, mx, my, ca, cb, cc)
+    return (sigma >= ZERO) & (sigma <= smax)
+
+
+@numba.njit(inline="always", fastmath=False)
+def conic_alpha(x, y, mx, my, ca, cb, cc, o):
+    """One Gaussian at one pixel centre, as the reference computes it: (dx, dy, sigma, exp(-sigma), o exp(-sigma),
+    alpha = min(0.999, o exp(-sigma))). Shared by the forward and backward kernels, so both see the same alpha."""
+    dx, dy, sigma = conic_sigma(x, y, mx, my, ca, cb, cc)
+    vis = exp_neg(sigma)
+    o_vis = o * vis
+    return dx, dy, sigma, vis, o_vis, min(ALPHA_MAX, o_vis)
 
 
 @_jit
@@ -134,17 +181,19 @@ def cull_bounds(conics, opacities, out):
 
 
 @_jit_serial
-def _gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, y0):
-    """Copy tile Gaussians ``flat_ids[s:s + n]`` into contiguous arrays and cull them per pixel block.
+def gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, y0, bw, bh):
+    """Copy tile Gaussians ``flat_ids[s:s + n]`` into contiguous arrays and cull them per block of bw x bh pixels.
 
-    Returns gp [7, n] (mean x, mean y, conic a, b, c, opacity, sigma bound), gf [n, 4] and, per block, the
-    depth-ordered local indices of the Gaussians whose box (:func:`cull_bounds`) reaches it: sub_ids [NSUB^2, n],
-    sub_n [NSUB^2].
+    Returns gp [7, n] (mean x, mean y, conic a, b, c, opacity, sigma bound), gf [n, 4] and, per block (row-major,
+    (TILE / bw) x (TILE / bh) of them), the depth-ordered local indices of the Gaussians whose box
+    (:func:`cull_bounds`) reaches it: sub_ids [blocks, n], sub_n [blocks].
     """
+    nbx = TILE // bw
+    nby = TILE // bh
     gp = np.empty((7, n), np.float32)
     gf = np.empty((n, 4), np.float32)
-    sub_ids = np.empty((NSUB * NSUB, n), np.int32)
-    sub_n = np.zeros(NSUB * NSUB, np.int64)
+    sub_ids = np.empty((nbx * nby, n), np.int32)
+    sub_n = np.zeros(nbx * nby, np.int64)
     for k in range(n):
         g = flat_ids[s + k]
         mx = means2d[g, 0]
@@ -162,240 +211,23 @@ def _gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, 
             continue
         rx = np.float64(bounds[g, 1])
         ry = np.float64(bounds[g, 2])
-        sx0, sx1, sy0, sy1 = 0, NSUB - 1, 0, NSUB - 1
+        sx0, sx1, sy0, sy1 = 0, nbx - 1, 0, nby - 1
         if rx >= 0.0:
-            # block j spans pixel centres [x0 + SUB j, x0 + SUB j + SUB - 1]
-            lo_x = (np.float64(mx) - rx - x0) / SUB
-            hi_x = (np.float64(mx) + rx - x0) / SUB
-            lo_y = (np.float64(my) - ry - y0) / SUB
-            hi_y = (np.float64(my) + ry - y0) / SUB
-            sx0 = max(0, int(math.ceil(lo_x - (SUB - 1.0) / SUB))) if lo_x > -1.0 else 0
-            sx1 = min(NSUB - 1, int(math.floor(hi_x))) if hi_x < NSUB else NSUB - 1
-            sy0 = max(0, int(math.ceil(lo_y - (SUB - 1.0) / SUB))) if lo_y > -1.0 else 0
-            sy1 = min(NSUB - 1, int(math.floor(hi_y))) if hi_y < NSUB else NSUB - 1
+            # block (i, j) spans pixel centres x0 + bw i .. x0 + bw i + bw - 1 and y0 + bh j .. y0 + bh j + bh - 1
+            lo_x = (np.float64(mx) - rx - x0) / bw
+            hi_x = (np.float64(mx) + rx - x0) / bw
+            lo_y = (np.float64(my) - ry - y0) / bh
+            hi_y = (np.float64(my) + ry - y0) / bh
+            sx0 = max(0, int(math.ceil(lo_x - (bw - 1.0) / bw))) if lo_x > -1.0 else 0
+            sx1 = min(nbx - 1, int(math.floor(hi_x))) if hi_x < nbx else nbx - 1
+            sy0 = max(0, int(math.ceil(lo_y - (bh - 1.0) / bh))) if lo_y > -1.0 else 0
+            sy1 = min(nby - 1, int(math.floor(hi_y))) if hi_y < nby else nby - 1
         for by in range(sy0, sy1 + 1):
             for bx in range(sx0, sx1 + 1):
-                j = by * NSUB + bx
+                j = by * nbx + bx
                 sub_ids[j, sub_n[j]] = k
                 sub_n[j] += 1
     return gp, gf, sub_ids, sub_n
-
-
-@_jit
-def composite_forward(means2d, conics, opacities, feats, bounds, offsets, flat_ids, order, tiles_x, width, height,
-                      out_feats, out_alpha, out_T, out_last):
-    """Blend every tile front to back.
-
-    means2d [N, 2], conics [N, 3], opacities [N], feats [N, 4] (r, g, b, depth), bounds [N, 3] (:func:`cull_bounds`),
-    all float32; offsets [T + 1] and flat_ids [M] (int64): tile t's depth-sorted Gaussians are
-    ``flat_ids[offsets[t]:offsets[t + 1]]``; order [T]: the tiles to run, heaviest first. Writes out_feats [H, W, 4]
-    (accumulated features), out_alpha [H, W] (accumulated opacity), out_T [H, W] (final transmittance) and out_last
-    [H, W] int32 (how far the pixel walked through its block's list).
-
-    The 16 pixels of a block advance through the block's list together, branch-free (one SIMD batch); a pixel
-    whose compositing has stopped is masked out, and the block stops when all its pixels have.
-    """
-    for i in prange(order.shape[0]):
-        t = order[i]
-        ty = t // tiles_x
-        tx = t - ty * tiles_x
-        s = offsets[t]
-        gp, gf, sub_ids, sub_n = _gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s,
-                                              offsets[t + 1] - s, tx * TILE, ty * TILE)
-        lx = np.empty(NP, np.float32)
-        ly = np.empty(NP, np.float32)
-        live = np.empty(NP, np.bool_)
-        T = np.empty(NP, np.float32)
-        a0 = np.empty(NP, np.float32)
-        a1 = np.empty(NP, np.float32)
-        a2 = np.empty(NP, np.float32)
-        a3 = np.empty(NP, np.float32)
-        wsum = np.empty(NP, np.float32)
-        walked = np.empty(NP, np.int32)
-        for sb in range(NSUB * NSUB):
-            bx0 = tx * TILE + (sb % NSUB) * SUB
-            by0 = ty * TILE + (sb // NSUB) * SUB
-            n_live = 0
-            for p in range(NP):
-                x = bx0 + p % SUB
-                y = by0 + p // SUB
-                lx[p] = np.float32(x)
-                ly[p] = np.float32(y)
-                live[p] = x < width and y < height
-                n_live += 1 if live[p] else 0
-                T[p] = ONE
-                a0[p] = ZERO
-                a1[p] = ZERO
-                a2[p] = ZERO
-                a3[p] = ZERO
-                wsum[p] = ZERO
-                walked[p] = 0
-            if n_live == 0:
-                continue
-            for j in range(sub_n[sb]):
-                k = sub_ids[sb, j]
-                mx, my, ca, cb, cc = gp[0, k], gp[1, k], gp[2, k], gp[3, k], gp[4, k]
-                o, smax = gp[5, k], gp[6, k]
-                f0, f1, f2, f3 = gf[k, 0], gf[k, 1], gf[k, 2], gf[k, 3]
-                stopped = 0
-                for p in range(NP):
-                    dx = lx[p] - mx
-                    dy = ly[p] - my
-                    sigma = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                    alpha = min(ALPHA_MAX, o * exp_neg(sigma))
-                    Tp = T[p]
-                    next_T = Tp * (ONE - alpha)
-                    use = live[p] & (sigma >= ZERO) & (sigma <= smax) & (alpha >= ALPHA_MIN)
-                    stop = use & (next_T <= T_MIN)  # this Gaussian is not blended, and nothing after it
-                    blend = use & (next_T > T_MIN)
-                    w = alpha * Tp if blend else ZERO
-                    a0[p] += w * f0
-                    a1[p] += w * f1
-                    a2[p] += w * f2
-                    a3[p] += w * f3
-                    wsum[p] += w
-                    T[p] = next_T if blend else Tp
-                    walked[p] = np.int32(j + 1) if blend else walked[p]
-                    live[p] = live[p] & ~stop
-                    stopped += 1 if stop else 0
-                n_live -= stopped
-                if n_live == 0:
-                    break
-            for p in range(NP):
-                x = bx0 + p % SUB
-                y = by0 + p // SUB
-                if x < width and y < height:
-                    out_feats[y, x, 0] = a0[p]
-                    out_feats[y, x, 1] = a1[p]
-                    out_feats[y, x, 2] = a2[p]
-                    out_feats[y, x, 3] = a3[p]
-                    out_alpha[y, x] = wsum[p]  # = 1 - T up to rounding; summed like the reference
-                    out_T[y, x] = T[p]
-                    out_last[y, x] = walked[p]
-
-
-@_jit
-def composite_backward(means2d, conics, opacities, feats, bounds, offsets, flat_ids, order, tiles_x, width, height,
-                       final_T, last, grad_feats, grad_alpha, v_isect):
-    """Back-to-front gradients of ``composite_forward``.
-
-    grad_feats [H, W, 4], grad_alpha [H, W]: gradients of the accumulated outputs. Writes v_isect [M, 10], one row
-    per intersection: d/d(mean x, mean y, conic a, conic b, conic c, opacity, r, g, b, depth).
-
-    Per pixel this is gsplat's backward: start from the final transmittance, walk the blended Gaussians back to
-    front, recover each one's transmittance as ``T / (1 - alpha)`` and keep the running sums of what lies behind.
-    The 16 pixels of a block run as one branch-free SIMD batch; their per-Gaussian gradients are summed in a fixed
-    pairwise order (so the result does not depend on the vector width).
-    """
-    for i in prange(order.shape[0]):
-        t = order[i]
-        ty = t // tiles_x
-        tx = t - ty * tiles_x
-        s = offsets[t]
-        n = offsets[t + 1] - s
-        gp, gf, sub_ids, sub_n = _gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n,
-                                              tx * TILE, ty * TILE)
-        v = np.zeros((n, 10), np.float32)  # this tile's rows of v_isect, written once at the end
-        lx = np.empty(NP, np.float32)
-        ly = np.empty(NP, np.float32)
-        walked = np.empty(NP, np.int32)
-        T = np.empty(NP, np.float32)
-        T_final = np.empty(NP, np.float32)
-        g_a = np.empty(NP, np.float32)
-        g0 = np.empty(NP, np.float32)
-        g1 = np.empty(NP, np.float32)
-        g2 = np.empty(NP, np.float32)
-        g3 = np.empty(NP, np.float32)
-        b0 = np.empty(NP, np.float32)
-        b1 = np.empty(NP, np.float32)
-        b2 = np.empty(NP, np.float32)
-        b3 = np.empty(NP, np.float32)
-        dv = np.empty((10, NP), np.float32)
-        for sb in range(NSUB * NSUB):
-            bx0 = tx * TILE + (sb % NSUB) * SUB
-            by0 = ty * TILE + (sb // NSUB) * SUB
-            j_end = 0
-            for p in range(NP):
-                x = bx0 + p % SUB
-                y = by0 + p // SUB
-                lx[p] = np.float32(x)
-                ly[p] = np.float32(y)
-                b0[p] = ZERO
-                b1[p] = ZERO
-                b2[p] = ZERO
-                b3[p] = ZERO
-                if x < width and y < height:
-                    walked[p] = last[y, x]
-                    T[p] = final_T[y, x]
-                    g_a[p] = grad_alpha[y, x]
-                    g0[p] = grad_feats[y, x, 0]
-                    g1[p] = grad_feats[y, x, 1]
-                    g2[p] = grad_feats[y, x, 2]
-                    g3[p] = grad_feats[y, x, 3]
-                else:
-                    walked[p] = 0
-                    T[p] = ONE
-                    g_a[p] = ZERO
-                    g0[p] = ZERO
-                    g1[p] = ZERO
-                    g2[p] = ZERO
-                    g3[p] = ZERO
-                T_final[p] = T[p]
-                j_end = max(j_end, walked[p])
-            for j in range(j_end - 1, -1, -1):
-                k = sub_ids[sb, j]
-                mx, my, ca, cb, cc = gp[0, k], gp[1, k], gp[2, k], gp[3, k], gp[4, k]
-                o, smax = gp[5, k], gp[6, k]
-                f0, f1, f2, f3 = gf[k, 0], gf[k, 1], gf[k, 2], gf[k, 3]
-                n_use = 0
-                for p in range(NP):
-                    dx = lx[p] - mx
-                    dy = ly[p] - my
-                    sigma = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
-                    vis = exp_neg(sigma)
-                    o_vis = o * vis
-                    alpha = min(ALPHA_MAX, o_vis)
-                    use = (j < walked[p]) & (sigma >= ZERO) & (sigma <= smax) & (alpha >= ALPHA_MIN)
-                    ra = ONE / (ONE - alpha)
-                    Tk = T[p] * ra  # transmittance in front of Gaussian k
-                    fac = alpha * Tk
-                    v_alpha = T_final[p] * ra * g_a[p] + (f0 * Tk - b0[p] * ra) * g0[p] \
-                        + (f1 * Tk - b1[p] * ra) * g1[p] + (f2 * Tk - b2[p] * ra) * g2[p] \
-                        + (f3 * Tk - b3[p] * ra) * g3[p]
-                    # the alpha clamp passes no gradient to opacity and sigma
-                    v_sigma = -o_vis * v_alpha if use & (o_vis <= ALPHA_MAX) else ZERO
-                    # d sigma / d mean = -(conic @ (pixel - mean))
-                    dv[0, p] = -v_sigma * (ca * dx + cb * dy)
-                    dv[1, p] = -v_sigma * (cb * dx + cc * dy)
-                    dv[2, p] = HALF * v_sigma * dx * dx
-                    dv[3, p] = v_sigma * dx * dy
-                    dv[4, p] = HALF * v_sigma * dy * dy
-                    dv[5, p] = vis * v_alpha if use & (o_vis <= ALPHA_MAX) else ZERO
-                    fac = fac if use else ZERO
-                    dv[6, p] = fac * g0[p]
-                    dv[7, p] = fac * g1[p]
-                    dv[8, p] = fac * g2[p]
-                    dv[9, p] = fac * g3[p]
-                    b0[p] += f0 * fac
-                    b1[p] += f1 * fac
-                    b2[p] += f2 * fac
-                    b3[p] += f3 * fac
-                    T[p] = Tk if use else T[p]
-                    n_use += 1 if use else 0
-                if n_use == 0:  # most of a block's list misses most of its pixels
-                    continue
-                # pairwise sum over the block's pixels: 16 -> 8 -> 4 -> 2 -> 1
-                h = NP // 2
-                while h > 0:
-                    for c in range(10):
-                        for p in range(h):
-                            dv[c, p] += dv[c, p + h]
-                    h //= 2
-                for c in range(10):
-                    v[k, c] += dv[c, 0]
-        for k in range(n):
-            for c in range(10):
-                v_isect[s + k, c] = v[k, c]
 
 
 @_jit_serial
@@ -448,3 +280,54 @@ def run(kernel, *args) -> None:
         kernel(*args)
     finally:
         numba.set_parallel_chunksize(old)
+
+
+# ------------------------------------------------------------------------------------ block shape per target ----
+
+# Pixels per block -> (width, height). One shape serves every target measured (benchmarks/cpu_targets.py): 16
+# float32 lanes are one AVX-512 register and two AVX2 or four SSE/NEON registers, and LLVM vectorises the 16-pixel
+# loop at each target's width. 8-pixel blocks (4x2) were measured 3-6x slower on every target: LLVM unrolls an
+# 8-trip loop fully before its loop vectoriser sees it and the unrolled body stays scalar. The shape is a
+# compile-time parameter of the kernels, so another one is one entry here (and the agreement tests cover it).
+BLOCKS = {16: (4, 4)}
+
+
+def target_features() -> tuple[str, str]:
+    """(CPU name, feature string) numba compiles for: ``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES``, else the host's."""
+    import llvmlite.binding as ll
+    from numba.core.codegen import get_host_cpu_features
+    name = numba.config.CPU_NAME or ll.get_host_cpu_name()
+    feats = numba.config.CPU_FEATURES
+    if feats is None:
+        feats = get_host_cpu_features()
+    return name, feats
+
+
+def target_summary() -> str:
+    """e.g. ``znver5 (host; avx512f)``, ``haswell (avx2)``, ``generic (sse2)``: the ISA the kernels are built for."""
+    name, feats = target_features()
+    on = set(f[1:] for f in feats.split(",") if f.startswith("+"))
+    host = numba.config.CPU_NAME is None
+    if not feats:  # the named CPU's own features: LLVM knows them, numba does not say
+        isa = "its own features"
+    else:
+        isa = next((x for x in ("avx512f", "avx2", "avx", "sse4.2", "neon", "sve") if x in on), "baseline")
+    return f"{name} ({'host; ' if host else ''}{isa})"
+
+
+def default_block() -> int:
+    """Pixels per block of the compositing kernels on the target numba compiles for (today 16 on every target)."""
+    return 16
+
+
+_made: dict = {}
+
+
+def compositors(block: int | None = None):
+    """(forward, backward) compositing kernels for blocks of ``block`` pixels (default: :func:`default_block`)."""
+    block = default_block() if block is None else block
+    if block not in _made:
+        from . import _cpu_backward, _cpu_forward
+        bw, bh = BLOCKS[block]
+        _made[block] = (_cpu_forward.make(bw, bh), _cpu_backward.make(bw, bh))
+    return _made[block]

@@ -7,8 +7,8 @@ so values agree with the float32 reference to rounding (a radius can differ by o
 within ~1e-6 of an integer). The backward pass gives what autograd gives through the reference, including for
 Gaussians behind the camera (whose upstream gradients are zero in a render) and at the Jacobian clamp.
 
-Per Gaussian, all of it is scalar 3x3 algebra: one ``prange`` over Gaussians; on 20k Gaussians it takes well under
-a millisecond where the torch version takes ~15 ms forward and backward on one core.
+Per Gaussian, all of it is scalar 3x3 algebra: one ``prange`` over Gaussians; on 20k Gaussians it takes ~1 ms forward
+and ~2 ms backward on one core (AVX-512 or AVX2 alike), where the torch version takes ~15 ms.
 """
 
 from __future__ import annotations
@@ -18,12 +18,19 @@ import math
 import numpy as np
 from numba import prange
 
-from ._cpu_kernels import _jit, _jit_serial
+import numba
+
+from ._cpu_kernels import _jit
 
 BLOCK = 256  # Gaussians per task: scratch 3x3 matrices are allocated once per block
 
+# The 3x3 helpers are inlined into the kernels at numba's level (not only left to LLVM): the matrix shapes become
+# constants there, the loops unroll and the scratch matrices stay in registers. Measured at 20k Gaussians (one
+# thread, AVX-512 host): forward 1.90 -> 1.07 ms, backward 3.35 -> 2.15 ms, bit-identical outputs.
+_inline = numba.njit(inline="always")
 
-@_jit_serial
+
+@_inline
 def _mm(A, B, out):
     """out = A @ B for small dense matrices (no BLAS: numba's would need SciPy and costs more than the product)."""
     for i in range(A.shape[0]):
@@ -34,7 +41,7 @@ def _mm(A, B, out):
             out[i, j] = acc
 
 
-@_jit_serial
+@_inline
 def _mm_t(A, B, out):
     """out = A @ B.T"""
     for i in range(A.shape[0]):
@@ -45,7 +52,7 @@ def _mm_t(A, B, out):
             out[i, j] = acc
 
 
-@_jit_serial
+@_inline
 def _t_mm(A, B, out):
     """out = A.T @ B"""
     for i in range(A.shape[1]):
@@ -56,7 +63,7 @@ def _t_mm(A, B, out):
             out[i, j] = acc
 
 
-@_jit_serial
+@_inline
 def _setup(quats, scales, g, Rv, R, M, T, C):
     """Unit quaternion (w, x, y, z, |q|), R, M = R diag(s), T = Rv M and C = T T^T (camera covariance) of g."""
     w, x, y, z = (np.float64(quats[g, 0]), np.float64(quats[g, 1]), np.float64(quats[g, 2]),
@@ -75,7 +82,7 @@ def _setup(quats, scales, g, Rv, R, M, T, C):
     return w, x, y, z, nq
 
 
-@_jit_serial
+@_inline
 def _limits(cam):
     fx, fy, cx, cy, width, height = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5]
     return ((cx + 0.5) / fx + 0.3 * (0.5 * width / fx), (width - cx - 0.5) / fx + 0.3 * (0.5 * width / fx),

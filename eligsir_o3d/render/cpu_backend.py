@@ -4,7 +4,8 @@ Three steps, each the reference's twin and each tested against it:
 - projection (:mod:`._cpu_projection`): EWA covariance, Jacobian clamp, conic, radius and culling, per Gaussian, with
   a hand-written backward pass, as a ``torch.autograd.Function`` (the torch version costs ~40% of a 160x120 render);
 - tile binning (:func:`bin_tiles_csr`): the reference's per-tile, front-to-back lists, compressed instead of padded;
-- compositing (:mod:`._cpu_kernels`): forward and backward kernels, as a ``torch.autograd.Function``.
+- compositing (:mod:`._cpu_forward`, :mod:`._cpu_backward`, shared parts in :mod:`._cpu_kernels`): forward and
+  backward kernels, as a ``torch.autograd.Function``.
 The kernels run in parallel on the threads numba may use (``NUMBA_NUM_THREADS`` / ``numba.set_num_threads``).
 Float32 throughout; inputs of other dtypes are cast and the gradients cast back. Background and depth
 normalisation stay in torch (:func:`.base.finish`), shared with every backend.
@@ -61,10 +62,11 @@ def warmup() -> float:
         bounds = np.empty((1, 3), f32)
         k.bin_tiles_fill(means2d, np.array([2], np.int32), np.zeros(1, np.int64), 1, 1)
         k.cull_bounds(conics, opac, bounds)
-        k.run(k.composite_forward, means2d, conics, opac, feats, bounds, offsets, ids, order, 1, w, h,
+        forward, backward = k.compositors()
+        k.run(forward, means2d, conics, opac, feats, bounds, offsets, ids, order, 1, w, h,
               out_f, out_a, out_T, out_last)
         v = np.empty((1, 10), f32)
-        k.run(k.composite_backward, means2d, conics, opac, feats, bounds, offsets, ids, order, 1, w, h,
+        k.run(backward, means2d, conics, opac, feats, bounds, offsets, ids, order, 1, w, h,
               out_T, out_last, np.ones((h, w, 4), f32), np.ones((h, w), f32), v)
         pk = _proj_kernels()
         V, cam = np.eye(4), np.array([5.0, 5.0, 4.0, 4.0, 8, 8, NEAR, EPS2D])
@@ -86,8 +88,9 @@ class _Composite(torch.autograd.Function):
     """(means2d [N,2], conics [N,3], opacities [N], feats [N,4] rgb+depth) -> (accumulated feats [H,W,4], alpha [H,W])."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, offsets, flat_ids, order, tiles_x, width, height):
+    def forward(ctx, means2d, conics, opacities, feats, offsets, flat_ids, order, tiles_x, width, height, block):
         k = _kernels()
+        forward, _ = k.compositors(block)
         m, c, o, f = _f32(means2d), _f32(conics), _f32(opacities), _f32(feats)
         n_feat = f.shape[1]
         bounds = torch.empty(m.shape[0], 3, dtype=torch.float32)
@@ -96,31 +99,31 @@ class _Composite(torch.autograd.Function):
         out_alpha = torch.empty(height, width, dtype=torch.float32)
         out_T = torch.empty(height, width, dtype=torch.float32)
         out_last = torch.empty(height, width, dtype=torch.int32)
-        k.run(k.composite_forward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
+        k.run(forward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
               flat_ids.numpy(), order.numpy(), tiles_x, width, height,
               out_feats.numpy(), out_alpha.numpy(), out_T.numpy(), out_last.numpy())
         ctx.save_for_backward(m, c, o, f, bounds, offsets, flat_ids, order, out_T, out_last)
-        ctx.meta = (tiles_x, width, height, [means2d.dtype, conics.dtype, opacities.dtype, feats.dtype])
+        ctx.meta = (tiles_x, width, height, [means2d.dtype, conics.dtype, opacities.dtype, feats.dtype], block)
         return out_feats.to(feats.dtype), out_alpha.to(feats.dtype)
 
     @staticmethod
     def backward(ctx, grad_feats, grad_alpha):
         k = _kernels()
         m, c, o, f, bounds, offsets, flat_ids, order, out_T, out_last = ctx.saved_tensors
-        tiles_x, width, height, dtypes = ctx.meta
+        tiles_x, width, height, dtypes, block = ctx.meta
         n, n_feat = f.shape
         if grad_feats is None:
             grad_feats = torch.zeros(height, width, n_feat)
         if grad_alpha is None:
             grad_alpha = torch.zeros(height, width)
         v_isect = torch.empty(flat_ids.shape[0], 6 + n_feat, dtype=torch.float32)
-        k.run(k.composite_backward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
+        k.run(k.compositors(block)[1], m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
               flat_ids.numpy(), order.numpy(), tiles_x, width, height, out_T.numpy(), out_last.numpy(),
               _f32(grad_feats).numpy(), _f32(grad_alpha).numpy(), v_isect.numpy())
         v = torch.zeros(n, 6 + n_feat, dtype=torch.float32).index_add_(0, flat_ids, v_isect)
         grads = (v[:, 0:2], v[:, 2:5], v[:, 5], v[:, 6:])
         grads = tuple(g.to(dt) for g, dt in zip(grads, dtypes))
-        return grads + (None,) * 6
+        return grads + (None,) * 7
 
 
 class _Project(torch.autograd.Function):
@@ -202,8 +205,11 @@ class CpuRenderer(TileRenderer):
 
     name = "cpu"
 
-    def __init__(self, device="cpu"):
+    def __init__(self, device="cpu", block: int | None = None):
+        """``block``: pixels per SIMD block of the compositing kernels (8 or 16); default: the one chosen for the
+        CPU numba compiles for (:func:`._cpu_kernels.default_block`). Every choice gives the same images."""
         super().__init__(device)
+        self.block = block
         if self.device.type != "cpu":
             raise ValueError(f"the 'cpu' renderer runs on the CPU only, not on {self.device}")
 
@@ -217,7 +223,7 @@ class CpuRenderer(TileRenderer):
         proj = project_cpu(means, quats, scales, camera, T_world_cam)
         offsets, flat, tiles_x = bin_tiles_csr(proj, camera.width, camera.height)
         color_acc, depth_acc, alpha_acc = self._composite(proj, opacities, colors, offsets, flat, tiles_x,
-                                                          camera.width, camera.height)
+                                                          camera.width, camera.height, self.block)
         if background is not None:
             background = torch.as_tensor(background, dtype=color_acc.dtype, device=color_acc.device)
         color, depth, alpha = finish(color_acc, depth_acc, alpha_acc, background)
@@ -226,12 +232,12 @@ class CpuRenderer(TileRenderer):
     def composite(self, proj: Projection, opacities, colors, bins: TileBins, width: int, height: int):
         warmup()
         offsets, flat = tile_lists(bins)
-        return self._composite(proj, opacities, colors, offsets, flat, bins.tiles_x, width, height)
+        return self._composite(proj, opacities, colors, offsets, flat, bins.tiles_x, width, height, self.block)
 
     @staticmethod
-    def _composite(proj, opacities, colors, offsets, flat, tiles_x, width, height):
+    def _composite(proj, opacities, colors, offsets, flat, tiles_x, width, height, block=None):
         order = torch.argsort(offsets[1:] - offsets[:-1], descending=True, stable=True)  # heaviest tiles first
         feats = torch.cat([colors, proj.depths[:, None].to(colors.dtype)], -1)  # [N, 4]
         acc, alpha = _Composite.apply(proj.means2d, proj.conics, opacities, feats, offsets, flat, order,
-                                      tiles_x, width, height)
+                                      tiles_x, width, height, block)
         return acc[..., :3], acc[..., 3], alpha

@@ -1,0 +1,121 @@
+"""Forward compositing kernel of the ``cpu`` renderer: every tile front to back, in pixel blocks of a chosen shape.
+
+:func:`make` compiles the kernel for one block shape (bw x bh pixels); the shape is a compile-time constant of the
+kernel (a closure variable, which numba treats as a constant and hashes into its cache key), so each shape is a
+kernel of its own and the tests can run every shape the package may choose on any CPU (:mod:`._cpu_kernels`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import prange
+
+from ._cpu_kernels import ALPHA_MIN, ONE, SOURCE_CRC, T_MIN, TILE, ZERO, _compile, conic_alpha, gather_tile
+
+
+def make(bw: int, bh: int):
+    """The forward kernel for blocks of bw x bh pixels (both divide the 16-pixel tile)."""
+    NP = bw * bh
+    NBX = TILE // bw
+    NB = NBX * (TILE // bh)
+    crc = SOURCE_CRC  # the helpers' source, in the cache key (see _cpu_kernels.SOURCE_CRC)
+
+    def composite_forward(means2d, conics, opacities, feats, bounds, offsets, flat_ids, order, tiles_x, width,
+                          height, out_feats, out_alpha, out_T, out_last):
+        """Blend every tile front to back.
+
+        means2d [N, 2], conics [N, 3], opacities [N], feats [N, 4] (r, g, b, depth), bounds [N, 3]
+        (:func:`._cpu_kernels.cull_bounds`), all float32; offsets [T + 1] and flat_ids [M] (int64): tile t's
+        depth-sorted Gaussians are ``flat_ids[offsets[t]:offsets[t + 1]]``; order [T]: the tiles to run, heaviest
+        first. Writes out_feats [H, W, 4] (accumulated features), out_alpha [H, W] (accumulated opacity), out_T
+        [H, W] (final transmittance) and out_last [H, W] int32 (how far the pixel walked through its block's list).
+
+        The pixels of a block advance through the block's list together, branch-free (one SIMD batch); a pixel
+        whose compositing has stopped is masked out, and the block stops when all its pixels have. Every
+        per-pixel value is float32 (flags and counts too), and state is updated by arithmetic rather than by
+        conditional stores, so the batch vectorises at the full float32 width of the target.
+        """
+        if crc < 0:  # never (a checksum is >= 0); it makes crc a closure constant of the kernel
+            return
+        for i in prange(order.shape[0]):
+            t = order[i]
+            ty = t // tiles_x
+            tx = t - ty * tiles_x
+            s = offsets[t]
+            gp, gf, sub_ids, sub_n = gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s,
+                                                 offsets[t + 1] - s, tx * TILE, ty * TILE, bw, bh)
+            lx = np.empty(NP, np.float32)
+            ly = np.empty(NP, np.float32)
+            live = np.empty(NP, np.float32)  # 1: still compositing, 0: stopped or outside the image
+            T = np.empty(NP, np.float32)
+            a0 = np.empty(NP, np.float32)
+            a1 = np.empty(NP, np.float32)
+            a2 = np.empty(NP, np.float32)
+            a3 = np.empty(NP, np.float32)
+            wsum = np.empty(NP, np.float32)
+            walked = np.empty(NP, np.float32)  # exact: lists are far shorter than 2^24
+            for sb in range(NB):
+                bx0 = tx * TILE + (sb % NBX) * bw
+                by0 = ty * TILE + (sb // NBX) * bh
+                n_live = 0
+                for p in range(NP):
+                    x = bx0 + p % bw
+                    y = by0 + p // bw
+                    lx[p] = np.float32(x)
+                    ly[p] = np.float32(y)
+                    inside = x < width and y < height
+                    live[p] = ONE if inside else ZERO
+                    n_live += 1 if inside else 0
+                    T[p] = ONE
+                    a0[p] = ZERO
+                    a1[p] = ZERO
+                    a2[p] = ZERO
+                    a3[p] = ZERO
+                    wsum[p] = ZERO
+                    walked[p] = ZERO
+                if n_live == 0:
+                    continue
+                for j in range(sub_n[sb]):
+                    k = sub_ids[sb, j]
+                    mx, my, ca, cb, cc = gp[0, k], gp[1, k], gp[2, k], gp[3, k], gp[4, k]
+                    o, smax = gp[5, k], gp[6, k]
+                    f0, f1, f2, f3 = gf[k, 0], gf[k, 1], gf[k, 2], gf[k, 3]
+                    jf = np.float32(j + 1)
+                    alive = False
+                    for p in range(NP):
+                        _, _, sigma, _, _, alpha = conic_alpha(lx[p], ly[p], mx, my, ca, cb, cc, o)
+                        Tp = T[p]
+                        next_T = Tp * (ONE - alpha)
+                        use = (live[p] > ZERO) & (sigma >= ZERO) & (sigma <= smax) & (alpha >= ALPHA_MIN)
+                        stop = use & (next_T <= T_MIN)  # this Gaussian is not blended, and nothing after it
+                        blend = use & (next_T > T_MIN)
+                        ab = alpha if blend else ZERO
+                        w = ab * Tp
+                        a0[p] += w * f0
+                        a1[p] += w * f1
+                        a2[p] += w * f2
+                        a3[p] += w * f3
+                        wsum[p] += w
+                        T[p] = Tp * (ONE - ab)  # = next_T where blended, Tp (exactly) where not
+                        # = jf where blended, else unchanged (exact: integers below 2^24); arithmetic, not max() or
+                        # a select, which LLVM turns into a masked store
+                        wp = walked[p]
+                        walked[p] = wp + (jf - wp) * (ONE if blend else ZERO)
+                        lp = live[p] - (ONE if stop else ZERO)  # stop implies live = 1
+                        live[p] = lp
+                        alive = alive | (lp > ZERO)
+                    if not alive:
+                        break
+                for p in range(NP):
+                    x = bx0 + p % bw
+                    y = by0 + p // bw
+                    if x < width and y < height:
+                        out_feats[y, x, 0] = a0[p]
+                        out_feats[y, x, 1] = a1[p]
+                        out_feats[y, x, 2] = a2[p]
+                        out_feats[y, x, 3] = a3[p]
+                        out_alpha[y, x] = wsum[p]  # = 1 - T up to rounding; summed like the reference
+                        out_T[y, x] = T[p]
+                        out_last[y, x] = np.int32(walked[p])
+
+    return _compile(parallel=True)(composite_forward)
