@@ -122,7 +122,8 @@ def worker(threads: int, gaussians: list[int], scales: list[float], reps: int, u
             v = np.empty((fl.shape[0], 10), f32)
             for blk in blocks:
                 sfx = "" if blk == blocks[0] else f"_{blk}"
-                renderer = CpuRenderer(block=blk) if hasattr(k, "compositors") else CpuRenderer()
+                comp = getattr(cb, "_compositors", None) or getattr(k, "compositors", None)  # by code version
+                renderer = CpuRenderer(block=blk) if comp is not None else CpuRenderer()
                 ps = {kk: vv.clone().requires_grad_(True) for kk, vv in params.items()}
                 bg = torch.zeros(3)
 
@@ -140,8 +141,7 @@ def worker(threads: int, gaussians: list[int], scales: list[float], reps: int, u
 
                 row["fwd" + sfx] = best(fwd)
                 row["fwdbwd" + sfx] = best(fwdbwd)
-                kf, kb = (k.compositors(blk) if hasattr(k, "compositors") else
-                          (k.composite_forward, k.composite_backward))
+                kf, kb = comp(blk) if comp is not None else (k.composite_forward, k.composite_backward)
                 row["comp_fwd" + sfx] = best(lambda: k.run(kf, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
                                                            of, oa, oT, ol))
                 row["comp_bwd" + sfx] = best(lambda: k.run(kb, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,

@@ -184,3 +184,20 @@ def test_cost_model_fit_recovers_the_constants_of_noisy_timings():
     assert min(flat.gaussian_s, flat.pixel_s, flat.pixel_gaussian_s) >= 0.0
     with pytest.raises(ValueError, match="update timings"):
         CostModel.fit(np.zeros((2, 3)), frames)
+
+
+def test_fixed_updates_clock_prices_the_first_frame_with_the_cost_model_too():
+    """Under the updates clock the fidelity policy must never fall back to measured seconds: before this fix the
+    first frame's updates were priced by wall time (no period known yet), so a run's map depended on whether the
+    kernels were already compiled and on the machine's load (two equal runs in one process differed)."""
+    rec = StubMapper()
+    order = []
+    integrate = rec.integrate
+    rec.integrate = lambda frame, *a, **kw: (order.append(("integrate", frame.index, len(rec.attached))),
+                                             integrate(frame, *a, **kw))
+    cost = CostModel()
+    BudgetClock(updates_per_frame=2, cost=cost).run(rec, _frames(3))
+    assert order[0] == ("integrate", 0, 1)  # the load (period and cost model) reached the mapper before frame 0
+    assert all(c is cost for _, c in rec.attached)
+    assert rec.attached[0][0] == pytest.approx(1 / 30)  # the default period until two stamps give the recording's
+    assert rec.attached[-1][0] == pytest.approx(1 / 100)

@@ -243,6 +243,7 @@ class BudgetClock(_Replay):
         report = ClockReport()
         it, k = iter(frames), 0
         stamps = []
+        period = self.frame_period_s / self.speed  # until two stamps give the recording's own
         while True:
             item, k = self._next(it, k, report)
             if item is None:
@@ -250,7 +251,10 @@ class BudgetClock(_Replay):
             report.released += 1
             stamps.append(self._stamp(item, k - 1))
             if len(stamps) > 1 and stamps[-1] > stamps[0]:
-                self.load(rec, 0, (stamps[-1] - stamps[0]) / (len(stamps) - 1) / self.speed)
+                period = (stamps[-1] - stamps[0]) / (len(stamps) - 1) / self.speed
+            # from the first frame on: the fidelity policy prices updates with the cost model, never with measured
+            # seconds, so the run does not depend on the machine's speed or load
+            self.load(rec, 0, period)
             if on_release is not None:
                 on_release(item)
             try:

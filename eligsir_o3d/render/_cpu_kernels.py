@@ -318,16 +318,3 @@ def target_summary() -> str:
 def default_block() -> int:
     """Pixels per block of the compositing kernels on the target numba compiles for (today 16 on every target)."""
     return 16
-
-
-_made: dict = {}
-
-
-def compositors(block: int | None = None):
-    """(forward, backward) compositing kernels for blocks of ``block`` pixels (default: :func:`default_block`)."""
-    block = default_block() if block is None else block
-    if block not in _made:
-        from . import _cpu_backward, _cpu_forward
-        bw, bh = BLOCKS[block]
-        _made[block] = (_cpu_forward.make(bw, bh), _cpu_backward.make(bw, bh))
-    return _made[block]

@@ -34,6 +34,22 @@ def _kernels():
     return _cpu_kernels
 
 
+_made: dict = {}  # block pixels -> (forward, backward) compositing kernels
+
+
+def _compositors(block: int | None = None):
+    """(forward, backward) compositing kernels for blocks of ``block`` pixels (default: the target's
+    :func:`._cpu_kernels.default_block`); the two kernel modules build on the shared helpers of ``_cpu_kernels``."""
+    from . import _cpu_backward, _cpu_forward
+
+    k = _kernels()
+    block = k.default_block() if block is None else block
+    if block not in _made:
+        bw, bh = k.BLOCKS[block]
+        _made[block] = (_cpu_forward.make(bw, bh), _cpu_backward.make(bw, bh))
+    return _made[block]
+
+
 def _proj_kernels():
     from . import _cpu_projection
     return _cpu_projection
@@ -62,7 +78,7 @@ def warmup() -> float:
         bounds = np.empty((1, 3), f32)
         k.bin_tiles_fill(means2d, np.array([2], np.int32), np.zeros(1, np.int64), 1, 1)
         k.cull_bounds(conics, opac, bounds)
-        forward, backward = k.compositors()
+        forward, backward = _compositors()
         k.run(forward, means2d, conics, opac, feats, bounds, offsets, ids, order, 1, w, h,
               out_f, out_a, out_T, out_last)
         v = np.empty((1, 10), f32)
@@ -90,7 +106,7 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, feats, offsets, flat_ids, order, tiles_x, width, height, block):
         k = _kernels()
-        forward, _ = k.compositors(block)
+        forward, _ = _compositors(block)
         m, c, o, f = _f32(means2d), _f32(conics), _f32(opacities), _f32(feats)
         n_feat = f.shape[1]
         bounds = torch.empty(m.shape[0], 3, dtype=torch.float32)
@@ -117,7 +133,7 @@ class _Composite(torch.autograd.Function):
         if grad_alpha is None:
             grad_alpha = torch.zeros(height, width)
         v_isect = torch.empty(flat_ids.shape[0], 6 + n_feat, dtype=torch.float32)
-        k.run(k.compositors(block)[1], m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
+        k.run(_compositors(block)[1], m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
               flat_ids.numpy(), order.numpy(), tiles_x, width, height, out_T.numpy(), out_last.numpy(),
               _f32(grad_feats).numpy(), _f32(grad_alpha).numpy(), v_isect.numpy())
         v = torch.zeros(n, 6 + n_feat, dtype=torch.float32).index_add_(0, flat_ids, v_isect)
