@@ -46,6 +46,9 @@ class RunOptions:
     progress: bool = True
 
 
+CALIBRATION_FRAMES = 12  # consecutive source frames that eligsir map times to fit the cost model
+
+
 def heldout_indices(n: int, every: int, listfile: str | None = None) -> list[int]:
     """The fixed evaluation split: every ``every``-th frame (offset every // 2), or the indices in ``listfile``."""
     if listfile:
@@ -168,9 +171,10 @@ class MappingPipeline:
         if c.mode != "cost" or self.opts.offline_reference:
             return {"source": None}
         if c.cost_source == "calibrate":
-            picks = np.unique(np.linspace(0, len(self.source) - 1, min(6, len(self.source))).astype(int))
-            frames = [self.seq.frame(self.source[k], depth_max=self.config.depth_max) for k in picks]
-            model, info = self.rec.calibrate(frames)
+            # consecutive frames, as a stream delivers them: frames picked far apart are each mostly new space,
+            # and their seeding made the fitted per-frame cost 2-3x what a stream pays (less budget than real)
+            frames = [self.seq.frame(i, depth_max=self.config.depth_max) for i in self.source[:CALIBRATION_FRAMES]]
+            model, info = self.rec.calibrate(frames, n_frames=len(frames))
             c.cost, c.cost_source = model, "config"
             log.info("cost model: calibrated for this machine (%s)", info.get("cache"))
             return info
