@@ -85,8 +85,9 @@ def map_cmd(
                                              rich_help_panel=BUDGET),
     refine: int = typer.Option(0, help="Extra post-mapping updates (+N PM map state).", rich_help_panel=BUDGET),
     offline_reference: bool = typer.Option(False, "--offline-reference", help="Offline reference: all frames at "
-                                           "once, long full-res schedule.", rich_help_panel=BUDGET),
-    offline_updates: int = typer.Option(0, help="Offline reference: length of its schedule (0: 30 updates per "
+                                           "once, a long coarse-to-fine schedule (1/4, 1/2, then full "
+                                           "resolution).", rich_help_panel=BUDGET),
+    offline_updates: int = typer.Option(0, help="Offline reference: length of its schedule (0: 40 updates per "
                                         "source frame).", rich_help_panel=BUDGET),
     holdout_every: int = typer.Option(8, help="Hold out every N-th frame for evaluation (never mapped).",
                                       rich_help_panel=EVAL),
