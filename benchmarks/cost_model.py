@@ -28,7 +28,6 @@ import argparse
 import json
 import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +37,7 @@ sys.path.insert(0, str(ROOT))
 
 from eligsir_o3d import Config, Reconstructor  # noqa: E402
 from eligsir_o3d.budget import CostModel  # noqa: E402
+from eligsir_o3d.budget.calibrate import time_updates  # noqa: E402
 from eligsir_o3d.datasets import open_sequence  # noqa: E402
 
 KITCHEN = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_jpg1000"
@@ -48,25 +48,11 @@ def collect(path: Path, frames: int, updates: int, scales: list[float], renderer
     seq = open_sequence(path)
     cfg = Config(renderer=renderer)
     rec = Reconstructor(seq.camera, device="cpu", config=cfg)
-    frame_rows, update_rows = [], []
     source = [i for i in range(min(frames, len(seq))) if i % 8 != 4]
-    for n, i in enumerate(source):
-        frame = seq.frame(i, depth_max=cfg.depth_max)
-        t0 = time.perf_counter()
-        rec.integrate(frame, updates=0)
-        dt = time.perf_counter() - t0
-        if n >= warmup:
-            frame_rows.append((len(rec.gmap), dt))
-        for s in scales:
-            for _ in range(updates):
-                px, g = rec.stats.supervised_pixels, len(rec.gmap)
-                t0 = time.perf_counter()
-                if rec.optimize(1, scale=s) == 0:
-                    break
-                dt = time.perf_counter() - t0
-                if n >= warmup:
-                    update_rows.append((rec.stats.supervised_pixels - px, g, dt))
-    return np.array(frame_rows, dtype=np.float64), np.array(update_rows, dtype=np.float64)
+    # the same timing loop as the calibration eligsir map runs (budget/calibrate.py), over a whole recording
+    update_rows, frame_rows = time_updates(rec, (seq.frame(i, depth_max=cfg.depth_max) for i in source), scales,
+                                           updates, warmup)
+    return frame_rows, update_rows
 
 
 def errors(model: CostModel, update_rows: np.ndarray) -> np.ndarray:
