@@ -9,9 +9,10 @@ and the results folder (:mod:`.results`). :class:`MappingPipeline` reads as its 
 
 from __future__ import annotations
 
-import logging
-import time
 import dataclasses
+import logging
+import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -34,6 +35,9 @@ class RunOptions:
     holdout_list: str | None = None  # a text file of frame indices to hold out instead
     pose: str = "gt"  # gt | odometry | kiss-icp | colmap | path to a TUM trajectory
     eval_every: int = 100  # held-out checkpoint every N optimisation updates (0 = only at the end)
+    # with checkpoints on (eval_every > 0), also one each time the stream has released this share of its frames, so
+    # a variant with few, expensive updates still gets a curve over the whole stream
+    eval_every_progress: float = 0.1
     eval_sample_stride: int = 2  # regional samples: every 2nd pixel in x and y of each held-out view
     eval_ssim_at_checkpoints: bool = True
     refine: int = 0  # +N post-mapping updates after the drain (map state "+N PM")
@@ -109,6 +113,7 @@ class MappingPipeline:
         self.skipped: list[str] = []
         self.decode_s = 0.0
         self.start = 0  # first source position to stream (after a resume)
+        self.released = 0  # source frames the stream has released (dropped and unreadable ones included)
 
     def run(self) -> dict:
         self.open()  # the sequence, the held-out split, the pose source, the evaluator
@@ -131,6 +136,8 @@ class MappingPipeline:
         self.held = heldout_indices(self.n, self.opts.holdout_every, self.opts.holdout_list)
         held_set = set(self.held)
         self.source = [i for i in range(self.n) if i not in held_set]
+        self._position = {i: k for k, i in enumerate(self.source)}  # sequence index -> position in the stream
+        self._next_progress = self.opts.eval_every_progress
         if not self.source:
             raise ValueError(f"{self.path}: every frame is held out; nothing left to map")
         self.config = self.config.resolve(depth_scale=float(seq.depth_scale))
@@ -188,6 +195,10 @@ class MappingPipeline:
         rec = Reconstructor.from_checkpoint(ck, self.config.device, pose_source=self.pose_source, setup=setup)
         extra = ck.get("extra") or {}
         self.start = int(extra.get("next_source", 0))
+        self.released = self.start
+        step = self.opts.eval_every_progress
+        if step > 0:
+            self._next_progress = (math.floor(self.released / len(self.source) / step + 1e-9) + 1) * step
         self.trajectory = {int(i): (float(ts), np.asarray(T, dtype=np.float64).reshape(4, 4))
                            for i, ts, T in extra.get("trajectory", [])}
         self.skipped = list(extra.get("skipped", []))
@@ -234,9 +245,18 @@ class MappingPipeline:
 
     def _on_release(self, frame: Frame) -> None:
         t0 = time.perf_counter()
+        # acquisition progress is the stream's (the paper's p = N_released / N_total): frames the mapper will drop
+        # and unreadable frames before this one count, so a variant that falls behind is not squeezed into the start
+        self.released = max(self.released, self._position.get(frame.index, self.released) + 1)
         self.evaluator.observe_source(frame)  # evaluation bookkeeping (cell eligibility): not mapping time
         if self.opts.view is not None:
             self.opts.view.observe(frame)
+        step = self.opts.eval_every_progress
+        if self.opts.eval_every and step > 0 and self.released / len(self.source) >= self._next_progress - 1e-9:
+            self._next_progress += step * max(1, math.floor((self.released / len(self.source) -
+                                                             self._next_progress) / step + 1e-9) + 1)
+            if len(self.rec.gmap):
+                self._checkpoint(self.rec)
         self.rec.stats.excluded_s += time.perf_counter() - t0
 
     def _render(self, frame: Frame):
@@ -244,7 +264,7 @@ class MappingPipeline:
 
     def _checkpoint(self, r) -> None:
         self.evaluator.checkpoint(self._render, t_s=r.stats.mapping_s,
-                                  progress=r.stats.frames_released / len(self.source), updates=r.stats.updates,
+                                  progress=self.released / len(self.source), updates=r.stats.updates,
                                   supervised_mpix=r.stats.supervised_mpix, gaussians=len(r.gmap))
 
     def _maybe_checkpoint(self, r) -> None:
@@ -283,6 +303,7 @@ class MappingPipeline:
 
     # ---- evaluate ------------------------------------------------------------------------------------------
     def evaluate(self) -> None:
+        self.released = len(self.source)  # the stream has ended: every source frame was released
         self._checkpoint(self.rec)  # the curve ends at the evaluated map state (p = 1)
         self.accuracy = _trajectory_accuracy(self.seq, self.trajectory, self.out, self.opts) \
             if self.pose_source is not None else {}

@@ -42,7 +42,9 @@ class HeadlessChromium:
         if self.executable is None:
             raise RuntimeError("chromium is not installed (Debian: apt-get install chromium)")
         self.width, self.height, self.timeout_s = width, height, timeout_s
-        self._profile = tempfile.TemporaryDirectory(prefix="eligsir-chromium-")
+        # chromium's helper processes can still be writing the profile as the main one exits: cleaning up must not
+        # fail the test (a leftover folder in /tmp is harmless)
+        self._profile = tempfile.TemporaryDirectory(prefix="eligsir-chromium-", ignore_cleanup_errors=True)
         self._proc = None
         self._ws = None
         self._id = 0

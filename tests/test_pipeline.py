@@ -128,3 +128,22 @@ def test_cli_keeps_the_config_files_values_unless_an_option_overrides_them(tmp_p
     over = json.loads((tmp_path / "b" / "config.json").read_text())
     assert (over["seed"], over["renderer"], over["ablate"]) == (5, "cpu", ["growth"])
     assert (over["clock"]["speed"], over["clock"]["on_bad_frame"]) == (2.0, "skip")
+
+
+def test_progress_is_the_streams_so_a_run_that_drops_frames_still_ends_at_p_1(tmp_path):
+    """Acquisition progress p = frames the stream released / N_total (dropped ones included): a mapper that falls
+    behind and drops frames must not have its curve squeezed into the start (it ended at p 0.21-0.29 before), and
+    checkpoints on progress give a variant with few, expensive updates a curve over the whole stream."""
+    from eligsir_o3d.budget import CostModel
+
+    cfg = Config(renderer="cpu")
+    cfg.clock.cost = CostModel(update_s=0.2, gaussian_s=0.0, pixel_s=0.0, pixel_gaussian_s=0.0, frame_s=0.0)
+    cfg.clock.drain_updates = 2
+    m = run_mapping("synthetic", tmp_path, cfg, RunOptions(max_frames=48, holdout_every=8, eval_every=20,
+                                                           progress=False, plots=False, pictures=False),
+                    sequence_options={"n_frames": 48, "width": 64, "height": 48})
+    assert m["dropped_frames"] > 10 and m["clock"] == "cost"
+    ps = [c["progress"] for c in m["curve"]]
+    assert ps[-1] == 1.0 and ps == sorted(ps)
+    # few updates (one every 0.2 modelled s), yet checkpoints every ~10 % of the stream
+    assert m["updates"] < 40 and len(ps) >= 8 and max(b - a for a, b in zip(ps, ps[1:])) <= 0.1 + 1 / 42 + 1e-9
