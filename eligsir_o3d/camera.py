@@ -75,9 +75,16 @@ class Camera:
         u, v, z = u[valid], v[valid], z[valid]
         return self.unproject(u, v, z), (v.long() * w + u.long())
 
-    def unproject(self, us: torch.Tensor, vs: torch.Tensor, z: torch.Tensor, T_world_cam=None) -> torch.Tensor:
+    def unproject(self, us, vs, z, T_world_cam=None):
         """Points [M, 3] at pixels (``us``, ``vs``) (centres at integers) and depths ``z`` [M] metres: in the camera
-        frame, or in the world frame with ``T_world_cam``. The package's one back-projection."""
+        frame, or in the world frame with ``T_world_cam``. The package's one back-projection: torch tensors give a
+        float32 tensor, numpy arrays a float64 array."""
+        if isinstance(z, np.ndarray):
+            pts = np.stack([(us - self.cx) * z / self.fx, (vs - self.cy) * z / self.fy, z], axis=1).astype(np.float64)
+            if T_world_cam is None:
+                return pts
+            T = np.asarray(T_world_cam, dtype=np.float64)
+            return pts @ T[:3, :3].T + T[:3, 3]
         pts = torch.stack([(us.float() - self.cx) * z / self.fx, (vs.float() - self.cy) * z / self.fy, z], -1)
         if T_world_cam is None:
             return pts

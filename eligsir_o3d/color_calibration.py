@@ -148,7 +148,7 @@ def _prepare(seq, pairs: list[tuple[int, int]], stride: int, k: int, depth_max: 
         z = di[v, u]
         ok = (z > 0) & (z < depth_max)
         u, v, z = u[ok], v[ok], z[ok]
-        X_di = np.stack([(u - dcam.cx) * z / dcam.fx, (v - dcam.cy) * z / dcam.fy, z], axis=1).astype(np.float64)
+        X_di = dcam.unproject(u, v, z)
         # depth-camera poses (the sequence's are the colour camera's when it has a rig): T_wd = T_wc @ T_cd
         T_ji = invert_pose(seq.poses[j] @ T_cd) @ (seq.poses[i] @ T_cd)
         X_dj = X_di @ T_ji[:3, :3].T + T_ji[:3, 3]

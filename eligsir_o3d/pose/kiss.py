@@ -69,7 +69,7 @@ class KissICPSource(PoseSource):
         z = d[v, u].astype(np.float64)
         u = u * self.stride
         v = v * self.stride
-        pts = np.stack([(u - camera.cx) * z / camera.fx, (v - camera.cy) * z / camera.fy, z], axis=1)
+        pts = camera.unproject(u, v, z)
         if len(pts) < self.min_points:
             raise TrackingLost(f"frame {index}: only {len(pts)} valid depth points in "
                                f"[{self.config.data.min_range:g}, {self.config.data.max_range:g}] m "
