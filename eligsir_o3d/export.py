@@ -260,8 +260,7 @@ def export_from_ply(map_ply: str | Path, mesh_path: str | Path | None = None, cl
         background = torch.zeros(3, device=gmap.device)
 
         def render_fn(cam: Camera, T: np.ndarray):
-            centre = torch.as_tensor(T[:3, 3], dtype=torch.float32, device=gmap.device)
-            return rend.render(*gmap.render_args(centre), cam, T, background)
+            return rend.render(*gmap.render_args(), cam, T, background)
 
         mesh = extract_triangle_mesh(render_fn, poses, camera.scaled(render_scale), voxel_size=voxel_size,
                                      depth_max=mesh_depth_max)

@@ -189,12 +189,11 @@ class GaussianMap:
             if "optimizers" in state:
                 self.optimizers[n].load_state_dict(state["optimizers"][n])
 
-    def render_args(self, cam_center: torch.Tensor | None = None) -> tuple:
+    def render_args(self) -> tuple:
         """(means, quats, scales, opacities, colors) in activated units, as every renderer takes them.
 
         colors: [N, 3] RGB at sh_degree 0, else the SH coefficients [N, K, 3], which every renderer evaluates for
-        the pose it renders (gsplat in its own kernel). ``cam_center`` is accepted for older callers and not needed:
-        the renderer's pose fixes the viewing directions.
+        the pose it renders (gsplat in its own kernel): the renderer's pose fixes the viewing directions.
         """
         colors = self.colors() if self.sh_degree == 0 else self.sh
         return self.means, self.quats, self.scales, self.opacities, colors

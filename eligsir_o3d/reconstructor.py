@@ -191,8 +191,7 @@ class Reconstructor:
 
     # ---- rendering -------------------------------------------------------------------------------------
     def _render(self, camera: Camera, T_world_cam) -> RenderOutput:
-        cam_center = torch.as_tensor(np.asarray(T_world_cam)[:3, 3], dtype=torch.float32, device=self.device)
-        return self.renderer.render(*self.gmap.render_args(cam_center), camera, T_world_cam, self._background)
+        return self.renderer.render(*self.gmap.render_args(), camera, T_world_cam, self._background)
 
     @torch.no_grad()
     def render(self, pose, intrinsic: o3d.camera.PinholeCameraIntrinsic | Camera | None = None,

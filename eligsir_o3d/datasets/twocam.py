@@ -32,11 +32,6 @@ class TwoCameras:
         c, d = self.color_intrinsic, self.depth_intrinsic
         return c if self.registered or c.width <= d.width else c.scaled(d.width / c.width)
 
-    @property
-    def frame_camera(self) -> Camera:
-        """The camera of the frames the sequence returns: the colour camera (depth registered into it)."""
-        return self.color_camera
-
     def sequence_kwargs(self, poses_of: str = "depth") -> dict:
         """Keyword arguments for :class:`~.base.RGBDSequence`: the depth camera as read, and, unless depth is
         already aligned, the colour camera that depth is registered into at read time."""

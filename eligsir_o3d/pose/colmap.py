@@ -24,7 +24,6 @@ Frames COLMAP did not register raise TrackingLost.
 
 from __future__ import annotations
 
-import shutil
 import tempfile
 import warnings
 from pathlib import Path

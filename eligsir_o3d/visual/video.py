@@ -126,8 +126,7 @@ def map_render_fn(gmap, renderer: str = "auto", device: str = "cpu", background=
     bg = torch.tensor(background, dtype=torch.float32, device=gmap.device)
 
     def render_fn(cam: Camera, T: np.ndarray):
-        centre = torch.as_tensor(np.asarray(T)[:3, 3], dtype=torch.float32, device=gmap.device)
-        return rend.render(*gmap.render_args(centre), cam, T, bg)
+        return rend.render(*gmap.render_args(), cam, T, bg)
 
     return render_fn
 
