@@ -20,7 +20,8 @@ from typing import Iterator
 import numpy as np
 
 from .config import Config
-from .frame import Frame, FrameError
+from .frame import Frame
+from .frame_faults import BAD_FRAME_ERRORS, frame_fault
 
 log = logging.getLogger("eligsir_o3d")
 
@@ -127,6 +128,7 @@ class MappingPipeline:
     def open(self) -> None:
         from .datasets import open_sequence
         from .eval import HeldoutEvaluator
+        from .frame_faults import read_heldout
 
         self.out.mkdir(parents=True, exist_ok=True)
         seq = self.seq = open_sequence(self.path, **(self.opts.sequence_options or {}))
@@ -145,7 +147,8 @@ class MappingPipeline:
         self.pose_name = pose_source_name(self.opts.pose, seq)  # what metrics.json names
         self.pose_source = _pose_source(self.opts.pose, seq)
         log.info("loading %d held-out views", len(self.held))
-        self.heldout_frames = [seq.frame(i, depth_max=self.config.depth_max) for i in self.held]
+        self.heldout_frames, self.heldout_skipped = read_heldout(seq, self.held, self.config.depth_max,
+                                                                 self.config.clock.on_bad_frame)  # unreadable: dropped
         self.evaluator = HeldoutEvaluator(self.heldout_frames, sample_stride=self.opts.eval_sample_stride,
                                           checkpoint_ssim=self.opts.eval_ssim_at_checkpoints)
 
@@ -233,12 +236,8 @@ class MappingPipeline:
                     rec.stats.excluded_s += dt
                 if self.pose_source is not None:
                     frame.T_world_cam = rec.track(frame, gt_pose=None if seq.poses is None else seq.poses[i])
-            except (FrameError, ValueError, OSError, RuntimeError) as e:
-                if self.config.clock.on_bad_frame == "stop":
-                    raise
-                msg = str(e) if str(e).startswith(f"frame {i}") else f"frame {i}: {e}"
-                log.warning("skipping %s", msg)
-                self.skipped.append(msg)
+            except BAD_FRAME_ERRORS as e:  # skipped and reported, or the run stops (clock.on_bad_frame)
+                self.skipped.append(frame_fault(i, e, self.config.clock.on_bad_frame))
                 continue
             self.trajectory[i] = (frame.timestamp, frame.T_world_cam)
             yield frame

@@ -1,19 +1,25 @@
 """The results folder of a run (ARCHITECTURE.md's contract): map.ply, trajectory.txt, config.json (the resolved
 config), run.json (the sequence, the run options and the camera: with config.json, everything a rerun needs),
-metrics.json and plots.
+metrics.json (the summary a user reads), cells.json (the final per-cell table of the regional evaluation),
+fidelity_trace.csv (Load-Adaptive Fidelity's decisions, one row per update) and plots. metrics.json names the
+side files it comes with in ``files`` (read them with :func:`read_cells`, :func:`read_fidelity_trace`).
 
     eligsir map --rerun runs/kitchen --out runs/kitchen-again     # the same run again, from the folder alone
 """
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 
 RUN_FILE = "run.json"  # read back by pipeline.read_run
+CELLS_FILE = "cells.json"
+FIDELITY_TRACE_FILE = "fidelity_trace.csv"
 
 
 def collect_metrics(p) -> dict:
@@ -61,14 +67,15 @@ def collect_metrics(p) -> dict:
         "policies": rec.policy_counters(),
         "dropped_frames": report.dropped,
         "skipped_frames": p.skipped + list(report.skipped_bad),
+        "heldout_skipped": list(getattr(p, "heldout_skipped", [])),  # unreadable held-out frames: index, file, reason
         "peak_rss_mb": peak_rss_mb(),
         "curve": p.evaluator.curve,
-        "cells": final.get("cells"),
         "per_view": final.get("per_view"),
+        # the side files written beside metrics.json (write_results): the cell table and the fidelity trace
+        "files": {k: f for k, f, present in (("cells", CELLS_FILE, final.get("cells") is not None),
+                                             ("fidelity_trace", FIDELITY_TRACE_FILE,
+                                              bool(getattr(rec.fidelity, "trace", None)))) if present},
     }
-    trace = getattr(rec.fidelity, "trace", None)
-    if trace:
-        metrics["fidelity_trace"] = trace
     return metrics
 
 
@@ -92,29 +99,62 @@ def write_results(p, metrics: dict) -> None:
            "camera": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                       "cy": cam.cy}}
     (out / RUN_FILE).write_text(json.dumps(jsonable(run), indent=2))
+    write_side_files(out, p.final.get("cells"), getattr(rec.fidelity, "trace", None))
     (out / "metrics.json").write_text(json.dumps(jsonable(metrics), indent=1))
     if p.opts.plots:
-        write_plots(metrics, out)
+        write_plots(metrics, out, cells=p.final.get("cells"))
 
 
-def _acquisition_time(seq, n: int) -> float:
-    ts = np.asarray(seq.timestamps[:n], dtype=np.float64)
-    if len(ts) < 2:
-        return 0.0
-    return float(ts[-1] - ts[0] + (ts[-1] - ts[0]) / (len(ts) - 1))
+def write_side_files(out: Path, cells: dict | None, trace: list[dict] | None) -> None:
+    """cells.json (the final cell table, as :meth:`HeldoutEvaluator.final` returns it) and fidelity_trace.csv
+    (one row per recorded fidelity decision, a column per field), each only when there is data for it."""
+    if cells is not None:
+        (out / CELLS_FILE).write_text(json.dumps(jsonable(cells), separators=(",", ":")))
+    if trace:
+        fields = list(dict.fromkeys(k for row in trace for k in row))
+        with open(out / FIDELITY_TRACE_FILE, "w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=fields)
+            w.writeheader()
+            w.writerows({k: "" if v is None else v for k, v in jsonable(row).items()} for row in trace)
 
 
-def jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [jsonable(v) for v in x]
-    if isinstance(x, (np.floating, float)):
-        return None if not math.isfinite(float(x)) else float(x)
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.ndarray):
-        return jsonable(x.tolist())
-    if hasattr(x, "item") and callable(x.item):
-        return jsonable(x.item())
-    return x
+def _side_file(folder, key: str, default: str) -> Path:
+    folder = Path(folder)
+    try:
+        name = (json.loads((folder / "metrics.json").read_text()).get("files") or {}).get(key, default)
+    except (OSError, ValueError):
+        name = default
+    return folder / name
+
+
+def read_cells(folder) -> dict | None:
+    """The final cell table of a results folder (its cells.json), or None when the run wrote none."""
+    path = _side_file(folder, "cells", CELLS_FILE)
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except ValueError as e:
+        raise ValueError(f"{path}: not a readable cell table ({e})") from None
+
+
+def read_fidelity_trace(folder) -> list[dict]:
+    """The fidelity trace of a results folder (its fidelity_trace.csv) as a list of dicts of numbers (empty
+    fields are None); [] when the run wrote none (e.g. the fidelity policy was ablated)."""
+    path = _side_file(folder, "fidelity_trace", FIDELITY_TRACE_FILE)
+    if not path.is_file():
+        return []
+    with open(path, newline="") as f:
+        try:
+            return [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        except (ValueError, csv.Error) as e:
+            raise ValueError(f"{path}: not a readable fidelity trace ({e})") from None
+
+
+def _number(text: str | None):
+    if text is None or text == "":
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        return float(text)

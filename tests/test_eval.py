@@ -263,8 +263,8 @@ def test_plots_are_written(tmp_path):
     ev.checkpoint(split_render(0.0625, 0.125), t_s=2.0, progress=1.0, updates=100, supervised_mpix=1.0,
                   gaussians=5)
     final = ev.final(split_render(0.0625, 0.125))
-    metrics = {"curve": ev.curve, "heldout": {"psnr": final["psnr"]}, "cells": final["cells"]}
-    paths = write_plots(metrics, tmp_path / "plots")
+    metrics = {"curve": ev.curve, "heldout": {"psnr": final["psnr"]}}
+    paths = write_plots(metrics, tmp_path / "plots", cells=final["cells"])
     names = {p.name for p in paths}
     assert {"heldout_quality_vs_time.png", "heldout_quality_vs_progress.png", "cuc20_vs_progress.png",
             "cell_psnr_topdown.png"} <= names

@@ -145,10 +145,9 @@ def format_table(rows: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
-def plot_fidelity_trace(results: dict[str, dict], path: Path) -> Path | None:
-    """Backlog, chosen scale and cumulative supervised pixels over updates (the paper's Fig. 6)."""
-    full = results.get("full") or {}
-    trace = full.get("fidelity_trace")
+def plot_fidelity_trace(results: dict[str, dict], path: Path, trace: list[dict]) -> Path | None:
+    """Backlog, chosen scale and cumulative supervised pixels over updates (the paper's Fig. 6); ``trace``: the
+    full variant's fidelity trace (its results folder's fidelity_trace.csv)."""
     if not trace:
         return None
     import matplotlib
@@ -212,7 +211,10 @@ def main(argv=None) -> int:
     cmd = "python tools/ablation.py " + " ".join(sys.argv[1:] if argv is None else argv)
     (out / "table.md").write_text(f"{cmd}\n\n{table}\n")
     (out / "table.json").write_text(json.dumps({"command": cmd, "rows": rows}, indent=1))
-    fig = plot_fidelity_trace(results, out / "fidelity_trace.png")
+    from eligsir_o3d.results import read_fidelity_trace
+
+    trace = read_fidelity_trace(out / "full") if "full" in results else []
+    fig = plot_fidelity_trace(results, out / "fidelity_trace.png", trace)
     print(table)
     if fig:
         print(f"fidelity trace: {fig}")

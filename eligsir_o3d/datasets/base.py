@@ -208,7 +208,18 @@ def _read_image(path: Path, index: int, what: str) -> o3d.t.geometry.Image:
         raise DatasetError(f"frame {index}: cannot read {what} file {path}: {e}") from None
     if image.is_empty():
         raise DatasetError(f"frame {index}: {what} file {path} is corrupt or not an image")
+    if path.suffix.lower() in (".jpg", ".jpeg") and not _jpeg_complete(path):
+        # libjpeg decodes a cut-off JPEG without an error (the missing rows grey): a truncated file, not a frame
+        raise DatasetError(f"frame {index}: {what} file {path} is truncated (no JPEG end-of-image marker)")
     return image
+
+
+def _jpeg_complete(path: Path, tail: int = 64) -> bool:
+    """Whether a JPEG file ends with its end-of-image marker (FF D9), allowing a little padding after it."""
+    with open(path, "rb") as f:
+        f.seek(0, 2)
+        f.seek(max(0, f.tell() - tail))
+        return b"\xff\xd9" in f.read()
 
 
 def _check_size(image: o3d.t.geometry.Image, path: Path, index: int, what: str, camera: Camera) -> None:
