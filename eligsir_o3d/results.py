@@ -158,3 +158,26 @@ def _number(text: str | None):
         return int(text)
     except ValueError:
         return float(text)
+
+
+def _acquisition_time(seq, n: int) -> float:
+    ts = np.asarray(seq.timestamps[:n], dtype=np.float64)
+    if len(ts) < 2:
+        return 0.0
+    return float(ts[-1] - ts[0] + (ts[-1] - ts[0]) / (len(ts) - 1))
+
+
+def jsonable(x):
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [jsonable(v) for v in x]
+    if isinstance(x, (np.floating, float)):
+        return None if not math.isfinite(float(x)) else float(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.ndarray):
+        return jsonable(x.tolist())
+    if hasattr(x, "item") and callable(x.item):
+        return jsonable(x.item())
+    return x
