@@ -37,6 +37,7 @@ from .frame import DEPTH_MAX, Frame
 
 FORMAT = "eligsir-checkpoint"
 VERSION = 1
+MIN_VERSION = 1  # the oldest format this version reads (no conversion from older ones)
 
 
 class CheckpointError(ValueError):
@@ -110,9 +111,17 @@ def read_checkpoint(path: str | Path, *, sequence=None) -> dict:
                               f"{type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}") from None
     if not isinstance(raw, dict) or raw.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not an eligsir_o3d checkpoint")
-    if int(raw.get("version", 0)) > VERSION:
-        raise CheckpointError(f"{path}: checkpoint version {raw['version']} is newer than this eligsir_o3d reads "
+    try:
+        version = int(raw.get("version", 0))
+    except (TypeError, ValueError):
+        raise CheckpointError(f"{path}: checkpoint version {raw.get('version')!r} is not a number") from None
+    if version > VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {version} is newer than this eligsir_o3d reads "
                               f"({VERSION}); upgrade the package")
+    if version < MIN_VERSION:
+        readable = f"{MIN_VERSION}" if MIN_VERSION == VERSION else f"{MIN_VERSION}-{VERSION}"
+        raise CheckpointError(f"{path}: checkpoint version {version} is older than this eligsir_o3d reads "
+                              f"({readable}); map the sequence again (no conversion from older ones)")
     cfg = raw.get("config", {})
     frames = _decode_frames(raw.get("frames", []), path, sequence, float(cfg.get("depth_max", DEPTH_MAX)))
     out = _unpack({k: v for k, v in raw.items() if k != "frames"}, frames)

@@ -113,7 +113,7 @@ class Config:
         """A Config from a dict (a config file's content). Unknown keys are an error naming their path and the
         nearest valid name; renamed keys of older versions (:data:`RENAMED`) are moved to their new name."""
         if not isinstance(data, dict):
-            raise ValueError(f"{where}: a config must be a JSON object, got {type(data).__name__}")
+            raise ConfigError(f"{where}: a config must be a JSON object, got {type(data).__name__}")
         return _build(cls, _migrate(copy.deepcopy(data)), where, "")
 
     @classmethod
@@ -122,18 +122,18 @@ class Config:
         try:
             data = json.loads(path.read_text())
         except (OSError, json.JSONDecodeError) as e:
-            raise ValueError(f"{path}: not a readable JSON config file ({e})") from None
+            raise ConfigError(f"{path}: not a readable JSON config file ({e})") from None
         return cls.from_dict(data, str(path))
 
 
 def _build(tp, data: Any, where: str, prefix: str):
     """Recursively rebuild dataclass ``tp`` from a dict; an unknown key is an error."""
     if not isinstance(data, dict):
-        raise ValueError(f"{where}: {prefix.rstrip('.') or 'config'} must be an object, got {data!r}")
+        raise ConfigError(f"{where}: {prefix.rstrip('.') or 'config'} must be an object, got {data!r}")
     fields = {f.name: f for f in dataclasses.fields(tp)}
     for key in data:
         if key not in fields:
-            raise ValueError(f"{where}: unknown key {prefix + key!r}{_nearest(key, fields, prefix)}")
+            raise ConfigError(f"{where}: unknown key {prefix + key!r}{_nearest(key, fields, prefix)}")
     kwargs = {}
     for name, f in fields.items():
         if name not in data:
@@ -142,10 +142,50 @@ def _build(tp, data: Any, where: str, prefix: str):
         value = data[name]
         if dataclasses.is_dataclass(default):
             value = _build(type(default), value, where, f"{prefix}{name}.")
-        elif isinstance(default, tuple) and isinstance(value, list):
-            value = tuple(value)
+        else:
+            value = _checked_value(default, value, where, prefix + name)
         kwargs[name] = value
     return tp(**kwargs)
+
+
+class ConfigError(ValueError):
+    """A config file or dict that cannot be used: the message names the file and the key."""
+
+
+def _checked_value(default: Any, value: Any, where: str, key: str) -> Any:
+    """``value`` for a key whose default is ``default``, of the default's type: an int key takes an integer (an
+    integral float such as 3e5 too), a float key a number, a str key a string, a tuple key a list of values of
+    its elements' type; a bool is neither an int nor a float here."""
+    given = value
+
+    def wrong(want: str):
+        return ConfigError(f"{where}: {key} takes {want}, got {type(given).__name__} {given!r}")
+
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise wrong("true or false")
+    elif isinstance(default, int):
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise wrong("an integer")
+    elif isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise wrong("a number")
+    elif isinstance(default, str):
+        if not isinstance(value, str):
+            raise wrong("a string")
+    elif isinstance(default, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise wrong("a list")
+        value = tuple(value)
+        kinds = {type(x) for x in default}
+        if kinds == {str} and not all(isinstance(x, str) for x in value):
+            raise wrong("a list of strings")
+        if kinds and kinds <= {int, float} and not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                     for x in value):
+            raise wrong("a list of numbers")
+    return value
 
 
 def _nearest(key: str, names, prefix: str) -> str:

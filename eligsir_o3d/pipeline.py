@@ -145,7 +145,7 @@ class MappingPipeline:
         self.config = self.config.resolve(depth_scale=float(seq.depth_scale))
         self.skipped = list(getattr(seq, "skipped_frames", ()))  # frames the reader left out (e.g. invalid poses)
         self.pose_name = pose_source_name(self.opts.pose, seq)  # what metrics.json names
-        self.pose_source = _pose_source(self.opts.pose, seq)
+        self.pose_source = _pose_source(self.opts.pose, seq, self.source)
         log.info("loading %d held-out views", len(self.held))
         self.heldout_frames, self.heldout_skipped = read_heldout(seq, self.held, self.config.depth_max,
                                                                  self.config.clock.on_bad_frame)  # unreadable: dropped
@@ -333,7 +333,7 @@ def pose_source_name(spec: str, seq) -> str:
     return spec
 
 
-def _pose_source(spec: str, seq):
+def _pose_source(spec: str, seq, frames: list[int]):
     if pose_source_name(spec, seq) != spec:  # e.g. a bag without poses
         log.info("%s has no poses: tracking with the %s pose source", seq.path, seq.default_pose)
         spec = seq.default_pose
@@ -345,6 +345,7 @@ def _pose_source(spec: str, seq):
 
     src = get_pose_source(spec, sequence=seq)
     src.prepare(seq)
+    src.check_frames(seq, frames)  # e.g. a trajectory file that ends before the source frames: an error up front
     return src
 
 

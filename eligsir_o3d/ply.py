@@ -54,6 +54,7 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu", lrs=None) -> 
     path = Path(path)
     if not path.is_file():
         raise PlyError(f"{path}: no such file")
+    _check_vertex_count(path)
     try:
         ply = PlyData.read(str(path), mmap=False)
         v = ply["vertex"]
@@ -93,3 +94,47 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu", lrs=None) -> 
             raise PlyError(f"{path}: property group '{name}' contains NaN or Inf")
     gmap.load_state_dict(state)
     return gmap
+
+
+_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+          "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def _check_vertex_count(path: Path) -> None:
+    """Raise PlyError when the vertex count in the header does not match the data after it (a truncated file, or
+    a header edited by hand). Checked for files with one element of scalar properties (a Gaussian PLY); anything
+    else is left to the PLY reader."""
+    with open(path, "rb") as f:
+        head = f.read(65536)
+        end = head.find(b"end_header")
+        if not head.startswith(b"ply") or end < 0:
+            return  # not a PLY (the reader says so)
+        start = head.index(b"\n", end) + 1 if b"\n" in head[end:] else len(head)
+        lines = head[:start].decode("ascii", "replace").splitlines()
+        f.seek(0, 2)
+        data = f.tell() - start
+        body = None
+        fmt = next((ln.split()[1] for ln in lines if ln.startswith("format ") and len(ln.split()) > 1), "")
+        if fmt == "ascii":
+            f.seek(start)
+            body = f.read()
+    elements = [ln.split() for ln in lines if ln.startswith("element ")]
+    props = [ln.split() for ln in lines if ln.startswith("property ")]
+    if len(elements) != 1 or len(elements[0]) != 3 or any(len(p) != 3 or p[1] not in _SIZES for p in props):
+        return
+    try:
+        n = int(elements[0][2])
+    except ValueError:
+        raise PlyError(f"{path}: element {elements[0][1]!r} has no valid count ({elements[0][2]!r})") from None
+    name = elements[0][1]
+    if body is not None:
+        rows = sum(1 for ln in body.splitlines() if ln.strip())
+        if rows != n:
+            raise PlyError(f"{path}: wrong {name} count: the header declares {n} but the file holds {rows} rows"
+                           f"{' (truncated?)' if rows < n else ''}")
+        return
+    row = sum(_SIZES[p[1]] for p in props)
+    if row and data != n * row:
+        raise PlyError(f"{path}: wrong {name} count: the header declares {n} ({n * row} bytes) but the file holds "
+                       f"{data} bytes of data, {data // row} whole {name} rows"
+                       f"{' (truncated?)' if data < n * row else ''}")

@@ -1,9 +1,12 @@
 """Bad input, table-driven: each case feeds one bad input to a public entry point (Reconstructor.integrate,
-render, load_ply, open_sequence / seq[i] -> integrate) and asserts a clear error naming the file, frame and field,
-and that the map already built (Gaussian parameters, counters, retained views) is unchanged. Then the CLI: a bad
-frame in a run is reported and skipped, or stops the run with a one-line error (no traceback)."""
+render, load_ply, load_state_dict of a checkpoint, open_sequence / seq[i] -> integrate, Config.load, a trajectory
+file's pose source) and asserts a clear error naming the file, frame and field, and that the map already built
+(Gaussian parameters, counters, retained views) is unchanged. Then the CLI: a bad frame in a run is reported and
+skipped, or stops the run with a one-line error (no traceback); a bad config, trajectory, checkpoint or PLY file
+ends the command with one line naming the file and the problem (exit 2)."""
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -14,9 +17,12 @@ import torch
 
 import eligsir_o3d as eo3d
 from eligsir_o3d.camera import pose_to_tum
+from eligsir_o3d.checkpoint import CheckpointError, read_checkpoint
+from eligsir_o3d.config import ConfigError
 from eligsir_o3d.datasets import DatasetError, open_sequence
 from eligsir_o3d.frame import FrameError
 from eligsir_o3d.ply import PlyError
+from eligsir_o3d.pose import TrajectoryError, get_pose_source, write_tum_trajectory
 
 W, H, N = 40, 30, 6
 
@@ -140,14 +146,61 @@ def _ply_text(text):
     return run
 
 
-def _ply_nan(rec, seq, tmp):
-    from plyfile import PlyData
+def _ply_nan(field="x", value=np.nan):
+    def run(rec, seq, tmp):
+        from plyfile import PlyData
 
-    rec.save_ply(tmp / "full.ply")
-    ply = PlyData.read(str(tmp / "full.ply"), mmap=False)
-    ply["vertex"].data["x"][0] = np.nan
-    ply.write(str(tmp / "nan.ply"))
-    rec.load_ply(tmp / "nan.ply")
+        rec.save_ply(tmp / "full.ply")
+        ply = PlyData.read(str(tmp / "full.ply"), mmap=False)
+        ply["vertex"].data[field][0] = value
+        ply.write(str(tmp / "nan.ply"))
+        rec.load_ply(tmp / "nan.ply")
+    return run
+
+
+def _ply_bytes(edit):
+    """The map's PLY with its bytes changed by ``edit(data)``, loaded back into the map."""
+    def run(rec, seq, tmp):
+        rec.save_ply(tmp / "full.ply")
+        (tmp / "bad.ply").write_bytes(edit((tmp / "full.ply").read_bytes()))
+        rec.load_ply(tmp / "bad.ply")
+    return run
+
+
+def _vertex_count(delta):
+    return lambda data: re.sub(rb"element vertex (\d+)", lambda m: b"element vertex %d" % (int(m[1]) + delta),
+                               data, count=1)
+
+
+def _config_file(data):
+    def run(rec, seq, tmp):
+        (tmp / "cfg.json").write_text(json.dumps(data))
+        eo3d.Config.load(tmp / "cfg.json")
+    return run
+
+
+def _short_trajectory(n_poses):
+    """A TUM trajectory of the first ``n_poses`` frames, as the pose source of all the sequence's frames."""
+    def run(rec, seq, tmp):
+        path = write_tum_trajectory(tmp / "short.txt", seq.timestamps[:n_poses], seq.poses[:n_poses])
+        src = get_pose_source(str(path), sequence=seq)
+        src.prepare()
+        src.check_frames(seq, range(len(seq)))
+    return run
+
+
+def _checkpoint_version(version):
+    """The map's own checkpoint with its format version changed, loaded back into the map."""
+    def run(rec, seq, tmp):
+        rec.save(tmp / "ck.pt")
+        raw = torch.load(tmp / "ck.pt", weights_only=True)
+        if version is None:
+            raw.pop("version")
+        else:
+            raw["version"] = version
+        torch.save(raw, tmp / "ck.pt")
+        rec.load_state_dict(read_checkpoint(tmp / "ck.pt"))
+    return run
 
 
 def _write(rel, data):
@@ -240,9 +293,39 @@ CASES = [
     ("PLY with a partial SH set", _ply_edit(add=[f"f_rest_{i}" for i in range(5)]), PlyError,
      r"bad\.ply: 5 f_rest_\* properties do not match any SH degree"),
     ("PLY that is not a PLY", _ply_text(b"solid cube\nendsolid\n"), PlyError, r"bad\.ply: not a readable PLY"),
-    ("PLY with NaN", _ply_nan, PlyError, r"nan\.ply: property group 'means' contains NaN"),
+    ("PLY with NaN", _ply_nan(), PlyError, r"nan\.ply: property group 'means' contains NaN"),
+    ("PLY with an infinite opacity", _ply_nan("opacity", np.inf), PlyError,
+     r"nan\.ply: property group 'opacities' contains NaN or Inf"),
     ("PLY that does not exist", lambda rec, seq, tmp: rec.load_ply(tmp / "none.ply"), PlyError,
      r"none\.ply: no such file"),
+    ("PLY truncated", _ply_bytes(lambda data: data[:-100]), PlyError,
+     r"bad\.ply: wrong vertex count: the header declares \d+ \(\d+ bytes\) but the file holds \d+ bytes of data, "
+     r"\d+ whole vertex rows \(truncated\?\)"),
+    ("PLY header declares more vertices", _ply_bytes(_vertex_count(+3)), PlyError,
+     r"bad\.ply: wrong vertex count: the header declares \d+ .*\(truncated\?\)"),
+    ("PLY header declares fewer vertices", _ply_bytes(_vertex_count(-3)), PlyError,
+     r"bad\.ply: wrong vertex count: the header declares \d+ \(\d+ bytes\) but the file holds \d+ bytes of data, "
+     r"\d+ whole vertex rows$"),
+    # --- config files ---
+    ("config file with a string for an integer", _config_file({"clock": {"updates_per_frame": "ten"}}), ConfigError,
+     r"cfg\.json: clock\.updates_per_frame takes an integer, got str 'ten'"),
+    ("config file with a bool for an integer", _config_file({"views": {"active_size": True}}), ConfigError,
+     r"cfg\.json: views\.active_size takes an integer, got bool True"),
+    ("config file with a string for a list", _config_file({"ablate": "views"}), ConfigError,
+     r"cfg\.json: ablate takes a list, got str 'views'"),
+    ("config file with a number for a string", _config_file({"clock": {"mode": 3}}), ConfigError,
+     r"cfg\.json: clock\.mode takes a string, got int 3"),
+    # --- trajectory files ---
+    ("trajectory file with fewer poses than frames", _short_trajectory(3), TrajectoryError,
+     r"short\.txt: 3 poses for 6 frames: the trajectory covers t=0\.000-0\.067 s but 3 of the frames lie outside "
+     r"it \(the first: frame 3 at t=0\.100 s\)"),
+    # --- checkpoints ---
+    ("checkpoint from a newer format version", _checkpoint_version(2), CheckpointError,
+     r"ck\.pt: checkpoint version 2 is newer than this eligsir_o3d reads \(1\); upgrade the package"),
+    ("checkpoint from an older format version", _checkpoint_version(0), CheckpointError,
+     r"ck\.pt: checkpoint version 0 is older than this eligsir_o3d reads \(1\); map the sequence again"),
+    ("checkpoint without a format version", _checkpoint_version(None), CheckpointError,
+     r"ck\.pt: checkpoint version 0 is older than this eligsir_o3d reads"),
 ]
 
 
@@ -279,3 +362,50 @@ def test_cli_skips_or_stops_on_a_bad_frame(tmp_path):
     r = runner.invoke(app, ["map", *common, "--out", str(tmp_path / "stop"), "--on-bad-frame", "stop"])
     assert r.exit_code == 2 and "Traceback" not in r.output, r.output
     assert "error: frame 3: colour file" in r.output and "000003.png is corrupt" in r.output, r.output
+
+
+def _cli_bad_file(kind, folder, tmp):
+    """(eligsir arguments, expected one-line error) for a malformed input file of ``kind``."""
+    seq = open_sequence(folder)
+    run = [str(folder), "--holdout-every", "3", "--eval-every", "0", "--updates-per-frame", "1", "--no-pictures",
+           "-q", "--out", str(tmp / "out")]
+    if kind == "config":
+        (tmp / "cfg.json").write_text(json.dumps({"views": {"active_size": "many"}}))
+        return ["map", *run, "--config", str(tmp / "cfg.json")], \
+            r"^error: .*cfg\.json: views\.active_size takes an integer, got str 'many'$"
+    if kind == "trajectory":
+        write_tum_trajectory(tmp / "short.txt", seq.timestamps[:2], seq.poses[:2])
+        return ["map", *run, "--pose", str(tmp / "short.txt")], \
+            r"^error: .*short\.txt: 2 poses for 4 frames: .* lie outside it \(the first: frame 2 at t=0\.067 s\)"
+    if kind in ("newer checkpoint", "older checkpoint"):
+        rec = eo3d.Reconstructor(seq.intrinsic, "cpu", eo3d.Config())
+        rec.save(tmp / "out" / "checkpoint.pt")
+        raw = torch.load(tmp / "out" / "checkpoint.pt", weights_only=True)
+        raw["version"] = 5 if kind == "newer checkpoint" else 0
+        torch.save(raw, tmp / "out" / "checkpoint.pt")
+        return ["map", *run, "--resume"], \
+            rf"^error: .*checkpoint\.pt: checkpoint version {raw['version']} is (newer|older) than this eligsir_o3d"
+    if kind == "PLY":
+        rec = eo3d.Reconstructor(seq.intrinsic, "cpu", eo3d.Config())
+        item = seq[0]
+        rec.integrate(item.rgbd, item.T_world_cam, timestamp=item.timestamp, updates=0)
+        rec.save_ply(tmp / "map.ply")
+        data = (tmp / "map.ply").read_bytes()
+        (tmp / "map.ply").write_bytes(data[: len(data) - 10])
+        return ["export", str(tmp / "map.ply"), "--point-cloud", str(tmp / "cloud.ply")], \
+            r"^error: .*map\.ply: wrong vertex count: the header declares \d+ .*\(truncated\?\)$"
+    raise AssertionError(kind)
+
+
+@pytest.mark.parametrize("kind", ["config", "trajectory", "newer checkpoint", "older checkpoint", "PLY"])
+def test_cli_names_a_malformed_input_file_in_one_line(folder, tmp_path, kind):
+    from typer.testing import CliRunner
+
+    from eligsir_o3d.cli import app
+
+    args, expected = _cli_bad_file(kind, folder, tmp_path)
+    r = CliRunner().invoke(app, args)
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert r.exit_code == 2 and "Traceback" not in r.output and len(lines) == 1, r.output
+    assert re.search(expected, lines[0]), lines[0]
+    assert not (tmp_path / "out" / "metrics.json").exists()

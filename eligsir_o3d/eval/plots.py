@@ -88,8 +88,8 @@ def write_plots(metrics: dict, out_dir, cells: dict | None = None) -> list[Path]
     """Write the run's PNG plots into ``out_dir`` and return their paths.
 
     metrics: a metrics.json dict; uses ``curve`` (list of checkpoint records with t_s, progress, psnr, cvq, cuc20,
-    supervised_mpix). cells: the final cell table (default: ``out_dir``'s cells.json, or ``cells`` in ``metrics``
-    as results folders of earlier versions have it). Plots:
+    supervised_mpix). cells: the final cell table (a results folder's cells.json; default: ``cells`` in
+    ``metrics``, as metrics.json of earlier versions has it). Plots:
     heldout_quality_vs_time.png, heldout_quality_vs_progress.png, heldout_quality_vs_mpix.png,
     cuc20_vs_progress.png, cell_psnr_topdown.png (paper Fig. 5). Plots whose data is absent are skipped.
     """
@@ -97,9 +97,7 @@ def write_plots(metrics: dict, out_dir, cells: dict | None = None) -> list[Path]
     out.mkdir(parents=True, exist_ok=True)
     curve = metrics.get("curve") or []
     if cells is None:
-        from ..results import read_cells
-
-        cells = read_cells(out) or metrics.get("cells") or (metrics.get("heldout") or {}).get("cells")
+        cells = metrics.get("cells") or (metrics.get("heldout") or {}).get("cells")
     threshold = float((cells or {}).get("quality_threshold", 20.0))
     paths = []
     if curve:

@@ -38,11 +38,12 @@ from typing import Any
 
 from .accuracy import plot_trajectories, trajectory_accuracy, umeyama_alignment
 from .base import PoseSource, TrackingLost
-from .trajectory import GroundTruthSource, TrajectoryFileSource, read_tum_trajectory, write_tum_trajectory
+from .trajectory import (GroundTruthSource, TrajectoryError, TrajectoryFileSource, read_tum_trajectory,
+                         write_tum_trajectory)
 
 POSE_SOURCES = ("gt", "odometry", "kiss-icp", "colmap")
 
-__all__ = ["PoseSource", "TrackingLost", "get_pose_source", "read_tum_trajectory", "write_tum_trajectory",
+__all__ = ["PoseSource", "TrackingLost", "TrajectoryError", "get_pose_source", "read_tum_trajectory", "write_tum_trajectory",
            "trajectory_accuracy", "umeyama_alignment", "plot_trajectories", "POSE_SOURCES"]
 
 

@@ -57,6 +57,11 @@ class PoseSource(ABC):
             self.seconds += time.perf_counter() - t0
             self.cpu_seconds += time.process_time() - c0
 
+    def check_frames(self, sequence: Any, indices) -> None:
+        """Raise ValueError, before mapping starts, when this source cannot pose the frames ``indices`` of
+        ``sequence`` at all (a trajectory file that ends before them). Default: nothing to check; a frame the
+        source fails on later raises :class:`TrackingLost` and is skipped."""
+
     def track(self, index: int, timestamp: float, color: torch.Tensor, depth: torch.Tensor, camera: Camera,
               gt_pose: np.ndarray | None = None) -> np.ndarray:
         """Camera-to-world pose [4, 4] float64 of one frame.

@@ -17,6 +17,10 @@ from ..camera import check_pose, pose_to_tum
 from .base import PoseSource, TrackingLost
 
 
+class TrajectoryError(ValueError):
+    """A trajectory file that cannot pose the frames it is given for (names the file and the frames)."""
+
+
 def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, list[np.ndarray]]:
     """(timestamps [N] float64, camera-to-world poses [4, 4] list) of a TUM file.
 
@@ -86,6 +90,23 @@ class TrajectoryFileSource(PoseSource):
         self.max_diff = float(max_diff)
         self.timestamps, self.poses = read_tum_trajectory(self.path)
         self.name = f"file:{self.path.name}"
+
+    def check_frames(self, sequence, indices) -> None:
+        """Raise :class:`TrajectoryError` when frames of ``indices`` lie before the file's first pose or after its
+        last one (more than ``max_diff``): the file has fewer poses than the frames to map (a gap inside its span
+        is a lost frame, skipped when met)."""
+        stamps = np.asarray(getattr(sequence, "timestamps", []), dtype=np.float64)
+        idx = [int(i) for i in indices if 0 <= int(i) < len(stamps)]
+        if not idx:
+            return
+        t0, t1 = float(self.timestamps[0]), float(self.timestamps[-1])
+        out = [i for i in idx if not t0 - self.max_diff <= stamps[i] <= t1 + self.max_diff]
+        if out:
+            raise TrajectoryError(
+                f"{self.path}: {len(self.poses)} poses for {len(idx)} frames: the trajectory covers t={t0:.3f}-"
+                f"{t1:.3f} s but {len(out)} of the frames lie outside it (the first: frame {out[0]} at "
+                f"t={stamps[out[0]]:.3f} s); map fewer frames (--max-frames) or give a trajectory of the whole "
+                f"sequence")
 
     def _track(self, index, timestamp, color, depth, camera, gt_pose):
         j, diff = nearest_index(self.timestamps, timestamp)
