@@ -7,6 +7,7 @@ import pytest
 
 from eligsir_o3d import Config
 from eligsir_o3d.pipeline import RunOptions, heldout_indices, run_mapping
+from eligsir_o3d.results import read_cells, read_fidelity_trace
 
 
 def _cfg():
@@ -63,6 +64,16 @@ def test_results_folder_contract_and_heldout_never_supervise(tmp_path, monkeypat
     assert len(saved["curve"]) >= 4 and saved["curve"][-1]["progress"] == pytest.approx(1.0)
     lines = [ln for ln in (tmp_path / "trajectory.txt").read_text().splitlines() if not ln.startswith("#")]
     assert len(lines) == 12 and len(lines[0].split()) == 8
+    # metrics.json is the summary; the cell table and the fidelity trace are side files it names
+    assert "cells" not in saved and "fidelity_trace" not in saved and saved["heldout_skipped"] == []
+    assert saved["files"] == {"cells": "cells.json", "fidelity_trace": "fidelity_trace.csv"} and m == saved
+    cells = read_cells(tmp_path)
+    assert cells["keys"] and len(cells["q"]) == len(cells["keys"]) and cells["cell_size"] > 0
+    assert (tmp_path / "cell_psnr_topdown.png").is_file()  # plotted from the cell table
+    trace = read_fidelity_trace(tmp_path)
+    assert [r["update"] for r in trace] == list(range(1, saved["updates"] + 1))
+    assert trace[-1]["supervised_mpix"] == pytest.approx(saved["supervised_mpix"])
+    assert {"backlog", "backlog_ema", "scale", "seconds"} <= set(trace[0])
 
 
 def test_evaluation_time_is_not_mapping_time(tmp_path, monkeypatch):
