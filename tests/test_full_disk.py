@@ -164,3 +164,37 @@ def test_a_full_disk_at_each_final_output_keeps_the_old_file_writes_the_rest_and
         assert any(first in f and ENOSPC in f for f in metrics["write_failures"]), metrics["write_failures"]
     assert not list(out.rglob(".*.tmp"))  # no temporary file left behind
     assert not (out / "eligsir.lock").exists()  # the lock is released on this error too
+
+
+def test_a_flythrough_that_cannot_be_written_whole_keeps_the_old_one(tmp_path, monkeypatch):
+    """OpenCV's video writer ignores write errors: the file is fsynced and read back before it replaces the old."""
+    import numpy as np
+
+    from eligsir_o3d.visual.video import VideoWriter, _commit_video
+
+    def video(n):
+        w = VideoWriter(tmp_path / "flythrough.mp4", 24)
+        for k in range(n):
+            w.write(np.full((48, 64, 3), 20 * k, np.uint8))
+        return w
+
+    path = video(3).close()
+    old = path.read_bytes()
+    real_fsync = os.fsync
+
+    def fsync(fd):
+        if os.readlink(f"/proc/self/fd/{fd}").endswith(".flythrough.tmp.mp4"):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    with pytest.raises(WriteFailed, match=rf"^cannot write {path}: \[Errno {errno.ENOSPC} ENOSPC\]"):
+        video(5).close()
+    monkeypatch.undo()
+    w = video(5)  # the disk filled while OpenCV wrote: a truncated file, no error from OpenCV
+    w._writer.release()
+    with open(w._tmp, "r+b") as f:
+        f.truncate(w._tmp.stat().st_size // 2)
+    with pytest.raises(WriteFailed, match=rf"^cannot write {path}: 5 frames written, [0-4] readable"):
+        _commit_video(w._tmp, path, 5)
+    assert path.read_bytes() == old and sorted(p.name for p in tmp_path.iterdir()) == ["flythrough.mp4"]
