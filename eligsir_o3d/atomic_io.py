@@ -79,7 +79,8 @@ def _fsync_dir(folder: Path) -> None:
 def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:
     """Write ``path`` through ``write(f)`` (``f`` an open binary file) atomically: temporary file in the same
     folder, flush, fsync, ``os.replace``. On any failure the temporary file is removed, ``path`` keeps its previous
-    content, and OS errors (also wrapped in a library's RuntimeError) are raised as :class:`WriteFailed` (KeyboardInterrupt passes unchanged)."""
+    content, and OS errors (also wrapped in a library's RuntimeError) are raised as :class:`WriteFailed`
+    (KeyboardInterrupt and other exceptions pass unchanged)."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:

@@ -99,7 +99,8 @@ def write_results(p, metrics: dict) -> None:
     outputs.stage(out / RUN_FILE, atomic_write_text, out / RUN_FILE, json.dumps(jsonable(run), indent=2))
     metrics["checkpoint_failures"] = p.checkpoints.failures
     metrics["write_failures"] = outputs.messages()  # what failed before metrics.json
-    outputs.stage(out / "metrics.json", atomic_write_text, out / "metrics.json", json.dumps(jsonable(metrics), indent=1))
+    outputs.stage(out / "metrics.json", atomic_write_text, out / "metrics.json",
+                  json.dumps(jsonable(metrics), indent=1))
     if p.opts.plots:
         outputs.stage(out, write_plots, metrics, out)
     outputs.finish(metrics)
