@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import os
 import time
 import weakref
 from pathlib import Path
@@ -32,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from .atomic_io import atomic_write
 from .camera import Camera
 from .frame import DEPTH_MAX, Frame
 
@@ -72,27 +72,9 @@ def _serialize(payload: dict, f) -> None:
 
 
 def _atomic_write(path: Path, payload: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    for stale in path.parent.glob(f".{path.name}.*.tmp"):  # left by a writer that was killed
-        stale.unlink(missing_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            _serialize(payload, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    try:  # make the rename itself durable
-        fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-    except OSError:
-        pass
+    """Temporary file in the same folder, fsync, ``os.replace`` (:func:`.atomic_io.atomic_write`): a failed write
+    (full disk, I/O error) raises :class:`~.atomic_io.WriteFailed` and leaves the previous checkpoint intact."""
+    atomic_write(path, lambda f: _serialize(payload, f))
 
 
 # ---- load --------------------------------------------------------------------------------------------------

@@ -101,6 +101,8 @@ def map_cmd(
                                          rich_help_panel=OUTPUT),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoint.pt of an interrupted run.",
                                 rich_help_panel=OUTPUT),
+    force_unlock: bool = typer.Option(False, "--force-unlock", help="Take over OUT/eligsir.lock although another "
+                                      "host's run holds it (make sure that run has ended).", rich_help_panel=OUTPUT),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.", rich_help_panel=OUTPUT),
     device: Optional[str] = typer.Option(None, help="'cpu', 'cuda:0' or 'CUDA:0' (default: the config's, cpu).",
                                          rich_help_panel=MAPPER),
@@ -190,13 +192,14 @@ def map_cmd(
                 seq_opts["register"] = False
             opts.sequence_options = seq_opts or None
             out = out or Path("runs/map")
+        opts.force_unlock = force_unlock
         if view:
             opts.view = _live_view(view_host, view_port)
         m = run_mapping(path, out, cfg, opts)
     except (ValueError, OSError, RuntimeError) as e:
         if opts is not None and opts.view is not None:
             opts.view.close()
-        _fail(str(e))
+        _fail(str(e), getattr(e, "exit_code", 2))  # 3: a results file not written, 4: OUT in use by another run
     _summary(m, out)
     if opts.view is not None:
         opts.view.show_results(out)

@@ -13,10 +13,10 @@ from typing import List, Optional
 import typer
 
 
-def fail(msg: str) -> None:
-    """One red line on stderr and exit status 2: how every command reports bad input."""
+def fail(msg: str, code: int = 2) -> None:
+    """One red line on stderr and exit status 2: how every command reports bad input (README: exit codes)."""
     typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
-    raise typer.Exit(2)
+    raise typer.Exit(code)
 
 
 _fail = fail

@@ -106,7 +106,9 @@ class Config:
         return dataclasses.asdict(self)
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=2))
+        from .atomic_io import atomic_write_text
+
+        atomic_write_text(path, json.dumps(self.to_dict(), indent=2))  # a full disk leaves the old file intact
 
     @classmethod
     def from_dict(cls, data: dict, where: str = "config") -> "Config":

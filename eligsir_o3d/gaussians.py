@@ -7,6 +7,7 @@ rewrites parameters and optimizer moments together (the gsplat strategy-ops patt
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import torch
@@ -177,8 +178,10 @@ class GaussianMap:
     def state_dict(self) -> dict:
         return {
             "sh_degree": self.sh_degree,
-            "params": {n: p.detach().cpu() for n, p in self.params.items()},
-            "optimizers": {n: o.state_dict() for n, o in self.optimizers.items()},
+            # copies: on the CPU .cpu() and Adam's state_dict() share memory with the live tensors, which the next
+            # update changes in place (a state taken, then mapped on, would change under its holder)
+            "params": {n: p.detach().cpu().clone() for n, p in self.params.items()},
+            "optimizers": {n: copy.deepcopy(o.state_dict()) for n, o in self.optimizers.items()},
         }
 
     def load_state_dict(self, state: dict) -> None:

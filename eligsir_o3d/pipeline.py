@@ -22,6 +22,9 @@ import numpy as np
 from .config import Config
 from .frame import Frame
 from .frame_faults import BAD_FRAME_ERRORS, frame_fault
+from .resume_check import apply_new_settings, check_resume, run_record
+from .runlock import RunLock
+from .safe_outputs import Outputs, PeriodicCheckpoints
 
 log = logging.getLogger("eligsir_o3d")
 
@@ -45,6 +48,7 @@ class RunOptions:
     offline_reference: bool = False  # all source frames available at once, long full-resolution schedule
     checkpoint_every: int = 0  # frames between checkpoints (0 = none)
     resume: bool = False
+    force_unlock: bool = False  # take over another host's lock on the results folder (eligsir map --force-unlock)
     plots: bool = True
     pictures: bool = True  # heldout/*.png comparisons and flythrough.mp4 (eligsir_o3d.visual.results)
     view: object | None = None  # a live viewer (eligsir_o3d.visual.live.LiveView) fed while mapping; not recorded
@@ -115,8 +119,14 @@ class MappingPipeline:
         self.decode_s = 0.0
         self.start = 0  # first source position to stream (after a resume)
         self.released = 0  # source frames the stream has released (dropped and unreadable ones included)
+        self.outputs = Outputs()  # a file that cannot be written (full disk) loses nothing, stops no mapping
+        self.checkpoints = PeriodicCheckpoints(self.out / "checkpoint.pt", self.opts.checkpoint_every)
 
     def run(self) -> dict:
+        with RunLock(self.out, force=self.opts.force_unlock):  # one run per results folder
+            return self._run()
+
+    def _run(self) -> dict:
         self.open()  # the sequence, the held-out split, the pose source, the evaluator
         self.build()  # the Reconstructor: fresh, or restored from OUT/checkpoint.pt
         self.stream()  # the clock releases the source frames to the mapper
@@ -195,7 +205,9 @@ class MappingPipeline:
         from .reconstructor import Reconstructor
 
         ck = read_checkpoint(ck_path, sequence=self.seq)
+        check_resume(self.out, ck, self.config, self._run_record())  # another config or split: refused
         rec = Reconstructor.from_checkpoint(ck, self.config.device, pose_source=self.pose_source, setup=setup)
+        apply_new_settings(rec.config, self.config)
         extra = ck.get("extra") or {}
         self.start = int(extra.get("next_source", 0))
         self.released = self.start
@@ -273,9 +285,14 @@ class MappingPipeline:
     def _save_state(self, next_source: int) -> None:
         t0 = time.perf_counter()
         extra = {"next_source": next_source, "skipped": self.skipped, "curve": self.evaluator.curve,
-                 "trajectory": [[i, ts, T.reshape(-1).tolist()] for i, (ts, T) in sorted(self.trajectory.items())]}
-        self.rec.save(self.out / "checkpoint.pt", extra=extra, sequence=self.seq)
+                 "trajectory": [[i, ts, T.reshape(-1).tolist()] for i, (ts, T) in sorted(self.trajectory.items())],
+                 "run": self._run_record()}
+        self.checkpoints.save(lambda: self.rec.save(self.out / "checkpoint.pt", extra=extra, sequence=self.seq),
+                              next_source)  # a failed write warns and mapping goes on (retried next interval)
         self.rec.stats.excluded_s += time.perf_counter() - t0  # checkpoint I/O is not mapping time
+
+    def _run_record(self) -> dict:  # the settings a resume must share (held-out split, pose source)
+        return run_record(self.held, self.pose_name, self.opts.offline_reference)
 
     # ---- drain ---------------------------------------------------------------------------------------------
     def drain(self) -> None:
@@ -304,7 +321,7 @@ class MappingPipeline:
     def evaluate(self) -> None:
         self.released = len(self.source)  # the stream has ended: every source frame was released
         self._checkpoint(self.rec)  # the curve ends at the evaluated map state (p = 1)
-        self.accuracy = _trajectory_accuracy(self.seq, self.trajectory, self.out, self.opts) \
+        self.accuracy = _trajectory_accuracy(self.seq, self.trajectory, self.out, self.opts, self.outputs) \
             if self.pose_source is not None else {}
         if self.accuracy:
             from .pose.accuracy import pose_alignment
@@ -365,7 +382,7 @@ def _offline_setup(n_source: int):
     return setup
 
 
-def _trajectory_accuracy(seq, trajectory: dict, out: Path, opts: RunOptions) -> dict:
+def _trajectory_accuracy(seq, trajectory: dict, out: Path, opts: RunOptions, outputs) -> dict:
     """ATE/RPE of the tracked source trajectory against the sequence's ground truth, and a top-view plot."""
     if seq.poses is None or len(trajectory) < 3:
         return {}
@@ -375,8 +392,8 @@ def _trajectory_accuracy(seq, trajectory: dict, out: Path, opts: RunOptions) -> 
     gt = {float(seq.timestamps[i]): seq.poses[i] for i in trajectory}
     acc = trajectory_accuracy(est, gt, return_alignment=True)
     if opts.plots:
-        plot_trajectories(out / "trajectory_topview.png", {"gt": gt, opts.pose: est}, reference="gt",
-                          title=f"ATE {acc['ate_rmse_m'] * 100:.2f} cm")
+        outputs.stage(out / "trajectory_topview.png", plot_trajectories, out / "trajectory_topview.png",
+                      {"gt": gt, opts.pose: est}, reference="gt", title=f"ATE {acc['ate_rmse_m'] * 100:.2f} cm")
     return acc
 
 

@@ -6,12 +6,12 @@ scale, wxyz quaternion, f_rest stored channel-major (all R coefficients, then G,
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from .atomic_io import atomic_write
 from .gaussians import GaussianMap
 
 
@@ -38,13 +38,8 @@ def save_ply(gmap: GaussianMap, path: str | Path) -> Path:
     arr = np.empty(n, dtype=[(name, "f4") for name, _ in cols])
     for name, v in cols:
         arr[name] = v
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        PlyData([PlyElement.describe(arr, "vertex")], comments=[f"sh_degree {gmap.sh_degree}"]).write(f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)  # atomic: a crash mid-write leaves the previous file intact
-    return path
+    ply = PlyData([PlyElement.describe(arr, "vertex")], comments=[f"sh_degree {gmap.sh_degree}"])
+    return atomic_write(path, ply.write)  # a crash or full disk mid-write leaves the previous file intact
 
 
 def load_ply(path: str | Path, device: str | torch.device = "cpu", lrs=None) -> GaussianMap:

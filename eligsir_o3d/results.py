@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 import math
 from pathlib import Path
@@ -80,42 +81,55 @@ def collect_metrics(p) -> dict:
 
 
 def write_results(p, metrics: dict) -> None:
-    """Write the results folder of pipeline ``p`` (see the module docstring)."""
+    """Write the results folder of pipeline ``p`` (see the module docstring). Every file is written atomically; a
+    file that cannot be written (full disk, I/O error) does not stop the others (:mod:`.safe_outputs`): metrics.json
+    lists it, and a :class:`~.atomic_io.WriteFailed` naming it is raised at the end."""
+    from .atomic_io import atomic_write_text
     from .eval import write_plots
     from .pose.trajectory import write_tum_trajectory
 
-    out, rec = p.out, p.rec
-    rec.save_ply(out / "map.ply")
+    out, rec, outputs = p.out, p.rec, p.outputs
+    outputs.stage(out / "map.ply", rec.save_ply, out / "map.ply")
     items = sorted(p.trajectory.items())
-    write_tum_trajectory(out / "trajectory.txt", [ts for _, (ts, _) in items], [T for _, (_, T) in items])
-    rec.config.save(out / "config.json")
+    outputs.stage(out / "trajectory.txt", write_tum_trajectory, out / "trajectory.txt",
+                  [ts for _, (ts, _) in items], [T for _, (_, T) in items])
+    outputs.stage(out / "config.json", rec.config.save, out / "config.json")
     if p.opts.pictures:
         from .visual.results import write_result_pictures
 
-        metrics["pictures"] = write_result_pictures(out, rec, p.heldout_frames, p.trajectory)
+        metrics["pictures"] = outputs.stage(out / "heldout", write_result_pictures, out, rec, p.heldout_frames,
+                                            p.trajectory)
     cam = rec.camera
     run = {"sequence": p.path, "options": {f.name: getattr(p.opts, f.name) for f in dataclasses.fields(p.opts)
-                                           if f.name not in ("resume", "progress", "view")},
+                                           if f.name not in ("resume", "progress", "view", "force_unlock")},
            "camera": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                       "cy": cam.cy}}
-    (out / RUN_FILE).write_text(json.dumps(jsonable(run), indent=2))
-    write_side_files(out, p.final.get("cells"), getattr(rec.fidelity, "trace", None))
-    (out / "metrics.json").write_text(json.dumps(jsonable(metrics), indent=1))
+    outputs.stage(out / RUN_FILE, atomic_write_text, out / RUN_FILE, json.dumps(jsonable(run), indent=2))
+    outputs.stage(out / CELLS_FILE, write_side_files, out, p.final.get("cells"), getattr(rec.fidelity, "trace", None))
+    metrics["checkpoint_failures"] = p.checkpoints.failures
+    metrics["write_failures"] = outputs.messages()  # what failed before metrics.json
+    outputs.stage(out / "metrics.json", atomic_write_text, out / "metrics.json",
+                  json.dumps(jsonable(metrics), indent=1))
     if p.opts.plots:
-        write_plots(metrics, out, cells=p.final.get("cells"))
+        outputs.stage(out, write_plots, metrics, out, cells=p.final.get("cells"))
+    outputs.finish(metrics)
 
 
 def write_side_files(out: Path, cells: dict | None, trace: list[dict] | None) -> None:
     """cells.json (the final cell table, as :meth:`HeldoutEvaluator.final` returns it) and fidelity_trace.csv
-    (one row per recorded fidelity decision, a column per field), each only when there is data for it."""
+    (one row per recorded fidelity decision, a column per field), each only when there is data for it; both written
+    atomically (a failed write leaves the previous file)."""
+    from .atomic_io import atomic_write_text
+
     if cells is not None:
-        (out / CELLS_FILE).write_text(json.dumps(jsonable(cells), separators=(",", ":")))
+        atomic_write_text(out / CELLS_FILE, json.dumps(jsonable(cells), separators=(",", ":")))
     if trace:
         fields = list(dict.fromkeys(k for row in trace for k in row))
-        with open(out / FIDELITY_TRACE_FILE, "w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=fields)
-            w.writeheader()
-            w.writerows({k: "" if v is None else v for k, v in jsonable(row).items()} for row in trace)
+        buf = io.StringIO(newline="")
+        w = csv.DictWriter(buf, fieldnames=fields)
+        w.writeheader()
+        w.writerows({k: "" if v is None else v for k, v in jsonable(row).items()} for row in trace)
+        atomic_write_text(out / FIDELITY_TRACE_FILE, buf.getvalue())
 
 
 def _side_file(folder, key: str, default: str) -> Path:

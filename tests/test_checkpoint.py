@@ -280,3 +280,19 @@ def test_policies_replaced_after_construction_must_be_replaced_again(tmp_path, s
     back = load_checkpoint(path, setup=lambda r: setattr(r, "fidelity", FixedFidelity(0.5)))
     assert back.fidelity.scale() == 0.5
     _assert_same_state(rec, back)
+
+
+def test_a_state_dict_is_a_copy_that_mapping_on_does_not_change(seq, frames):
+    rec = _rec(seq, ("fidelity",))
+    for f in frames[:3]:
+        rec.integrate(f, updates=1)
+    state = rec.gmap.state_dict()
+    params = {n: p.clone() for n, p in state["params"].items()}
+    moments = {n: [v.clone() for s in o["state"].values() for v in s.values() if torch.is_tensor(v)]
+               for n, o in state["optimizers"].items()}
+    rec.integrate(frames[3], updates=3)  # updates the live parameters and Adam moments in place
+    for n, p in state["params"].items():
+        assert torch.equal(p, params[n]), n
+    for n, o in state["optimizers"].items():
+        now = [v for s in o["state"].values() for v in s.values() if torch.is_tensor(v)]
+        assert all(torch.equal(a, b) for a, b in zip(now, moments[n])) and len(now) == len(moments[n]), n

@@ -116,7 +116,8 @@ def _run(request: dict, folder: Path, device: str | None, resume: bool) -> dict:
     cfg = Config.from_dict(request["config"])
     if device is not None:
         cfg.device = device
-    opts = RunOptions(**request["options"], resume=resume, progress=True)
+    # a retry resumes the folder of an attempt that died, maybe on another machine: its lock is taken over
+    opts = RunOptions(**request["options"], resume=resume, force_unlock=resume, progress=True)
     return run_mapping(request["path"], folder, cfg, opts)
 
 

@@ -21,8 +21,10 @@ def _figure(width: float = 6.4, height: float = 4.0):
 
 
 def _save(fig, path: Path) -> Path:
-    fig.savefig(path)  # a bare Figure renders through the Agg canvas for PNG
-    return path
+    from ..atomic_io import atomic_write
+
+    # a bare Figure renders through the Agg canvas for PNG; atomic: a full disk leaves the old plot intact
+    return atomic_write(path, lambda f: fig.savefig(f, format="png"))
 
 
 def _quality_plot(curve: list[dict], x_key: str, x_label: str, path: Path, title: str) -> Path:

@@ -187,7 +187,9 @@ def plot_trajectories(path: str | Path, trajectories: Mapping[str, Trajectory], 
     ax.grid(True, alpha=0.3)
     ax.legend()
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    from ..atomic_io import atomic_write
+
+    try:
+        return atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110, bbox_inches="tight"))
+    finally:
+        plt.close(fig)

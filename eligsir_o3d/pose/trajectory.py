@@ -50,8 +50,9 @@ def write_tum_trajectory(path: str | Path, timestamps: Sequence[float], poses: S
     for t, T in zip(timestamps, poses):
         p, q = pose_to_tum(check_pose(T, f"pose at t={float(t):.6f}"))
         lines.append(f"{float(t):.6f} " + " ".join(f"{x:.9f}" for x in (*p, *q)))
-    path.write_text("\n".join(lines) + "\n")
-    return path
+    from ..atomic_io import atomic_write_text
+
+    return atomic_write_text(path, "\n".join(lines) + "\n")
 
 
 def nearest_index(stamps: np.ndarray, t: float) -> tuple[int, float]:

@@ -109,11 +109,12 @@ def comparison_picture(ref_color, ref_depth, color, depth, alpha, title: str,
 def write_png(path: Path, rgb: np.ndarray) -> Path:
     import cv2
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[..., ::-1])):
-        raise OSError(f"could not write {path}")
-    return path
+    from ..atomic_io import atomic_write
+
+    ok, png = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
+    if not ok:
+        raise OSError(f"could not encode {path} as PNG")
+    return atomic_write(path, lambda f: f.write(png.tobytes()))  # a full disk leaves the old picture intact
 
 
 @torch.no_grad()

@@ -90,8 +90,35 @@ class VideoWriter:
         if self._writer is None:
             raise ValueError(f"{self.path}: no frames to write")
         self._writer.release()
-        self._tmp.replace(self.path)
+        _commit_video(self._tmp, self.path, self.frames)
         return self.path
+
+
+def _commit_video(tmp: Path, path: Path, frames: int) -> None:
+    """Rename the finished temporary video over ``path`` once it is on disk whole: OpenCV ignores write errors (a
+    full disk gives a truncated file), so it is fsynced and read back (its frame count) first; otherwise ``path``
+    keeps its previous content and :class:`~eligsir_o3d.atomic_io.WriteFailed` names it."""
+    import os
+
+    import cv2
+
+    from ..atomic_io import WriteFailed, write_failed
+
+    try:
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        cap = cv2.VideoCapture(str(tmp))
+        readable = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else 0
+        cap.release()
+        if readable != frames:
+            raise WriteFailed(path, f"{frames} frames written, {readable} readable (disk full?)")
+        os.replace(tmp, path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        raise write_failed(path, e) from None
 
 
 @torch.no_grad()
