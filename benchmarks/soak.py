@@ -30,7 +30,8 @@ The bound it checks (exit status 1 when one fails):
   of the map between them (when it grew). Wall-clock latency and updates/s are printed beside it.
 
 ``kitchen``: the 1,000-frame real-time replay of ``../shared/data/7scenes_redkitchen_jpg1000`` through the same
-pipeline as ``eligsir map SEQ --realtime`` (no pictures or plots unless ``--pictures``), with the RSS sampled every
+pipeline as ``eligsir map SEQ --realtime --eval-every 0`` (no pictures or plots unless ``--pictures``; held-out
+checkpoints only with ``--eval-every N``: the replay's clock stops while they render), with the RSS sampled every
 ``--sample-every`` released frames through the pipeline's per-frame hook (``RunOptions.view``, the live viewer's);
 peak RSS, dropped frames and updates at the end, and the same memory bound with ``fixed`` = RSS when the stream
 starts (held-out frames and evaluator loaded, renderer warm).
@@ -237,14 +238,19 @@ class RSSSampler:
 
     def __init__(self, every: int = 50, out=print):
         self.every, self.out = max(1, int(every)), out
-        self.released, self.samples, self.rec, self.start_rss_mb = 0, [], None, None
+        self.released, self.samples, self.rec, self.start_rss_mb, self.start_peak_mb = 0, [], None, None, None
+        self.mapping_peak_mb = None  # peak RSS at the last update (stream and drain; final evaluation excluded)
 
     def attach(self, rec) -> None:
         self.rec = rec
+        rec.callbacks.append(self._after_update)  # after every update, its time excluded like evaluation's
+
+    def _after_update(self, rec) -> None:
+        self.mapping_peak_mb = peak_rss_mb()
 
     def observe(self, frame) -> None:
         if self.start_rss_mb is None:  # the stream's first release: held-out views loaded, renderer warm
-            self.start_rss_mb = current_rss_mb()
+            self.start_rss_mb, self.start_peak_mb = current_rss_mb(), peak_rss_mb()
         self.released += 1
         if self.released % self.every == 0:
             s = {"released": self.released, "rss_mb": current_rss_mb(), "peak_rss_mb": peak_rss_mb(),
@@ -255,28 +261,36 @@ class RSSSampler:
 
 
 def kitchen(frames: int = 1000, sample_every: int = 50, path: str = KITCHEN, pictures: bool = False,
-            slack_mb: float = 64.0, out=print) -> dict:
-    """The real-time replay of ``path`` (``eligsir map path --realtime --max-frames frames``), RSS sampled."""
+            slack_mb: float = 64.0, eval_every: int = 0, out=print) -> dict:
+    """The real-time replay of ``path`` (``eligsir map path --realtime --max-frames frames --eval-every N``), RSS
+    sampled."""
     from eligsir_o3d.pipeline import MappingPipeline, RunOptions
 
     cfg = eo3d.Config()
     cfg.clock.mode = "realtime"
     sampler = RSSSampler(sample_every, out)
-    opts = RunOptions(max_frames=frames, view=sampler, progress=False, plots=pictures, pictures=pictures)
+    opts = RunOptions(max_frames=frames, view=sampler, progress=False, plots=pictures, pictures=pictures,
+                      eval_every=eval_every)
     out(caps_line(cfg))
     with tempfile.TemporaryDirectory(prefix="soak_kitchen_") as tmp:
-        pipe = MappingPipeline(str(ROOT / path) if not Path(path).is_absolute() else path, tmp, cfg, opts)
+        here = ROOT / path  # KITCHEN is relative to the repository root; "synthetic" and absolute paths pass through
+        pipe = MappingPipeline(str(here) if here.exists() else path, tmp, cfg, opts)
         m = pipe.run()
     caps = cap_allowance_mb(pipe.rec.config, pipe.rec.camera.width, pipe.rec.camera.height)
     peak = max([peak_rss_mb()] + [s["peak_rss_mb"] for s in sampler.samples])
     budget = (sampler.start_rss_mb or 0.0) + caps["gaussians_mb"] + caps["views_mb"] + slack_mb
-    res = {"frames": frames, "peak_rss_mb": peak, "start_rss_mb": sampler.start_rss_mb, "budget_mb": budget,
+    res = {"frames": frames, "peak_rss_mb": peak, "start_rss_mb": sampler.start_rss_mb,
+           "peak_before_stream_mb": sampler.start_peak_mb, "peak_mapping_mb": sampler.mapping_peak_mb,
+           "budget_mb": budget,
            "dropped_frames": m["dropped_frames"], "frames_released": m["frames_released"], "updates": m["updates"],
            "gaussians": m["gaussians"], "retained_views": m["policies"]["views"].get("retained"),
            "heldout_psnr": m["heldout"]["psnr"], "samples": sampler.samples, "caps": caps,
            "ok": peak <= budget}
     out(f"kitchen: {m['frames_released']} frames released, {m['dropped_frames']} dropped, {m['updates']} updates, "
         f"{m['gaussians']} Gaussians, {res['retained_views']} retained views, held-out PSNR {res['heldout_psnr']:.2f}")
+    out(f"before the stream (sequence opened, held-out views loaded, renderer warm): RSS {sampler.start_rss_mb:.1f} "
+        f"MiB, peak {sampler.start_peak_mb:.1f} MiB; peak at the last update (stream and drain) "
+        f"{sampler.mapping_peak_mb:.1f} MiB; at the end (final evaluation and writing included) {peak:.1f} MiB")
     out(f"memory: peak RSS {peak:.1f} MiB vs budget {budget:.1f} MiB = RSS at stream start "
         f"{sampler.start_rss_mb:.1f} + Gaussian cap {caps['gaussians_mb']:.1f} + view cap {caps['views_mb']:.1f} "
         f"+ slack {slack_mb:.0f}: {'ok' if res['ok'] else 'EXCEEDED'}")
@@ -315,13 +329,16 @@ def main(argv=None) -> int:
     k.add_argument("--path", default=KITCHEN)
     k.add_argument("--pictures", action="store_true", help="also write pictures and plots (as eligsir map does)")
     k.add_argument("--slack-mb", type=float, default=64.0)
+    k.add_argument("--eval-every", type=int, default=0, help="held-out checkpoints every N updates (default 0: only "
+                   "the final evaluation; each checkpoint renders every held-out view, which the replay waits for)")
     k.add_argument("--json", type=Path)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] not in ("synthetic", "kitchen", "-h", "--help"):
+        argv = ["synthetic", *argv]  # the synthetic soak is the default mode
     args = ap.parse_args(argv)
     if args.mode == "kitchen":
-        res = kitchen(args.frames, args.sample_every, args.path, args.pictures, args.slack_mb)
+        res = kitchen(args.frames, args.sample_every, args.path, args.pictures, args.slack_mb, args.eval_every)
     else:
-        if args.mode is None:
-            args = ap.parse_args(["synthetic", *(argv or sys.argv[1:])])
         if args.frames < 1 or args.report_every < 1:
             ap.error("--frames and --report-every must be at least 1")
         res = soak(args.frames, args.report_every, args.resolution, args.updates, args.max_gaussians,

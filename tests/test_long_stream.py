@@ -87,3 +87,15 @@ def test_soak_rejects_a_bad_resolution():
     soak = _soak_module()
     with pytest.raises(SystemExit):
         soak.main(["synthetic", "--resolution", "64by48"])
+
+
+def test_soak_kitchen_mode_samples_rss_through_the_pipeline_hook():
+    """The real-time replay half of the benchmark, on a short synthetic sequence (the same pipeline as the kitchen)."""
+    soak = _soak_module()
+    lines = []
+    res = soak.kitchen(frames=24, sample_every=5, path="synthetic", out=lines.append)
+    assert res["ok"] and res["frames_released"] == 21  # 24 frames, every 8th (offset 4) held out
+    assert [s["released"] for s in res["samples"]] == [5, 10, 15, 20]
+    assert res["start_rss_mb"] > 0 and res["peak_before_stream_mb"] <= res["peak_mapping_mb"] <= res["peak_rss_mb"]
+    assert res["peak_rss_mb"] <= res["budget_mb"] and res["updates"] > 0
+    assert any(line.startswith("memory: peak RSS") and line.endswith(": ok") for line in lines)
