@@ -50,12 +50,16 @@ class FidelityConfig:
     up_patience: int = 5  # consecutive "raise" votes before the scale goes up (one step)
     down_patience: int = 2  # consecutive "lower" votes before the scale goes down (to the fitting scale)
     trace_every: int = 1  # keep every k-th decision in ``trace``
+    # at most this many decisions in ``trace`` (0: no bound): beyond it every other one is dropped and the stride
+    # doubles, so the trace still spans the whole stream at a coarser step and a long stream's memory stays bounded
+    trace_max: int = 2000
     fixed_scale: float = 1.0  # the supervision scale when fidelity is ablated (1.0 = native, as in the paper)
 
 
 class LoadAdaptiveFidelity(FidelityPolicy):
     """Backlog- and cost-driven choice of the supervision scale, with hysteresis; ``trace`` records every
-    decision (update, backlog, scale, seconds, cumulative supervised pixels) for the paper's Fig. 6."""
+    decision (update, backlog, scale, seconds, cumulative supervised pixels) for the paper's Fig. 6, thinned to at
+    most ``trace_max`` entries on a long stream."""
 
     name = "load_adaptive"
 
@@ -81,6 +85,7 @@ class LoadAdaptiveFidelity(FidelityPolicy):
         self.supervised_pixels = 0
         self.by_scale: dict[str, int] = {}  # updates at each scale it issued; "explicit": refine()
         self.trace: list[dict] = []
+        self.trace_stride = max(1, self.cfg.trace_every)  # doubles each time the trace is thinned (trace_max)
 
     def attach(self, period_s: float | None, cost_fn: Callable[[int], float] | None = None) -> None:
         """From ``Reconstructor.set_load``: the time one frame grants (after the replay speed) and, for a
@@ -110,10 +115,13 @@ class LoadAdaptiveFidelity(FidelityPolicy):
         key = f"{self.scales[issued]:g}" if issued is not None else "explicit"
         self.by_scale[key] = self.by_scale.get(key, 0) + 1
         self._decide()
-        if self.updates % max(1, self.cfg.trace_every) == 0:
+        if self.updates % self.trace_stride == 0:
             self.trace.append({"update": self.updates, "backlog": float(backlog), "backlog_ema": self.backlog,
                                "scale": self.scales[self.level], "seconds": cost,
                                "supervised_mpix": self.supervised_pixels / 1e6})
+            if 0 < self.cfg.trace_max < len(self.trace):
+                self.trace_stride *= 2  # keep the decisions at multiples of the new stride
+                self.trace = [d for d in self.trace if d["update"] % self.trace_stride == 0]
 
     # ---- cost prediction ------------------------------------------------------------------------------------
     def granted_s(self) -> float:
@@ -184,6 +192,7 @@ class LoadAdaptiveFidelity(FidelityPolicy):
                 "gamma": self.gamma, "backlog": self.backlog, "votes": self._votes, "updates": self.updates,
                 "obs_here": self._obs_here, "before": None if self._before is None else list(self._before),
                 "supervised_pixels": self.supervised_pixels, "trace": list(self.trace),
+                "trace_stride": self.trace_stride,
                 "by_scale": dict(self.by_scale)}
 
     def load_state_dict(self, state: dict) -> None:
@@ -195,4 +204,5 @@ class LoadAdaptiveFidelity(FidelityPolicy):
         self._before = None if before is None else (int(before[0]), float(before[1]))
         self.updates, self.supervised_pixels = int(state["updates"]), int(state["supervised_pixels"])
         self.trace = list(state.get("trace", []))
+        self.trace_stride = int(state.get("trace_stride", max(1, self.cfg.trace_every)))
         self.by_scale = dict(state.get("by_scale", {}))
