@@ -27,34 +27,26 @@ from .render._cpu_kernels import _jit_serial
 
 
 @_jit_serial
-def _adam_rows(ps, gs, ms, vs, hyper, rows):
-    """Adam over every parameter in ``ps`` ([N, C] float32 arrays; ``gs``/``ms``/``vs`` the same shapes), on the
-    Gaussians (rows) where ``rows`` [N] is True (all of them when it is empty). hyper[i] = (1 - beta1, beta2,
-    1 - beta2, eps, sqrt(bias correction 2), -lr / bias correction 1) of parameter i (the complements taken in
-    float64, as torch does: 1 - float32(0.999) is 5e-5 off)."""
+def _adam_rows(ps, gs, ms, vs, hyper):
+    """Adam over the rows of every parameter in ``ps`` (flat float32 arrays; ``gs``/``ms``/``vs`` the same shapes):
+    hyper[i] = (1 - beta1, beta2, 1 - beta2, eps, sqrt(bias correction 2), -lr / bias correction 1) of parameter
+    i (the complements taken in float64, as torch does: 1 - float32(0.999) is 5e-5 off)."""
     for t in range(len(ps)):
         p, g, m, v = ps[t], gs[t], ms[t], vs[t]
         w, b2, w2, eps, bc2_sqrt, neg_step_size = hyper[t, 0], hyper[t, 1], hyper[t, 2], hyper[t, 3], hyper[t, 4], \
             hyper[t, 5]
-        every = rows.shape[0] == 0
-        for r in range(p.shape[0]):
-            if not every and not rows[r]:
-                continue
-            for i in range(p.shape[1]):
-                gi = g[r, i]
-                mi = m[r, i] + w * (gi - m[r, i])
-                vi = v[r, i] * b2 + w2 * gi * gi
-                m[r, i] = mi
-                v[r, i] = vi
-                p[r, i] = p[r, i] + neg_step_size * (mi / (np.sqrt(vi) / bc2_sqrt + eps))
+        for i in range(p.shape[0]):
+            gi = g[i]
+            mi = m[i] + w * (gi - m[i])
+            vi = v[i] * b2 + w2 * gi * gi
+            m[i] = mi
+            v[i] = vi
+            p[i] = p[i] + neg_step_size * (mi / (np.sqrt(vi) / bc2_sqrt + eps))
 
 
-def adam_step(opts, rows=None) -> None:
-    """One Adam step of each of ``opts`` (``torch.optim.Adam`` instances over float32 CPU parameters whose first
-    dimension is the Gaussians; those without a gradient are skipped), in place, in one compiled call. ``rows``
-    [N] bool: only these Gaussians move and only their moments change ("selective Adam", Taming 3DGS: the
-    Gaussians a view does not see keep their moments instead of decaying them and drifting on their momentum);
-    the step count advances for every parameter stepped, as in torch."""
+def adam_step(opts) -> None:
+    """One Adam step of each of ``opts`` (``torch.optim.Adam`` instances over float32 CPU parameters; those
+    without a gradient are skipped), in place, in one compiled call."""
     import torch
 
     ps, gs, ms, vs, hyper = [], [], [], [], []
@@ -72,42 +64,13 @@ def adam_step(opts, rows=None) -> None:
             state["step"] += 1
             step = float(state["step"])
             bc1, bc2 = 1.0 - b1 ** step, 1.0 - b2 ** step
-            n = p.shape[0]
-            ps.append(p.detach().view(n, -1).numpy())
-            gs.append(p.grad.detach().contiguous().view(n, -1).numpy())
-            ms.append(state["exp_avg"].view(n, -1).numpy())
-            vs.append(state["exp_avg_sq"].view(n, -1).numpy())
+            ps.append(p.detach().view(-1).numpy())
+            gs.append(p.grad.detach().contiguous().view(-1).numpy())
+            ms.append(state["exp_avg"].view(-1).numpy())
+            vs.append(state["exp_avg_sq"].view(-1).numpy())
             hyper.append((1.0 - b1, b2, 1.0 - b2, group["eps"], bc2 ** 0.5, -group["lr"] / bc1))
     if ps:
-        sel = np.zeros(0, np.bool_) if rows is None else rows.detach().cpu().numpy().astype(np.bool_)
-        _adam_rows(tuple(ps), tuple(gs), tuple(ms), tuple(vs), np.array(hyper, np.float32), sel)
-
-
-def adam_step_torch(opt, rows) -> None:
-    """:func:`adam_step`'s selective step for one optimizer on any device, in torch (the device's own kernels)."""
-    import torch
-
-    group = opt.param_groups[0]
-    b1, b2 = group["betas"]
-    idx = torch.nonzero(rows).squeeze(1)
-    for p in group["params"]:
-        if p.grad is None or p.numel() == 0:
-            continue
-        state = opt.state[p]
-        if not state:
-            state["step"] = torch.tensor(0.0)
-            state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-            state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-        state["step"] += 1
-        step = float(state["step"])
-        bc1, bc2 = 1.0 - b1 ** step, 1.0 - b2 ** step
-        with torch.no_grad():
-            g = p.grad[idx]
-            m = state["exp_avg"][idx].lerp_(g, 1.0 - b1)
-            v = state["exp_avg_sq"][idx].mul_(b2).addcmul_(g, g, value=1.0 - b2)
-            state["exp_avg"][idx] = m
-            state["exp_avg_sq"][idx] = v
-            p[idx] = p[idx].addcdiv_(m, (v.sqrt() / bc2 ** 0.5).add_(group["eps"]), value=-group["lr"] / bc1)
+        _adam_rows(tuple(ps), tuple(gs), tuple(ms), tuple(vs), np.array(hyper, np.float32))
 
 
 def fits(opt) -> bool:

@@ -49,7 +49,6 @@ class OptimConfig:
     lrs: LearningRates = field(default_factory=LearningRates)
     loss: LossConfig = field(default_factory=LossConfig)
     refine_scale: float = 1.0  # refine(): supervision scale of post-mapping updates (+N PM)
-    selective_adam: bool = False  # Adam steps only the Gaussians projected into the update's view (Taming 3DGS)
 
 
 @dataclass

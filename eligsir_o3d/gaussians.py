@@ -154,10 +154,9 @@ class GaussianMap:
         for p in self.params.values():
             p.grad = None
 
-    def step(self, rows: torch.Tensor | None = None) -> None:
+    def step(self) -> None:
         """One Adam step on every parameter that received a gradient (on the CPU all in one compiled
-        pass, :func:`._update_kernels.adam_step`: torch's per-optimizer overhead was most of the cost).
-        ``rows`` [N] bool: step only these Gaussians (selective Adam; the others keep parameters and moments)."""
+        pass, :func:`._update_kernels.adam_step`: torch's per-optimizer overhead was most of the cost)."""
         from . import _update_kernels as uk
 
         fused = []
@@ -165,11 +164,9 @@ class GaussianMap:
             if self.params[name].grad is not None:
                 if self.device.type == "cpu" and uk.fits(opt):
                     fused.append(opt)
-                elif rows is not None:
-                    uk.adam_step_torch(opt, rows)
                 else:
                     opt.step()
-        uk.adam_step(fused, rows)
+        uk.adam_step(fused)
 
     def check_aligned(self) -> None:
         """Raise if a parameter or its Adam state disagrees with N (an invariant the tests hold us to)."""

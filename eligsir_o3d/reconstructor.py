@@ -130,7 +130,7 @@ class Reconstructor:
             loss = loss + reg
         self.gmap.zero_grad()
         loss.backward()
-        self.gmap.step(out.radii > 0 if self.config.optim.selective_adam else None)
+        self.gmap.step()
         self.growth.post_step(frame, out, depth, cam, self.ctx)
         self.views.feedback(frame, out, error, depth, cam)
         dt = time.perf_counter() - t0
