@@ -12,7 +12,7 @@ runs ``--warm`` updates untimed (Adam's moments allocated, caches warm) and time
 one; the table gives the median over all timed updates of all rounds and the ratio to the first checkout.
 
 Clock: the process's CPU time with one thread (a measure of work that holds up on a shared machine), the
-wall clock with more. ``NAME=DIR`` names a checkout (its package and ``benchmarks/``-free code under ``DIR``):
+wall clock with more. ``NAME=DIR`` names a checkout (``DIR/eligsir_o3d`` is the package timed):
 
     git -C . worktree add /tmp/old c6a5f9a      # or: mkdir /tmp/old && git archive c6a5f9a | tar -x -C /tmp/old
     python benchmarks/update_time.py --code old=/tmp/old --code new=. --gaussians 5000 20000 --threads 1 2
