@@ -152,14 +152,22 @@ class GaussianMap:
 
     # ---- optimisation ----------------------------------------------------------------------------------
     def zero_grad(self) -> None:
-        for opt in self.optimizers.values():
-            opt.zero_grad(set_to_none=True)
+        for p in self.params.values():
+            p.grad = None
 
     def step(self) -> None:
-        """One Adam step on every parameter that received a gradient."""
+        """One Adam step on every parameter that received a gradient (on the CPU all in one compiled
+        pass, :func:`._update_kernels.adam_step`: torch's per-optimizer overhead was most of the cost)."""
+        from . import _update_kernels as uk
+
+        fused = []
         for name, opt in self.optimizers.items():
             if self.params[name].grad is not None:
-                opt.step()
+                if self.device.type == "cpu" and uk.fits(opt):
+                    fused.append(opt)
+                else:
+                    opt.step()
+        uk.adam_step(fused)
 
     def check_aligned(self) -> None:
         """Raise if a parameter or its Adam state disagrees with N (an invariant the tests hold us to)."""

@@ -105,6 +105,9 @@ def supervision_loss(out: RenderOutput, color: torch.Tensor, depth: torch.Tensor
         loss = loss + cfg.lambda_dssim * dssim(out.color, color)
     if cfg.lambda_depth > 0:
         valid = (depth > 0) & (out.alpha.detach() > cfg.depth_alpha_min)
-        if valid.any():
-            loss = loss + cfg.lambda_depth * (out.depth[valid] - depth[valid]).abs().mean()
+        n_valid = int(valid.sum())
+        if n_valid:  # the mean over valid pixels, without gathering them (a masked gather's backward is slow)
+            err = torch.where(valid, (out.depth - depth).abs(), torch.zeros((), dtype=out.depth.dtype,
+                                                                               device=out.depth.device))
+            loss = loss + (cfg.lambda_depth / n_valid) * err.sum()
     return loss, abs_err.detach().mean(-1)

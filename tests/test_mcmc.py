@@ -130,7 +130,7 @@ def test_regulariser_is_differentiable():
 # ---- random numbers on the map's device -----------------------------------------------------------------------------
 
 def test_cpu_draws_are_those_of_before():
-    """On the CPU the generator and its draws are unchanged (results bit-identical to the CPU-generator version):
+    """On the CPU the generator and its draws are unchanged (the CPU-generator version's):
     the noise is randn(N, 3) from the refiner's generator, the sampling multinomial over the same weights."""
     gmap = _map([0.9, 0.6, 0.001, 0.3], spread=0.3)
     before = gmap.means.detach().clone()
@@ -140,7 +140,8 @@ def test_cpu_draws_are_those_of_before():
     o = gmap.opacities.detach()
     M = quat_to_rotmat(gmap.quats.detach()) * gmap.scales.detach()[:, None, :]
     want = torch.einsum("nij,nj->ni", M @ M.transpose(1, 2), z) * torch.sigmoid(100.0 * ((1.0 - o) - 0.995))[:, None]
-    torch.testing.assert_close(gmap.means.detach(), before + want, atol=0, rtol=0)
+    # the same draws; on the CPU the arithmetic runs in one compiled pass (_update_kernels): float32 rounding apart
+    torch.testing.assert_close(gmap.means.detach(), before + want, atol=1e-7, rtol=1e-6)
     from eligsir_o3d.scheduling.mcmc import _sample
     w = torch.tensor([0.5, 0.0, float("nan"), 2.0])
     got = _sample(w, 50, torch.Generator().manual_seed(1))

@@ -150,6 +150,16 @@ def project_backward(means, quats, scales, V, cam, v_means2d, v_conics, v_depths
         J, G, GJ = np.zeros((2, 3)), np.empty((2, 2)), np.empty((2, 3))
         vC, vT, vM, vJ = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((2, 3))
         for g in range(bi * BLOCK, min(n, (bi + 1) * BLOCK)):
+            if v_means2d[g, 0] == 0.0 and v_means2d[g, 1] == 0.0 and v_conics[g, 0] == 0.0 and \
+                    v_conics[g, 1] == 0.0 and v_conics[g, 2] == 0.0 and v_depths[g] == 0.0:
+                # no gradient reaches this Gaussian (culled, or outside the view): every output is a multiple of
+                # the incoming ones, so zero (the bulk of a large map seen from one view)
+                for k in range(3):
+                    out_v_means[g, k] = 0.0
+                    out_v_scales[g, k] = 0.0
+                for k in range(4):
+                    out_v_quats[g, k] = 0.0
+                continue
             m0, m1, m2 = np.float64(means[g, 0]), np.float64(means[g, 1]), np.float64(means[g, 2])
             px = V[0, 0] * m0 + V[0, 1] * m1 + V[0, 2] * m2 + V[0, 3]
             py = V[1, 0] * m0 + V[1, 1] * m1 + V[1, 2] * m2 + V[1, 3]

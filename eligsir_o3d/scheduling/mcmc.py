@@ -107,6 +107,12 @@ def inject_noise(gmap: GaussianMap, scaler: float, generator: torch.Generator | 
     (sigmoid(100 * ((1 - o) - 0.995)) as in the paper's reference code), scaled by ``scaler`` = lr * noise_lr."""
     if len(gmap) == 0:
         return
+    if gmap.device.type == "cpu" and gmap.means.dtype == torch.float32:
+        from .._update_kernels import mcmc_noise
+
+        z = torch.randn(len(gmap), 3, generator=generator)
+        mcmc_noise(gmap.params["means"], gmap.quats, gmap.scales, gmap.opacities, z, scaler)
+        return
     o = gmap.opacities
     gate = torch.sigmoid(100.0 * ((1.0 - o) - 0.995))  # [N]
     R = quat_to_rotmat(gmap.quats)

@@ -1,0 +1,184 @@
+"""One mapping update at 1/4 scale, timed side by side for two (or more) checkouts of the package.
+
+What :class:`Reconstructor` does per update (``rec.optimize(1, scale=0.25)``: view selection, the view's 160x120
+supervision, render, L1 + D-SSIM + depth loss, regularisers, backward, Adam, MCMC noise/relocation, the views'
+feedback), on the *same* map in every checkout: the driver writes one 3DGS PLY per map size (``--gaussians``)
+from the kitchen's depth (frames 0..190, every 10th, back-projected; ``n`` points drawn at random; scales the
+nearest-neighbour distance, as ``benchmarks/render.py``'s scene; opacity 0.5, colour of the pixel), and every
+worker loads it (``rec.load_ply``) into a fresh Reconstructor of its own code whose views are the same 20
+kitchen frames. One worker process per checkout and thread count; the workers take turns round after round
+(A, B, A, B, ...) so that the load of a shared machine falls on all of them alike. Each round reloads the map,
+runs ``--warm`` updates untimed (Adam's moments allocated, caches warm) and times ``--updates`` updates one by
+one; the table gives the median over all timed updates of all rounds and the ratio to the first checkout.
+
+Clock: the process's CPU time with one thread (a measure of work that holds up on a shared machine), the
+wall clock with more. ``NAME=DIR`` names a checkout (``DIR/eligsir_o3d`` is the package timed):
+
+    git -C . worktree add /tmp/old c6a5f9a      # or: mkdir /tmp/old && git archive c6a5f9a | tar -x -C /tmp/old
+    python benchmarks/update_time.py --code old=/tmp/old --code new=. --gaussians 5000 20000 --threads 1 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+KITCHEN = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_jpg1000"
+VIEW_FRAMES = tuple(range(0, 200, 10))
+
+
+# ------------------------------------------------------------------------------------------------ worker side ----
+
+def worker(threads: int, plys: list[str], warm: int, updates: int, data: str) -> None:
+    import numba
+    import numpy as np
+    import torch
+
+    torch.set_num_threads(threads)
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    from eligsir_o3d import Config, Reconstructor
+    from eligsir_o3d.datasets import open_sequence
+
+    clock = time.process_time if threads == 1 else time.perf_counter
+    seq = open_sequence(data)
+    cfg = Config(renderer="cpu")
+    rec = Reconstructor(seq.camera, "cpu", cfg)
+    for i in VIEW_FRAMES:
+        rec.views._admit(seq.frame(i, depth_max=rec.config.depth_max))
+    rec.warmup()
+    import eligsir_o3d
+    print(json.dumps({"info": {"package": str(Path(eligsir_o3d.__file__).parent), "threads": threads,
+                               "views": len(rec.views.views)}}), flush=True)
+    for _line in sys.stdin:
+        rows = []
+        for ply in plys:
+            rec.load_ply(ply)
+            rec.rng.manual_seed(0)
+            n0 = len(rec.gmap)
+            rec.optimize(warm, scale=0.25)
+            ts = []
+            for _ in range(updates):
+                t0 = clock()
+                rec.optimize(1, scale=0.25)
+                ts.append(clock() - t0)
+            rows.append({"gaussians": n0, "gaussians_end": len(rec.gmap), "seconds": ts})
+        print(json.dumps({"rows": rows}), flush=True)
+
+
+# ------------------------------------------------------------------------------------------------ driver side ----
+
+def write_maps(sizes: list[int], out: Path, data: Path, seed: int = 0) -> list[Path]:
+    """One PLY per size: kitchen depth back-projected (frames of VIEW_FRAMES), ``n`` points at random."""
+    sys.path.insert(0, str(ROOT))
+    import numpy as np
+    import open3d as o3d
+    import torch
+
+    from eligsir_o3d.datasets import open_sequence
+    from eligsir_o3d.gaussians import GaussianMap
+    from eligsir_o3d.ply import save_ply
+
+    seq = open_sequence(data)
+    pts, cols = [], []
+    for i in VIEW_FRAMES:
+        f = seq.frame(i)
+        p, idx = f.camera.backproject(torch.as_tensor(f.depth).cpu().float())
+        T = torch.as_tensor(np.asarray(f.T_world_cam), dtype=torch.float32)
+        pts.append(p @ T[:3, :3].T + T[:3, 3])
+        cols.append(torch.as_tensor(f.color).cpu().float().reshape(-1, 3)[idx])
+    pts, cols = torch.cat(pts), torch.cat(cols)
+    paths = []
+    for n in sizes:
+        g = torch.Generator().manual_seed(seed)
+        sel = torch.randperm(pts.shape[0], generator=g)[:n]
+        p, c = pts[sel].contiguous(), cols[sel].contiguous()
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p.double().numpy()))
+        nn = torch.from_numpy(np.asarray(pcd.compute_nearest_neighbor_distance())).float().clamp(1e-3, 0.05)
+        gm = GaussianMap(0)
+        gm.add(p, c, nn, 0.5, torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1))
+        paths.append(save_ply(gm, out / f"map_{n}.ply"))
+    return paths
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--code", action="append", default=[], metavar="NAME=DIR",
+                    help="a checkout to time (repeatable; default: this one as 'this'); the first is the baseline")
+    ap.add_argument("--gaussians", type=int, nargs="+", default=[5000, 20000])
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--updates", type=int, default=5, help="timed updates per map per round")
+    ap.add_argument("--warm", type=int, default=2, help="untimed updates after each reload")
+    ap.add_argument("--maps", type=Path, nargs="+", help="time these 3DGS PLYs (e.g. mapped maps) instead")
+    ap.add_argument("--data", type=Path, default=KITCHEN)
+    ap.add_argument("--json", type=Path, help="write every timed update here")
+    ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--plys", nargs="*", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker:
+        worker(args.threads[0], args.plys, args.warm, args.updates, str(args.data))
+        return 0
+    import numpy as np
+
+    codes = [c.partition("=") for c in args.code] or [("this", "=", str(ROOT))]
+    for name, eq, d in codes:
+        if not eq or not (Path(d) / "eligsir_o3d").is_dir():
+            ap.error(f"--code {name}{eq}{d}: expected NAME=DIR with DIR/eligsir_o3d")
+    tmp = tempfile.TemporaryDirectory(prefix="update_time_")
+    plys = args.maps or write_maps(args.gaussians, Path(tmp.name), args.data)
+    procs = {}
+    for name, _, d in codes:
+        for th in args.threads:
+            env = dict(os.environ, PYTHONPATH=str(Path(d).resolve()))
+            if th == 1:
+                env["OMP_WAIT_POLICY"] = "PASSIVE"
+            cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--threads", str(th), "--warm",
+                   str(args.warm), "--updates", str(args.updates), "--data", str(args.data),
+                   "--plys", *map(str, plys)]
+            procs[(name, th)] = subprocess.Popen(cmd, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                                 text=True, cwd=str(ROOT))
+    for key, p in procs.items():
+        line = p.stdout.readline()
+        if not line:
+            raise SystemExit(f"worker {key} failed to start")
+        print(f"# {key[0]} ({key[1]} thread(s)): {json.loads(line)['info']}")
+    print(f"# loadavg at start {' '.join(open('/proc/loadavg').read().split()[:3])}")
+    results = {k: [] for k in procs}
+    for _ in range(args.rounds):
+        for key, p in procs.items():
+            p.stdin.write("go\n")
+            p.stdin.flush()
+            results[key].append(json.loads(p.stdout.readline())["rows"])
+    for p in procs.values():
+        p.stdin.close()
+        p.wait()
+    print(f"# loadavg at end {' '.join(open('/proc/loadavg').read().split()[:3])}")
+    print(f"{'threads':>7} {'gaussians':>9} " + " ".join(f"{n + ' ms':>12}" for n, _, _ in codes)
+          + "".join(f" {codes[0][0] + '/' + n:>14}" for n, _, _ in codes[1:]) + "   (N at end per code)")
+    table = {}
+    for th in args.threads:
+        for gi, n in enumerate([r["gaussians"] for r in results[(codes[0][0], th)][0]]):
+            med, ends = [], []
+            for name, _, _ in codes:
+                rows = [r[gi] for r in results[(name, th)]]
+                med.append(1e3 * float(np.median([t for row in rows for t in row["seconds"]])))
+                ends.append(max(row["gaussians_end"] for row in rows))
+            table[f"{th}x{n}"] = dict(zip([c[0] for c in codes], med))
+            print(f"{th:>7} {n:>9} " + " ".join(f"{m:12.1f}" for m in med)
+                  + "".join(f" {med[0] / m:14.2f}" for m in med[1:]) + f"   {ends}")
+    if args.json:
+        args.json.write_text(json.dumps({"median_ms": table, "rounds": {f"{k[0]}@{k[1]}": v
+                                                                         for k, v in results.items()}}) + "\n")
+    tmp.cleanup()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,113 @@
+"""Numba kernels of a mapping update's work outside the renderer, for maps on the CPU: the Adam step over the
+map's parameters and 3DGS-MCMC's position noise.
+
+At the map sizes an online CPU budget affords (1k-30k Gaussians) these are a few arithmetic operations per
+Gaussian, and torch's per-operator and per-optimizer overhead was most of their cost: the Adam steps of the six
+parameter tensors took ~0.75 ms and the noise (rotation matrices, covariances, a batched product) ~1 ms of a
+13 ms update at 1/4 scale on a 5k-Gaussian kitchen map (one thread). Here each is one pass over the rows.
+
+- :func:`adam_step` is ``torch.optim.Adam``'s update (no weight decay, no AMSGrad) in float32, on the optimizer's
+  own state tensors (``step``, ``exp_avg``, ``exp_avg_sq``), so a checkpoint, a relocation or a later torch step
+  sees the state it expects; values agree with torch's to float32 rounding (torch's vector code may fuse a
+  multiply-add where this does not).
+- :func:`mcmc_noise` is :func:`.scheduling.mcmc.inject_noise`'s ``cov @ z * gate * scaler`` per row, with the
+  random numbers still drawn by torch from the refiner's generator (the same stream as before).
+
+Serial kernels (no ``prange``): a pass over 20k rows takes tens of microseconds, less than a thread team's
+start-up. Compiled lazily on first use and cached on disk like the renderer's kernels.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .render._cpu_kernels import _jit_serial
+
+
+@_jit_serial
+def _adam_rows(ps, gs, ms, vs, hyper):
+    """Adam over the rows of every parameter in ``ps`` (flat float32 arrays; ``gs``/``ms``/``vs`` the same shapes):
+    hyper[i] = (1 - beta1, beta2, 1 - beta2, eps, sqrt(bias correction 2), -lr / bias correction 1) of parameter
+    i (the complements taken in float64, as torch does: 1 - float32(0.999) is 5e-5 off)."""
+    for t in range(len(ps)):
+        p, g, m, v = ps[t], gs[t], ms[t], vs[t]
+        w, b2, w2, eps, bc2_sqrt, neg_step_size = hyper[t, 0], hyper[t, 1], hyper[t, 2], hyper[t, 3], hyper[t, 4], \
+            hyper[t, 5]
+        for i in range(p.shape[0]):
+            gi = g[i]
+            mi = m[i] + w * (gi - m[i])
+            vi = v[i] * b2 + w2 * gi * gi
+            m[i] = mi
+            v[i] = vi
+            p[i] = p[i] + neg_step_size * (mi / (np.sqrt(vi) / bc2_sqrt + eps))
+
+
+def adam_step(opts) -> None:
+    """One Adam step of each of ``opts`` (``torch.optim.Adam`` instances over float32 CPU parameters; those
+    without a gradient are skipped), in place, in one compiled call."""
+    import torch
+
+    ps, gs, ms, vs, hyper = [], [], [], [], []
+    for opt in opts:
+        group = opt.param_groups[0]
+        b1, b2 = group["betas"]
+        for p in group["params"]:
+            if p.grad is None or p.numel() == 0:
+                continue
+            state = opt.state[p]
+            if not state:
+                state["step"] = torch.tensor(0.0)
+                state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+                state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+            state["step"] += 1
+            step = float(state["step"])
+            bc1, bc2 = 1.0 - b1 ** step, 1.0 - b2 ** step
+            ps.append(p.detach().view(-1).numpy())
+            gs.append(p.grad.detach().contiguous().view(-1).numpy())
+            ms.append(state["exp_avg"].view(-1).numpy())
+            vs.append(state["exp_avg_sq"].view(-1).numpy())
+            hyper.append((1.0 - b1, b2, 1.0 - b2, group["eps"], bc2 ** 0.5, -group["lr"] / bc1))
+    if ps:
+        _adam_rows(tuple(ps), tuple(gs), tuple(ms), tuple(vs), np.array(hyper, np.float32))
+
+
+def fits(opt) -> bool:
+    """Whether :func:`adam_step` can run ``opt``: plain Adam settings over contiguous float32 CPU parameters."""
+    import torch
+
+    group = opt.param_groups[0]
+    if len(opt.param_groups) != 1 or group.get("weight_decay", 0) or group.get("amsgrad") or group.get("maximize"):
+        return False
+    return all(p.device.type == "cpu" and p.dtype == torch.float32 and p.is_contiguous() for p in group["params"])
+
+
+@_jit_serial
+def _noise_rows(means, quats, scales, opacities, z, scaler):
+    """means[g] += (R diag(s)^2 R^T z[g]) * sigmoid(100 ((1 - o) - 0.995)) * scaler; quats unnormalised wxyz,
+    scales in metres, opacities in (0, 1)."""
+    for g in range(means.shape[0]):
+        gate = np.float32(1.0) / (np.float32(1.0) + np.float32(math.exp(-np.float32(100.0) * (
+            (np.float32(1.0) - opacities[g]) - np.float32(0.995)))))
+        k = gate * scaler
+        w, x, y, zq = quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]
+        nq = max(np.float32(math.sqrt(w * w + x * x + y * y + zq * zq)), np.float32(1e-12))
+        w, x, y, zq = w / nq, x / nq, y / nq, zq / nq
+        r00, r01, r02 = 1 - 2 * (y * y + zq * zq), 2 * (x * y - w * zq), 2 * (x * zq + w * y)
+        r10, r11, r12 = 2 * (x * y + w * zq), 1 - 2 * (x * x + zq * zq), 2 * (y * zq - w * x)
+        r20, r21, r22 = 2 * (x * zq - w * y), 2 * (y * zq + w * x), 1 - 2 * (x * x + y * y)
+        s0, s1, s2 = scales[g, 0] * scales[g, 0], scales[g, 1] * scales[g, 1], scales[g, 2] * scales[g, 2]
+        # R^T z, scaled by s^2, then R
+        a0 = (r00 * z[g, 0] + r10 * z[g, 1] + r20 * z[g, 2]) * s0
+        a1 = (r01 * z[g, 0] + r11 * z[g, 1] + r21 * z[g, 2]) * s1
+        a2 = (r02 * z[g, 0] + r12 * z[g, 1] + r22 * z[g, 2]) * s2
+        means[g, 0] += (r00 * a0 + r01 * a1 + r02 * a2) * k
+        means[g, 1] += (r10 * a0 + r11 * a1 + r12 * a2) * k
+        means[g, 2] += (r20 * a0 + r21 * a1 + r22 * a2) * k
+
+
+def mcmc_noise(means, quats, scales, opacities, z, scaler: float) -> None:
+    """In place on ``means`` [N, 3] (a float32 CPU tensor): the covariance-shaped, opacity-gated noise of ``z``."""
+    f = lambda t: t.detach().contiguous().numpy()  # noqa: E731
+    _noise_rows(means.detach().numpy(), f(quats), f(scales), f(opacities), f(z), np.float32(scaler))

@@ -1,0 +1,91 @@
+"""The compiled per-update work outside the renderer (eligsir_o3d/_update_kernels.py): the Adam step over the map's
+parameters is torch's Adam (values to float32 rounding, the same optimizer state), and the MCMC noise is the torch
+formula's."""
+
+import copy
+
+import pytest
+import torch
+
+from eligsir_o3d import _update_kernels as uk
+from eligsir_o3d.gaussians import GaussianMap
+from eligsir_o3d.render.projection import quat_to_rotmat
+from eligsir_o3d.scheduling.mcmc import inject_noise
+
+
+def _map(n=300, seed=0, sh_degree=1):
+    g = torch.Generator().manual_seed(seed)
+    gmap = GaussianMap(sh_degree)
+    gmap.add(torch.randn(n, 3, generator=g), torch.rand(n, 3, generator=g), 0.01 + 0.05 * torch.rand(n, generator=g),
+             0.05 + 0.9 * torch.rand(n, generator=g),
+             torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1))
+    return gmap
+
+
+def _loss(gmap, k):
+    g = torch.Generator().manual_seed(100 + k)
+    return sum(((p - torch.randn(p.shape, generator=g)) ** 2 * (1 + k)).sum() for p in gmap.params.values())
+
+
+def _torch_step(gmap):
+    for opt in gmap.optimizers.values():
+        opt.step()
+
+
+@pytest.mark.parametrize("steps", [1, 7])
+def test_fused_adam_is_torch_adam(steps):
+    fused, ref = _map(), _map()
+    for k in range(steps):
+        for gm, step in ((fused, GaussianMap.step), (ref, _torch_step)):
+            gm.zero_grad()
+            _loss(gm, k).backward()
+            step(gm)
+    for name, p in fused.params.items():
+        torch.testing.assert_close(p.detach(), ref.params[name].detach(), rtol=1e-5, atol=1e-6)
+        s, r = fused.optimizers[name].state[p], ref.optimizers[name].state[ref.params[name]]
+        assert set(s) == set(r) and float(s["step"]) == float(r["step"]) == steps and s["step"].dtype == r["step"].dtype
+        torch.testing.assert_close(s["exp_avg"], r["exp_avg"], rtol=1e-5, atol=1e-7)
+        torch.testing.assert_close(s["exp_avg_sq"], r["exp_avg_sq"], rtol=1e-5, atol=1e-9)
+    # the state it leaves is torch's: a torch step continues from it as from its own
+    for gm in (fused, ref):
+        gm.zero_grad()
+        _loss(gm, 99).backward()
+        _torch_step(gm)
+    torch.testing.assert_close(fused.params["means"].detach(), ref.params["means"].detach(), rtol=1e-5, atol=1e-6)
+
+
+def test_fused_adam_skips_what_torch_skips_and_follows_the_learning_rate():
+    gmap, ref = _map(sh_degree=0), _map(sh_degree=0)
+    for gm in (gmap, ref):
+        for opt in gm.optimizers.values():
+            opt.param_groups[0]["lr"] *= 3  # a schedule's change reaches the fused step
+        gm.params["means"].grad = torch.ones_like(gm.params["means"])  # only the means have a gradient
+    before = {n: p.detach().clone() for n, p in gmap.params.items()}
+    gmap.step()
+    ref.optimizers["means"].step()
+    torch.testing.assert_close(gmap.means.detach(), ref.means.detach(), rtol=1e-6, atol=1e-7)
+    assert not torch.equal(gmap.means.detach(), before["means"])
+    for name in ("scales", "quats", "opacities", "sh0"):
+        assert torch.equal(gmap.params[name].detach(), before[name]) and not gmap.optimizers[name].state
+
+
+def test_fused_adam_refuses_settings_it_does_not_implement():
+    p = torch.nn.Parameter(torch.zeros(4, 3))
+    assert uk.fits(torch.optim.Adam([p], lr=1e-3))
+    assert not uk.fits(torch.optim.Adam([p], lr=1e-3, weight_decay=1e-4))
+    assert not uk.fits(torch.optim.Adam([p], lr=1e-3, amsgrad=True))
+    assert not uk.fits(torch.optim.Adam([torch.nn.Parameter(torch.zeros(4, 3, dtype=torch.float64))], lr=1e-3))
+
+
+def test_compiled_noise_is_the_torch_formula():
+    gmap = _map(500, sh_degree=0)
+    with torch.no_grad():
+        gmap.params["opacities"][:250] = torch.logit(torch.full((250,), 0.002))  # transparent: these move
+    before = gmap.means.detach().clone()
+    z = torch.randn(500, 3, generator=torch.Generator().manual_seed(7))
+    o = gmap.opacities.detach()
+    M = quat_to_rotmat(gmap.quats.detach()) * gmap.scales.detach()[:, None, :]
+    want = torch.einsum("nij,nj->ni", M @ M.transpose(1, 2), z) * (torch.sigmoid(100.0 * ((1.0 - o) - 0.995)) * 250.0)[:, None]
+    inject_noise(gmap, 250.0, torch.Generator().manual_seed(7))
+    torch.testing.assert_close(gmap.means.detach(), before + want, rtol=1e-6, atol=2e-7)  # float32 rounding
+    assert want[:250].norm(dim=1).min() > 1e-5  # the transparent ones moved visibly
