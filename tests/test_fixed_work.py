@@ -148,3 +148,26 @@ def test_stage_times_add_up_and_detail_wraps_the_sub_stages():
     assert s["update"]["calls"] == rec.stats.updates == 12
     assert s["admission"]["s"] + s["growth"]["s"] + s["update"]["s"] <= rec.stats.mapping_s + 1e-6
     assert np.isfinite(s["support_render"]["ms_per_call"])
+
+
+def test_calibration_charges_the_measured_per_frame_work():
+    """The calibrated cost model's frame term is the measured fixed work of a frame, not the shipped term scaled
+    with the updates: a scratch mapper whose growth step takes 40 ms longer gets frame_s >= 30 ms, updates alike."""
+    import time
+
+    from eligsir_o3d.budget.calibrate import calibrate
+
+    seq, frames = _room(6)
+
+    def make(slow):
+        def build(cam):
+            r = eo3d.Reconstructor(cam, "cpu", eo3d.Config(renderer="cpu"))
+            if slow:
+                real = r.growth.on_frame
+                r.growth.on_frame = lambda *a: time.sleep(0.04) or real(*a)
+            return r
+        return build
+
+    fast, _ = calibrate(eo3d.Reconstructor(seq.camera, "cpu"), frames, make_scratch=make(False), updates_per_scale=1)
+    slow, _ = calibrate(eo3d.Reconstructor(seq.camera, "cpu"), frames, make_scratch=make(True), updates_per_scale=1)
+    assert slow.frame_s >= fast.frame_s + 0.03
