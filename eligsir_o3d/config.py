@@ -23,6 +23,7 @@ from .gaussians import LearningRates
 from .optim import LossConfig
 from .scheduling.fidelity import FidelityConfig
 from .scheduling.growth import GrowthConfig
+from .scheduling.load import LoadConfig
 from .scheduling.plain import SeedingConfig, StrideConfig
 from .scheduling.support import ProbeConfig
 from .scheduling.views import ViewConfig
@@ -70,6 +71,7 @@ class Config:
     growth: GrowthConfig = field(default_factory=GrowthConfig)  # Targeted Geometry Growth (+ 3DGS-MCMC)
     support: ProbeConfig = field(default_factory=ProbeConfig)  # the low-res support render admission and growth share
     clock: ClockConfig = field(default_factory=ClockConfig)  # the budget: clock mode, per-frame/drain/offline budgets
+    fixed_work: LoadConfig = field(default_factory=LoadConfig)  # per-frame fixed work scaled with the backlog (issue 18)
 
     def resolve(self, **changes) -> "Config":
         """A copy with ``changes`` (top-level fields) applied and every derived value computed, in this one

@@ -19,6 +19,7 @@ import open3d as o3d
 import torch
 
 from .camera import Camera, check_pose
+from .budget.stages import StageTimes
 from .checkpoint import CheckpointError, read_checkpoint, save_checkpoint
 from .config import Config
 from .frame import Frame, FrameError
@@ -26,6 +27,7 @@ from .gaussians import GaussianMap
 from .optim import supervision_loss
 from .render import RenderOutput, get_renderer
 from .scheduling import MapContext, get_policies
+from .scheduling.load import FULL, LoadScaledChecks
 
 
 @dataclass
@@ -68,11 +70,14 @@ class Reconstructor:
         self.rng = torch.Generator().manual_seed(self.config.seed)
         self.gmap = GaussianMap(self.config.sh_degree, self.device, self.config.optim.lrs)
         self.views, self.fidelity, self.growth = get_policies(self.config)
+        self.fixed_work = LoadScaledChecks(self.config.fixed_work)  # how much fixed work each frame gets, from the backlog
+        self.frame_plan = FULL  # the current frame's plan (read by the policies through ctx.plan)
         self.ctx = MapContext(self)
         self.pose_source = pose_source
         self.stats = MappingStats()
         self.backlog = 0  # frames waiting to be integrated (set_load, by a clock)
         self.callbacks: list[Callable[["Reconstructor"], None]] = []  # after every update; time excluded
+        self.timing = StageTimes()  # wall seconds per stage (admission, growth, update, tracking): stage_times
         self._background = torch.tensor(self.config.background, dtype=torch.float32, device=self.device)
         self.set_load(0, self.config.clock.frame_period_s)
 
@@ -89,9 +94,12 @@ class Reconstructor:
         frame = self._to_frame(rgbd, pose, timestamp)
         self.stats.last_timestamp = frame.timestamp
         self.stats.frames_released += 1
-        admitted = self.views.admit(frame, self.ctx)
+        self.frame_plan = self.fixed_work.plan(self.backlog, self.fidelity.at_lowest_scale())
+        with self.timing("admission"):
+            admitted = self.views.admit(frame, self.ctx)
         self.stats.frames_admitted += int(admitted)
-        added = self.growth.on_frame(frame, admitted, self.ctx)
+        with self.timing("growth"):
+            added = self.growth.on_frame(frame, admitted, self.ctx)
         self.stats.mapping_s += time.perf_counter() - t0
         if updates is None and deadline is None:
             updates = self.config.clock.updates_per_frame
@@ -137,6 +145,7 @@ class Reconstructor:
         self.stats.updates += 1
         self.stats.supervised_pixels += cam.pixels
         self.stats.mapping_s += dt
+        self.timing.add("update", dt)
         self.fidelity.observe(dt, cam.pixels, self.backlog)
         if self.callbacks:
             t1 = time.perf_counter()
@@ -155,7 +164,8 @@ class Reconstructor:
 
     def policy_counters(self) -> dict:
         """Each policy's name and what it decided so far (admissions, seeds, insertions, relocations, scales)."""
-        return {kind: {"policy": p.name, **p.counters()} for kind, p in self._policies()}
+        counters = {kind: {"policy": p.name, **p.counters()} for kind, p in self._policies()}
+        return {**counters, "fixed_work": {"policy": self.fixed_work.name, **self.fixed_work.counters()}}
 
     def clock_now(self) -> float:
         """``time.perf_counter()`` minus the time spent in callbacks: the mapper's own clock for real-time replay."""
@@ -247,6 +257,7 @@ class Reconstructor:
                                        gt_pose=anchor)
         finally:
             self.stats.tracking_s += time.perf_counter() - t0
+            self.timing.add("tracking", time.perf_counter() - t0)
         T = self._checked(T, frame.index)
         self.stats.frames_tracked += 1
         return T
@@ -325,6 +336,7 @@ class Reconstructor:
             "torch_rng": torch.get_rng_state(),
             "cuda_rng": torch.cuda.get_rng_state_all() if self.device.type == "cuda" else None,
             "pose_source": self.pose_source.state_dict() if hasattr(self.pose_source, "state_dict") else None,
+            "fixed_work": self.fixed_work.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -351,6 +363,7 @@ class Reconstructor:
             if k in known:
                 setattr(self.stats, k, v)
         self.backlog = state.get("backlog", 0)
+        self.fixed_work.load_state_dict(state.get("fixed_work", {}))
         self.rng.set_state(state["rng"])
         torch.set_rng_state(state["torch_rng"])
         if state.get("cuda_rng") is not None and self.device.type == "cuda":

@@ -66,6 +66,7 @@ def collect_metrics(p) -> dict:
         "frames_released": report.released,
         "frames_admitted": rec.stats.frames_admitted,
         "policies": rec.policy_counters(),
+        "stage_times": rec.timing.summary(max(1, report.integrated)),  # where the mapper's wall time went
         "dropped_frames": report.dropped,
         "skipped_frames": p.skipped + list(report.skipped_bad),
         "heldout_skipped": list(getattr(p, "heldout_skipped", [])),  # unreadable held-out frames: index, file, reason

@@ -177,6 +177,12 @@ def _bad(item, j: int, e: Exception) -> str:
     return msg if msg.startswith("frame ") else f"frame {_index(item, j)}: {msg}"
 
 
+def _updates_behind(rec, n: int) -> int:
+    """Updates for the frame just integrated while others wait: ``n``, or none when the load policy shed them."""
+    plan = getattr(rec, "frame_plan", None)
+    return n if plan is None or plan.update_behind else 0
+
+
 def _integrate(rec, item, **kw):
     if isinstance(item, Frame):
         return rec.integrate(item, **kw)
@@ -204,7 +210,8 @@ class RealtimeClock(_Replay):
 
     def work(self, rec, item, deadline, behind: bool) -> None:
         if behind:
-            _integrate(rec, item, updates=self.min_updates_behind)
+            _integrate(rec, item, updates=0)
+            rec.optimize(_updates_behind(rec, self.min_updates_behind))
         else:
             _integrate(rec, item, deadline=deadline)
 
@@ -289,9 +296,11 @@ class BudgetClock(_Replay):
 
     def work(self, rec, item, deadline, behind: bool) -> None:
         _integrate(rec, item, updates=0)
-        self.t += self.cost.frame(len(rec.gmap))
+        # a frame without the full admission check (scheduling.load) pays no support render: no Gaussian term
+        plan = getattr(rec, "frame_plan", None)
+        self.t += self.cost.frame(len(rec.gmap)) if plan is None or plan.check else self.cost.frame_s
         if behind:
-            self._updates(rec, self.min_updates_behind)
+            self._updates(rec, _updates_behind(rec, self.min_updates_behind))
         else:
             self._updates(rec, None, deadline)
 

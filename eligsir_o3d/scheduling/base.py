@@ -17,6 +17,7 @@ from ..camera import Camera
 from ..frame import Frame
 from ..gaussians import GaussianMap
 from ..render import RenderOutput
+from .load import FULL
 
 
 class MapContext:
@@ -55,6 +56,11 @@ class MapContext:
     @property
     def frames_released(self) -> int:
         return self._owner.stats.frames_released
+
+    @property
+    def plan(self):
+        """The current frame's :class:`~.load.FramePlan` (full admission check or not, support render scale)."""
+        return getattr(self._owner, "frame_plan", FULL)
 
     def render(self, camera: Camera, T_world_cam) -> RenderOutput:
         """(camera, T_world_cam) -> RenderOutput of the current map, differentiable."""
@@ -114,6 +120,10 @@ class FidelityPolicy(Policy):
 
     def observe(self, seconds: float, pixels: int, backlog: int) -> None:
         """After an update: its measured cost and the current backlog of unprocessed frames."""
+
+    def at_lowest_scale(self) -> bool:
+        """True while the policy supervises at its lowest scale (a policy that does not adapt: never)."""
+        return False
 
     def attach(self, period_s: float | None, cost_fn: Callable[[int], float] | None = None) -> None:
         """When the load changes (``Reconstructor.set_load``): the seconds one source frame grants and, under a

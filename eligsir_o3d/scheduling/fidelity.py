@@ -183,6 +183,9 @@ class LoadAdaptiveFidelity(FidelityPolicy):
             self.cost = self.predicted_cost(level)  # a prior for the new level until its own measurements arrive
         self.level, self._votes, self._obs_here = level, 0, 0
 
+    def at_lowest_scale(self) -> bool:
+        return self.level == 0
+
     def counters(self) -> dict:
         return {"scale": self.scales[self.level], "updates_by_scale": dict(self.by_scale)}
 

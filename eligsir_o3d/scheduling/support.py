@@ -51,10 +51,11 @@ class SupportProbe:
 
     @torch.no_grad()
     def check(self, frame: Frame, ctx: MapContext) -> Support:
-        key = (id(frame), frame.index, len(ctx.gmap), ctx.updates)
+        scale = self.cfg.scale * ctx.plan.probe_factor  # lower under load (scheduling.load)
+        key = (id(frame), frame.index, len(ctx.gmap), ctx.updates, scale)
         if key == self._key and self._value is not None:
             return self._value
-        color, depth, cam = frame.at_scale(self.cfg.scale, "cpu")
+        color, depth, cam = frame.at_scale(scale, "cpu")
         valid = depth > 0
         if len(ctx.gmap) == 0:
             unsupported, misplaced = valid.clone(), torch.zeros_like(valid)

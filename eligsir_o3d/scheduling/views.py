@@ -72,7 +72,8 @@ class MapGuidedViews(ViewPolicy):
         self._last_admit_ts: float | None = None
         self._since_refresh = 0
         self._flat = None  # (cells [F], weights [F], owner [F]) over all views; rebuilt when views change
-        self.counts = {"released": 0, "admitted": 0, "pose_filtered": 0, "low_novelty": 0, "max_gap": 0}
+        self.counts = {"released": 0, "admitted": 0, "pose_filtered": 0, "low_novelty": 0, "max_gap": 0,
+                       "unchecked": 0}
 
     # ---- admission ------------------------------------------------------------------------------------------
     def admit(self, frame: Frame, ctx: MapContext) -> bool:
@@ -81,6 +82,13 @@ class MapGuidedViews(ViewPolicy):
             return self._admit(frame)
         if self.is_redundant(frame.T_world_cam):
             self.counts["pose_filtered"] += 1
+            return False
+        gap = self._last_admit_ts is not None and frame.timestamp - self._last_admit_ts >= self.cfg.max_gap_s
+        if not ctx.plan.check:  # under load (scheduling.load): no support render; the max-gap rule still admits
+            if gap:
+                self.counts["max_gap"] += 1
+                return self._admit(frame)
+            self.counts["unchecked"] += 1
             return False
         novelty = self.probe.check(frame, ctx).novelty()
         if novelty >= self.cfg.min_novelty:
