@@ -58,7 +58,7 @@ sys.path.insert(0, str(ROOT))
 
 import eligsir_o3d as eo3d  # noqa: E402
 from eligsir_o3d.budget import CostModel  # noqa: E402
-from eligsir_o3d.datasets.synthetic import SyntheticRoom  # noqa: E402
+from eligsir_o3d.datasets.synthetic import SyntheticRoom, look_at  # noqa: E402
 from eligsir_o3d.frame import Frame  # noqa: E402
 from eligsir_o3d.memory import current_rss_mb, map_memory_mb, peak_rss_mb, views_memory_mb  # noqa: E402
 
@@ -76,14 +76,7 @@ def orbit_pose(i: int, loop: int) -> np.ndarray:
     eye = np.array([1.7 * r * np.cos(a), 1.3 * r * np.sin(a), 1.35 + 0.2 * np.sin(2 * a + slower)])
     side = np.array([-np.sin(a), np.cos(a), 0.0])
     target = np.array([0.0, 0.0, 0.75 + 0.15 * np.sin(3 * a)]) + 0.9 * np.sin(3 * a + 0.5 + slow) * side
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    T[:3, 3] = eye
-    return T
+    return look_at(eye, target)
 
 
 def synthetic_frames(n: int, width: int, height: int, loop: int, fps: float = 30.0):

@@ -88,15 +88,21 @@ def camera_path(n_frames: int) -> list[np.ndarray]:
         eye = np.array([1.7 * np.cos(a), 1.3 * np.sin(a), 1.35 + 0.2 * np.sin(2 * a)])
         side = np.array([-np.sin(a), np.cos(a), 0.0])  # tangent: the gaze swings left and right of the centre
         target = np.array([0.0, 0.0, 0.75 + 0.15 * np.sin(3 * a)]) + 0.9 * np.sin(3 * a + 0.5) * side
-        z = target - eye
-        z /= np.linalg.norm(z)
-        x = np.cross(z, [0.0, 0.0, 1.0])
-        x /= np.linalg.norm(x)
-        T = np.eye(4)
-        T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-        T[:3, 3] = eye
-        poses.append(T)
+        poses.append(look_at(eye, target))
     return poses
+
+
+def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Camera-to-world pose (OpenCV axes: z forward, y down) of a camera at ``eye`` looking at ``target``, level
+    with the room's z-up floor."""
+    z = target - eye
+    z = z / np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    T[:3, 3] = eye
+    return T
 
 
 class SyntheticRoom(RGBDSequence):
