@@ -22,6 +22,8 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from ..atomic_io import atomic_write_text
+
 MANIFEST_SUFFIXES = (".txt", ".list", ".manifest")
 STATE_FILE = "batch.json"
 
@@ -185,10 +187,7 @@ def read_state(folder: Path) -> dict | None:
 
 def write_state(folder: Path, state: dict) -> None:
     """Atomic replace, so that a killed worker never leaves a half-written state file."""
-    folder.mkdir(parents=True, exist_ok=True)
-    tmp = folder / f".{STATE_FILE}.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(state, indent=1))
-    os.replace(tmp, folder / STATE_FILE)
+    atomic_write_text(folder / STATE_FILE, json.dumps(state, indent=1))
 
 
 def folder_status(folder: Path, request: dict) -> str:

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic_io import atomic_write_text
 from .cost import CostModel
 
 SCALES = (0.125, 0.25, 0.5, 1.0)
@@ -144,9 +145,6 @@ def cached_cost_model(rec, frames=None, **kw) -> tuple[CostModel, dict]:
         except (OSError, ValueError, KeyError, TypeError):
             pass  # a damaged cache file is replaced below
     model, report = calibrate(rec, frames, **kw)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".{os.getpid()}.tmp")
-    tmp.write_text(json.dumps({"key": key, "model": model.to_dict(), "report": report,
-                               "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}, indent=2))
-    os.replace(tmp, path)
+    atomic_write_text(path, json.dumps({"key": key, "model": model.to_dict(), "report": report,
+                                        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}, indent=2))
     return model, {"source": "calibrated", "cache": str(path), "fresh": True, **report}

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
+from ..atomic_io import atomic_write_text
 from ..camera import Camera, check_pose, invert_pose
 
 POSES_OF = ("depth", "color")
@@ -189,7 +190,5 @@ def write_color_block(path: Path, color: Camera, note: str = "", T_color_depth: 
     if note:
         block["note"] = note
     data["color"] = block
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    tmp.replace(path)
+    atomic_write_text(path, json.dumps(data, indent=2) + "\n")
     return block
