@@ -21,6 +21,7 @@ from .budget.config import ClockConfig
 from .frame import DEPTH_MAX
 from .gaussians import LearningRates
 from .optim import LossConfig
+from .pose_refine import PoseRefineConfig
 from .scheduling.fidelity import FidelityConfig
 from .scheduling.growth import GrowthConfig
 from .scheduling.load import LoadConfig
@@ -72,6 +73,7 @@ class Config:
     support: ProbeConfig = field(default_factory=ProbeConfig)  # the low-res support render admission and growth share
     clock: ClockConfig = field(default_factory=ClockConfig)  # the budget: clock mode, per-frame/drain/offline budgets
     fixed_work: LoadConfig = field(default_factory=LoadConfig)  # per-frame fixed work scaled with the backlog (issue 18)
+    pose_refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)  # per-training-view pose corrections
 
     def resolve(self, **changes) -> "Config":
         """A copy with ``changes`` (top-level fields) applied and every derived value computed, in this one

@@ -25,6 +25,7 @@ from .config import Config
 from .frame import Frame, FrameError
 from .gaussians import GaussianMap
 from .optim import supervision_loss
+from .pose_refine import PoseRefiner
 from .render import RenderOutput, get_renderer
 from .scheduling import MapContext, get_policies
 from .scheduling.load import FULL, LoadScaledChecks
@@ -70,6 +71,7 @@ class Reconstructor:
         self.rng = torch.Generator().manual_seed(self.config.seed)
         self.gmap = GaussianMap(self.config.sh_degree, self.device, self.config.optim.lrs)
         self.views, self.fidelity, self.growth = get_policies(self.config)
+        self.pose_refine = PoseRefiner(self.config.pose_refine, self.device)  # per-training-view pose corrections
         self.fixed_work = LoadScaledChecks(self.config.fixed_work)  # how much fixed work each frame gets, from the backlog
         self.frame_plan = FULL  # the current frame's plan (read by the policies through ctx.plan)
         self.ctx = MapContext(self)
@@ -131,14 +133,16 @@ class Reconstructor:
         frame = self.views.select(self.rng)
         s = self.fidelity.scale() if scale is None else scale
         color, depth, cam = frame.at_scale(s, self.device)
-        out = self._render(cam, frame.T_world_cam)
+        args = self.pose_refine.render_args(frame, self.gmap.render_args())  # the view's refined pose (off: as is)
+        out = self.renderer.render(*args, cam, frame.T_world_cam, self._background)
         loss, error = supervision_loss(out, color, depth, self.config.optim.loss)
-        reg = self.growth.pre_backward(out, self.ctx)
-        if reg is not None:
-            loss = loss + reg
+        for reg in (self.growth.pre_backward(out, self.ctx), self.pose_refine.regulariser()):
+            if reg is not None:
+                loss = loss + reg
         self.gmap.zero_grad()
         loss.backward()
         self.gmap.step()
+        self.pose_refine.step()
         self.growth.post_step(frame, out, depth, cam, self.ctx)
         self.views.feedback(frame, out, error, depth, cam)
         dt = time.perf_counter() - t0
@@ -337,6 +341,7 @@ class Reconstructor:
             "cuda_rng": torch.cuda.get_rng_state_all() if self.device.type == "cuda" else None,
             "pose_source": self.pose_source.state_dict() if hasattr(self.pose_source, "state_dict") else None,
             "fixed_work": self.fixed_work.state_dict(),
+            "pose_refine": self.pose_refine.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -364,6 +369,7 @@ class Reconstructor:
                 setattr(self.stats, k, v)
         self.backlog = state.get("backlog", 0)
         self.fixed_work.load_state_dict(state.get("fixed_work", {}))
+        self.pose_refine.load_state_dict(state.get("pose_refine"))
         self.rng.set_state(state["rng"])
         torch.set_rng_state(state["torch_rng"])
         if state.get("cuda_rng") is not None and self.device.type == "cuda":

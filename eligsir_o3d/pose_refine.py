@@ -1,0 +1,186 @@
+"""Per-training-view pose refinement, learned jointly with the map (issue 16, "alignment").
+
+Real recordings carry pose errors of a few millimetres and a few tenths of a degree per frame (KinectFusion
+tracking on 7-Scenes, an SfM reconstruction on SUN3D), i.e. several pixels at 640x480: every training view then
+pulls the map a little elsewhere and the map blurs. Each retained training view gets a small SE(3) correction
+``xi = (omega, v)`` in its camera frame, ``T' = T @ exp(xi)``, optimised with the map by the same supervision
+loss, with its own Adam moments and an L2 pull toward the identity (the given pose). Held-out views keep their
+given poses (the evaluation protocol), so the map stays in the frame of the given trajectory.
+
+The correction is applied to the Gaussians rather than to the camera (``corrected_args``): rendering the moved
+Gaussians at ``T`` is rendering the map at ``T @ exp(xi)``, so the gradient reaches ``xi`` through any renderer
+that differentiates means and rotations (every backend here does), and the renderer's pose stays a plain matrix.
+Off by default (config ``pose_refine.enabled``); with it off nothing is computed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+@dataclass
+class PoseRefineConfig:
+    enabled: bool = False
+    lr: float = 5e-4  # Adam step on xi (radians for omega, metres for v)
+    reg: float = 1.0  # loss weight of |xi|^2 (pull toward the given pose); units: per rad^2 / m^2
+    min_updates: int = 0  # a view's pose moves only after it has supervised this many updates (map settles first)
+
+
+def _skew(w: torch.Tensor) -> torch.Tensor:
+    z = torch.zeros((), dtype=w.dtype, device=w.device)
+    return torch.stack([torch.stack([z, -w[2], w[1]]), torch.stack([w[2], z, -w[0]]),
+                        torch.stack([-w[1], w[0], z])])
+
+
+def so3_exp(w: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix of the axis-angle vector ``w`` (Rodrigues; smooth at 0)."""
+    th2 = (w * w).sum()
+    th = torch.sqrt(th2 + 1e-24)
+    K = _skew(w)
+    small = th2 < 1e-12
+    a = torch.where(small, 1.0 - th2 / 6.0, torch.sin(th) / th)
+    b = torch.where(small, 0.5 - th2 / 24.0, (1.0 - torch.cos(th)) / (th2 + 1e-24))
+    return torch.eye(3, dtype=w.dtype, device=w.device) + a * K + b * (K @ K)
+
+
+def _axis_quat(w: torch.Tensor) -> torch.Tensor:
+    """Unit quaternion (wxyz) of the axis-angle vector ``w``."""
+    th = torch.sqrt((w * w).sum() + 1e-24)
+    return torch.cat([torch.cos(th / 2).reshape(1), (torch.sin(th / 2) / th) * w])
+
+
+def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
+def _rot_quat(R: np.ndarray) -> np.ndarray:
+    """wxyz quaternion of a rotation matrix (Shepperd's method, any rotation)."""
+    R = np.asarray(R, dtype=np.float64)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
+        q = [0.0] * 4
+        q[0] = (R[k, j] - R[j, k]) / s
+        q[1 + i] = 0.25 * s
+        q[1 + j] = (R[j, i] + R[i, j]) / s
+        q[1 + k] = (R[k, i] + R[i, k]) / s
+    q = np.array(q)
+    return q / np.linalg.norm(q)
+
+
+def corrected_args(args: tuple, T_world_cam: np.ndarray, xi: torch.Tensor) -> tuple:
+    """``args`` (means, quats, scales, opacities, colors) moved so that rendering them at ``T_world_cam`` is
+    rendering the original map at ``T_world_cam @ exp(xi)``; ``xi`` = (omega, v) in the camera frame."""
+    means, quats, scales, opacities, colors = args
+    dev, dt = means.device, means.dtype
+    R = torch.as_tensor(np.asarray(T_world_cam)[:3, :3], dtype=dt, device=dev)
+    t = torch.as_tensor(np.asarray(T_world_cam)[:3, 3], dtype=dt, device=dev)
+    xi = xi.to(dev, dt)
+    w, v = xi[:3], xi[3:]
+    Rc = so3_exp(w)
+    cam = (means - t) @ R - v  # camera coordinates at the given pose, minus the correction's translation
+    new_means = (cam @ Rc) @ R.T + t  # Rc^T applied (row vectors), back to the world at the given pose
+    qR = torch.as_tensor(_rot_quat(T_world_cam[:3, :3]), dtype=dt, device=dev)
+    qR_inv = qR * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=dt, device=dev)
+    qM = quat_mul(quat_mul(qR, _axis_quat(-w)), qR_inv)  # the world rotation R Rc^T R^T
+    new_quats = quat_mul(qM.expand_as(quats), quats)
+    return new_means, new_quats, scales, opacities, colors
+
+
+class PoseRefiner:
+    """Per-view SE(3) corrections (keyed by frame index) with their own Adam moments."""
+
+    def __init__(self, cfg: PoseRefineConfig, device: torch.device | str = "cpu"):
+        self.cfg = cfg
+        self.device = torch.device(device)
+        self.state: dict[int, dict] = {}  # index -> {"xi", "m", "v", "t", "seen"}
+        self._live: tuple[int, torch.Tensor] | None = None
+
+    @property
+    def active(self) -> bool:
+        return bool(self.cfg.enabled)
+
+    def correction(self, index: int) -> torch.Tensor:
+        """The view's current xi (zeros for a view never refined)."""
+        s = self.state.get(int(index))
+        return torch.zeros(6) if s is None else s["xi"].detach().clone()
+
+    def pose(self, frame) -> np.ndarray:
+        """``frame``'s refined T_world_cam (its given pose when refinement is off or has not moved it)."""
+        xi = self.correction(frame.index).double()
+        D = np.eye(4)
+        D[:3, :3] = so3_exp(xi[:3]).numpy()
+        D[:3, 3] = xi[3:].numpy()
+        return np.asarray(frame.T_world_cam) @ D
+
+    def render_args(self, frame, args: tuple) -> tuple:
+        """The map's render args as seen from ``frame``'s refined pose (unchanged when off)."""
+        if not self.active:
+            return args
+        s = self.state.setdefault(int(frame.index), {
+            "xi": torch.zeros(6, dtype=torch.float64), "m": torch.zeros(6, dtype=torch.float64),
+            "v": torch.zeros(6, dtype=torch.float64), "t": 0, "seen": 0})
+        s["seen"] += 1
+        if s["seen"] <= self.cfg.min_updates and not s["xi"].any():
+            self._live = None
+            return args
+        xi = s["xi"].to(torch.float32).clone().requires_grad_(True)
+        self._live = (int(frame.index), xi)
+        return corrected_args(args, frame.T_world_cam, xi)
+
+    def regulariser(self) -> torch.Tensor | None:
+        """``reg * |xi|^2`` of the view being rendered (None when nothing is refined this update)."""
+        if self._live is None or self.cfg.reg <= 0:
+            return None
+        xi = self._live[1]
+        return self.cfg.reg * (xi * xi).sum()
+
+    @torch.no_grad()
+    def step(self) -> None:
+        """One Adam step on the rendered view's xi, from the gradient the update's backward left on it."""
+        if self._live is None:
+            return
+        index, xi = self._live
+        self._live = None
+        if xi.grad is None:
+            return
+        s = self.state[index]
+        g = xi.grad.to(torch.float64)
+        b1, b2, eps = 0.9, 0.999, 1e-15
+        s["t"] += 1
+        s["m"].mul_(b1).add_(g, alpha=1 - b1)
+        s["v"].mul_(b2).addcmul_(g, g, value=1 - b2)
+        mh = s["m"] / (1 - b1 ** s["t"])
+        vh = s["v"] / (1 - b2 ** s["t"])
+        s["xi"] -= self.cfg.lr * mh / (vh.sqrt() + eps)
+
+    def summary(self) -> dict:
+        """Median rotation (degrees) and translation (mm) of the current corrections."""
+        if not self.state:
+            return {"views": 0}
+        xs = torch.stack([s["xi"] for s in self.state.values()])
+        return {"views": len(self.state),
+                "median_rot_deg": float(xs[:, :3].norm(dim=1).median()) * 180.0 / np.pi,
+                "median_trans_mm": float(xs[:, 3:].norm(dim=1).median()) * 1000.0}
+
+    def state_dict(self) -> dict:
+        return {str(k): {"xi": s["xi"].clone(), "m": s["m"].clone(), "v": s["v"].clone(), "t": int(s["t"]),
+                         "seen": int(s["seen"])} for k, s in self.state.items()}
+
+    def load_state_dict(self, state: dict | None) -> None:
+        self.state = {int(k): {"xi": torch.as_tensor(s["xi"], dtype=torch.float64).clone(),
+                               "m": torch.as_tensor(s["m"], dtype=torch.float64).clone(),
+                               "v": torch.as_tensor(s["v"], dtype=torch.float64).clone(),
+                               "t": int(s["t"]), "seen": int(s["seen"])} for k, s in (state or {}).items()}
+        self._live = None

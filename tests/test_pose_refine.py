@@ -1,0 +1,144 @@
+"""Per-training-view pose refinement (eligsir_o3d/pose_refine.py): the Gaussian-side correction is the camera-side
+one, a view's correction is learned back from its image, and the Reconstructor learns, saves and restores it for
+training renders only."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import open3d as o3d
+import torch
+
+import eligsir_o3d as eo3d
+from eligsir_o3d.camera import Camera
+from eligsir_o3d.pose_refine import PoseRefineConfig, PoseRefiner, corrected_args, so3_exp
+from eligsir_o3d.render import get_renderer
+
+W, H = 48, 36
+
+
+def _textured_wall(n=900, seed=0):
+    """Gaussians on a 1.6 x 1.2 m wall at z = 1.5 m with a checker texture (a pose error shows as an image shift)."""
+    g = torch.Generator().manual_seed(seed)
+    xy = (torch.rand(n, 2, generator=g) - 0.5) * torch.tensor([1.6, 1.2])
+    means = torch.cat([xy, torch.full((n, 1), 1.5)], 1)
+    means[:, 2] += 0.2 * xy[:, 0]  # not a fronto-parallel plane: rotations and translations differ in the image
+    checker = ((torch.floor(xy[:, 0] / 0.15) + torch.floor(xy[:, 1] / 0.15)) % 2)[:, None]
+    colors = checker * torch.tensor([0.9, 0.2, 0.3]) + 0.05
+    quats = torch.tensor([1.0, 0.0, 0.0, 0.0]).repeat(n, 1)
+    scales = torch.full((n, 3), 0.03)
+    opacities = torch.full((n,), 0.9)
+    return means, quats, scales, opacities, colors
+
+
+def _pose(xi: torch.Tensor) -> np.ndarray:
+    D = np.eye(4)
+    D[:3, :3] = so3_exp(xi[:3].double()).numpy()
+    D[:3, 3] = xi[3:].double().numpy()
+    return D
+
+
+def _camera():
+    return Camera(W, H, 40.0, 40.0, (W - 1) / 2, (H - 1) / 2)
+
+
+def test_moving_the_gaussians_is_moving_the_camera():
+    r = get_renderer("torch", torch.device("cpu"))
+    args, cam, bg = _textured_wall(), _camera(), torch.zeros(3)
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(torch.tensor([0.1, -0.2, 0.05], dtype=torch.float64)).numpy()
+    T[:3, 3] = [0.2, -0.1, 0.05]
+    T = np.linalg.inv(T)  # some general pose, still looking at the wall
+    xi = torch.tensor([0.02, -0.03, 0.01, 0.03, -0.02, 0.05])
+    moved = r.render(*corrected_args(args, T, xi), cam, T, bg)
+    ref = r.render(*args, cam, T @ _pose(xi), bg)
+    plain = r.render(*args, cam, T, bg)
+    assert (moved.color - ref.color).abs().max() < 1e-4
+    assert (moved.depth - ref.depth).abs().max() < 1e-4
+    assert (plain.color - ref.color).abs().max() > 0.2  # the correction is visible
+
+
+def test_a_views_pose_error_is_learned_back_from_its_image():
+    r = get_renderer("torch", torch.device("cpu"))
+    args, cam, bg = _textured_wall(), _camera(), torch.zeros(3)
+    truth = torch.tensor([0.01, -0.015, 0.005, 0.02, -0.015, 0.0])  # ~1 degree, ~2.5 cm: several pixels here
+    target = r.render(*args, cam, _pose(truth), bg).color
+    frame = SimpleNamespace(index=7, T_world_cam=np.eye(4))  # the given pose is the identity: wrong by `truth`
+    ref = PoseRefiner(PoseRefineConfig(enabled=True, lr=2e-3, reg=0.0))
+    losses = []
+    for _ in range(150):
+        out = r.render(*ref.render_args(frame, args), cam, frame.T_world_cam, bg)
+        loss = (out.color - target).abs().mean()
+        loss.backward()
+        ref.step()
+        losses.append(float(loss.detach()))
+    err0 = float(truth.norm())
+    err1 = float((ref.correction(7).float() - truth).norm())
+    assert err1 < 0.3 * err0, (err0, err1, ref.correction(7))
+    assert losses[-1] < 0.5 * losses[0]
+    np.testing.assert_allclose(ref.pose(frame), _pose(ref.correction(7)), atol=1e-12)
+
+
+def test_disabled_or_regularised_refiner():
+    args = _textured_wall(50)
+    frame = SimpleNamespace(index=0, T_world_cam=np.eye(4))
+    off = PoseRefiner(PoseRefineConfig())
+    assert off.render_args(frame, args) is args and off.regulariser() is None and not off.state
+    off.step()  # nothing to step: no error
+    on = PoseRefiner(PoseRefineConfig(enabled=True, reg=2.0))
+    on.state[0] = {"xi": torch.full((6,), 0.1, dtype=torch.float64), "m": torch.zeros(6, dtype=torch.float64),
+                   "v": torch.zeros(6, dtype=torch.float64), "t": 0, "seen": 0}
+    on.render_args(frame, args)
+    assert abs(float(on.regulariser()) - 2.0 * 6 * 0.01) < 1e-6  # reg * |xi|^2 pulls toward the given pose
+
+
+def _images(shift):
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    color = ((((u + shift) // 6 + v // 6) % 2)[..., None] * np.array([180, 40, 60]) + 50).astype(np.uint8)
+    depth = (1500 + 8 * u).astype(np.uint16)
+    return o3d.t.geometry.RGBDImage(o3d.t.geometry.Image(color), o3d.t.geometry.Image(depth))
+
+
+def _rec(**pose_refine):
+    cfg = eo3d.Config(renderer="torch", seed=0, ablate=("views", "fidelity", "growth"))
+    cfg.keyframes.every = 1
+    cfg.seeding.pixel_stride = 3
+    cfg.clock.updates_per_frame = 6
+    for k, v in pose_refine.items():
+        setattr(cfg.pose_refine, k, v)
+    intr = o3d.camera.PinholeCameraIntrinsic(W, H, 40.0, 40.0, (W - 1) / 2, (H - 1) / 2)
+    return eo3d.Reconstructor(intr, "cpu", cfg)
+
+
+def _feed(rec):
+    # the images shift by one pixel per frame while the given poses stay put: poses that are wrong by a pixel
+    for k in range(4):
+        rec.integrate(_images(k), np.eye(4))
+
+
+def test_reconstructor_learns_saves_and_restores_training_view_corrections(tmp_path):
+    rec = _rec(enabled=True, lr=2e-3)
+    _feed(rec)
+    assert sorted(rec.pose_refine.state) == [0, 1, 2, 3]
+    moved = [float(rec.pose_refine.correction(i).norm()) for i in range(4)]
+    assert min(moved) > 0.0, moved
+    # held-out renders keep the given pose: rec.render does not go through the corrections
+    before = rec.render(np.eye(4)).color.clone()
+    rec.pose_refine.state[0]["xi"] += 0.05
+    assert torch.equal(rec.render(np.eye(4)).color, before)
+    rec.pose_refine.state[0]["xi"] -= 0.05
+    back = eo3d.Reconstructor.load(rec.save(tmp_path / "ck.pt"))
+    for i in range(4):
+        assert torch.equal(back.pose_refine.correction(i), rec.pose_refine.correction(i))
+        assert back.pose_refine.state[i]["t"] == rec.pose_refine.state[i]["t"]
+    a, b = rec.optimize(3), back.optimize(3)
+    assert a == b == 3
+    assert torch.equal(rec.gmap.means, back.gmap.means)  # the restored refiner continues the same trajectory
+
+
+def test_zero_learning_rate_is_the_plain_mapper():
+    plain, zero = _rec(), _rec(enabled=True, lr=0.0, reg=0.0)
+    _feed(plain)
+    _feed(zero)
+    assert not plain.pose_refine.state
+    assert torch.allclose(plain.gmap.means, zero.gmap.means, atol=1e-5)
+    assert all(float(zero.pose_refine.correction(i).abs().max()) == 0.0 for i in range(4))
