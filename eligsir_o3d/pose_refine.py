@@ -27,6 +27,7 @@ class PoseRefineConfig:
     lr: float = 5e-4  # Adam step on xi (radians for omega, metres for v)
     reg: float = 1.0  # loss weight of |xi|^2 (pull toward the given pose); units: per rad^2 / m^2
     min_updates: int = 0  # a view's pose moves only after it has supervised this many updates (map settles first)
+    centred: bool = False  # hold the views' mean correction (in the world frame) at zero: the map cannot drift
 
 
 def _skew(w: torch.Tensor) -> torch.Tensor:
@@ -130,7 +131,8 @@ class PoseRefiner:
             return args
         s = self.state.setdefault(int(frame.index), {
             "xi": torch.zeros(6, dtype=torch.float64), "m": torch.zeros(6, dtype=torch.float64),
-            "v": torch.zeros(6, dtype=torch.float64), "t": 0, "seen": 0})
+            "v": torch.zeros(6, dtype=torch.float64), "t": 0, "seen": 0,
+            "R": torch.as_tensor(np.asarray(frame.T_world_cam)[:3, :3], dtype=torch.float64)})
         s["seen"] += 1
         if s["seen"] <= self.cfg.min_updates and not s["xi"].any():
             self._live = None
@@ -164,6 +166,21 @@ class PoseRefiner:
         mh = s["m"] / (1 - b1 ** s["t"])
         vh = s["v"] / (1 - b2 ** s["t"])
         s["xi"] -= self.cfg.lr * mh / (vh.sqrt() + eps)
+        if self.cfg.centred and len(self.state) > 1:
+            self._centre()
+
+    def _centre(self) -> None:
+        """Subtract the views' mean world-frame rotation and translation correction from every view: a common
+        motion of all training views is a motion of the map away from the given trajectory (and from the held-out
+        views, which keep their given poses), not an alignment between views."""
+        views = list(self.state.values())
+        R = torch.stack([s["R"] for s in views])  # [V, 3, 3]
+        xi = torch.stack([s["xi"] for s in views])  # [V, 6]
+        w_world = torch.einsum("vij,vj->vi", R, xi[:, :3]).mean(0)
+        t_world = torch.einsum("vij,vj->vi", R, xi[:, 3:]).mean(0)
+        for s in views:
+            s["xi"][:3] -= s["R"].T @ w_world
+            s["xi"][3:] -= s["R"].T @ t_world
 
     def summary(self) -> dict:
         """Median rotation (degrees) and translation (mm) of the current corrections."""
@@ -176,11 +193,13 @@ class PoseRefiner:
 
     def state_dict(self) -> dict:
         return {str(k): {"xi": s["xi"].clone(), "m": s["m"].clone(), "v": s["v"].clone(), "t": int(s["t"]),
-                         "seen": int(s["seen"])} for k, s in self.state.items()}
+                         "seen": int(s["seen"]), "R": s["R"].clone()} for k, s in self.state.items()}
 
     def load_state_dict(self, state: dict | None) -> None:
         self.state = {int(k): {"xi": torch.as_tensor(s["xi"], dtype=torch.float64).clone(),
                                "m": torch.as_tensor(s["m"], dtype=torch.float64).clone(),
                                "v": torch.as_tensor(s["v"], dtype=torch.float64).clone(),
-                               "t": int(s["t"]), "seen": int(s["seen"])} for k, s in (state or {}).items()}
+                               "t": int(s["t"]), "seen": int(s["seen"]),
+                               "R": torch.as_tensor(s["R"], dtype=torch.float64).clone()}
+                      for k, s in (state or {}).items()}
         self._live = None

@@ -86,6 +86,7 @@ def test_disabled_or_regularised_refiner():
     off.step()  # nothing to step: no error
     on = PoseRefiner(PoseRefineConfig(enabled=True, reg=2.0))
     on.state[0] = {"xi": torch.full((6,), 0.1, dtype=torch.float64), "m": torch.zeros(6, dtype=torch.float64),
+                   "R": torch.eye(3, dtype=torch.float64),
                    "v": torch.zeros(6, dtype=torch.float64), "t": 0, "seen": 0}
     on.render_args(frame, args)
     assert abs(float(on.regulariser()) - 2.0 * 6 * 0.01) < 1e-6  # reg * |xi|^2 pulls toward the given pose
