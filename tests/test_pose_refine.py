@@ -63,7 +63,7 @@ def test_a_views_pose_error_is_learned_back_from_its_image():
     truth = torch.tensor([0.01, -0.015, 0.005, 0.02, -0.015, 0.0])  # ~1 degree, ~2.5 cm: several pixels here
     target = r.render(*args, cam, _pose(truth), bg).color
     frame = SimpleNamespace(index=7, T_world_cam=np.eye(4))  # the given pose is the identity: wrong by `truth`
-    ref = PoseRefiner(PoseRefineConfig(enabled=True, lr=3e-3, reg=0.0))
+    ref = PoseRefiner(PoseRefineConfig(enabled=True, lr=3e-3, reg=0.0, min_updates=0))
     losses = []
     for _ in range(80):
         out = r.render(*ref.render_args(frame, args), cam, frame.T_world_cam, bg)
@@ -84,7 +84,10 @@ def test_disabled_or_regularised_refiner():
     off = PoseRefiner(PoseRefineConfig())
     assert off.render_args(frame, args) is args and off.regulariser() is None and not off.state
     off.step()  # nothing to step: no error
-    on = PoseRefiner(PoseRefineConfig(enabled=True, reg=2.0))
+    late = PoseRefiner(PoseRefineConfig(enabled=True, min_updates=2))
+    assert late.render_args(frame, args) is args and late.render_args(frame, args) is args  # the view's first 2
+    assert late.render_args(frame, args) is not args and late.regulariser() is not None  # then it is refined
+    on = PoseRefiner(PoseRefineConfig(enabled=True, reg=2.0, min_updates=0))
     on.state[0] = {"xi": torch.full((6,), 0.1, dtype=torch.float64), "m": torch.zeros(6, dtype=torch.float64),
                    "R": torch.eye(3, dtype=torch.float64),
                    "v": torch.zeros(6, dtype=torch.float64), "t": 0, "seen": 0}
@@ -117,7 +120,7 @@ def _feed(rec):
 
 
 def test_reconstructor_learns_saves_and_restores_training_view_corrections(tmp_path):
-    rec = _rec(enabled=True, lr=2e-3)
+    rec = _rec(enabled=True, lr=2e-3, reg=1.0, min_updates=0)
     _feed(rec)
     assert sorted(rec.pose_refine.state) == [0, 1, 2]
     moved = [float(rec.pose_refine.correction(i).norm()) for i in range(3)]
@@ -137,7 +140,7 @@ def test_reconstructor_learns_saves_and_restores_training_view_corrections(tmp_p
 
 
 def test_zero_learning_rate_is_the_plain_mapper():
-    plain, zero = _rec(), _rec(enabled=True, lr=0.0, reg=0.0)
+    plain, zero = _rec(), _rec(enabled=True, lr=0.0, reg=0.0, min_updates=0)
     _feed(plain)
     _feed(zero)
     assert not plain.pose_refine.state
@@ -154,7 +157,7 @@ def test_centred_corrections_keep_the_map_on_the_given_trajectory():
         T = _pose(torch.tensor([0.0, yaw, 0.0, 0.0, 0.0, 0.0]))
         frames.append((SimpleNamespace(index=k, T_world_cam=T), r.render(*args, cam, T @ _pose(truth), bg).color))
     for centred in (False, True):
-        ref = PoseRefiner(PoseRefineConfig(enabled=True, lr=3e-3, reg=0.0, centred=centred))
+        ref = PoseRefiner(PoseRefineConfig(enabled=True, lr=3e-3, reg=0.0, min_updates=0, centred=centred))
         for _ in range(8):
             for frame, target in frames:
                 out = r.render(*ref.render_args(frame, args), cam, frame.T_world_cam, bg)
