@@ -22,6 +22,7 @@ from ..camera import Camera
 from ..frame import Frame
 from ..render import RenderOutput
 from .base import GrowthPolicy, MapContext
+from .capacity import BudgetCap
 from .mcmc import MCMCConfig, MCMCRefiner
 from .microcells import VoxelHash, grow
 from .seeding import seeds_from_depth
@@ -38,6 +39,11 @@ class GrowthConfig:
     min_views: int = 2  # distinct views that must find a voxel unexplained before it grows
     min_fraction: float = 0.5  # a view votes for a voxel when at least this share of its samples there are unexplained
     init_opacity: float = 0.5  # opacity of inserted Gaussians (3DGS-MCMC initialises at 0.5)
+    footprint: float = 0.5  # a new Gaussian's scale as a share of its stride x stride pixel block (0.5: seeds touch)
+    # budget cap (scheduling.capacity): the map grows only while one source frame still buys this many updates at
+    # the current supervision scale (0: the cap is config.max_gaussians alone)
+    budget_updates: float = 0.0
+    budget_min_gaussians: int = 1000  # the budget cap never goes below this
     mcmc: MCMCConfig = field(default_factory=MCMCConfig)
 
 
@@ -55,12 +61,22 @@ class TargetedGrowth(GrowthPolicy):
         self.mcmc = MCMCRefiner(self.cfg.mcmc, seed=seed)
         self.rng = torch.Generator().manual_seed(seed + 1)
         self.counts = {"seeded": 0, "inserted": 0, "replaced": 0}
+        self.budget = BudgetCap(self.cfg.budget_updates, self.cfg.budget_min_gaussians)
+        self.pixels = 0  # supervised pixels of the last update (prices the budget cap; 0: the probe's until then)
+
+    def attach(self, period_s: float | None, cost=None) -> None:
+        self.budget.attach(period_s, cost)
+
+    def cap(self, ctx: MapContext, pixels: int) -> int:
+        """The map-size cap now: ``ctx.max_gaussians``, lowered by the budget cap when one is set."""
+        return self.budget.cap(ctx.max_gaussians, pixels)
 
     # ---- per released frame ---------------------------------------------------------------------------------
     def on_frame(self, frame: Frame, admitted: bool, ctx: MapContext) -> int:
         if not admitted:
             return 0  # evidence comes from distinct (admitted) views only; near-duplicates would double count
         sup = self.probe.check(frame, ctx)
+        cap = self.cap(ctx, self.pixels or sup.camera.pixels)
         vs, us = torch.nonzero(sup.valid, as_tuple=True)
         if vs.numel() == 0:
             return 0
@@ -74,7 +90,7 @@ class TargetedGrowth(GrowthPolicy):
         # sparse structural support where space is seen for the first time and nothing renders there
         new_space = first_seen & sup.unsupported[vs, us]
         added = self._insert(sup, frame, vs[new_space], us[new_space], self.cfg.seed_stride,
-                             self.cfg.max_seeds_per_frame, ctx, "seeded")
+                             self.cfg.max_seeds_per_frame, ctx, "seeded", cap)
 
         # evidence: one vote per distinct view for known voxels it finds mostly unexplained; explained loses one
         known = ~first_seen
@@ -96,18 +112,19 @@ class TargetedGrowth(GrowthPolicy):
             is_ready[ready] = True
             sel = known & bad & is_ready[ids]
             added += self._insert(sup, frame, vs[sel], us[sel], self.cfg.insert_stride,
-                                  self.cfg.max_insert_per_frame, ctx, "inserted")
+                                  self.cfg.max_insert_per_frame, ctx, "inserted", cap)
             self.votes[ready] = 0  # grown: new evidence is needed before this voxel grows again
         return added
 
-    def _insert(self, sup, frame: Frame, vs, us, stride: int, limit: int, ctx: MapContext, what: str) -> int:
-        """Gaussians at the given probe pixels on a ``stride`` grid: appended while under the cap, else written
-        over dead (low-opacity) Gaussians (MCMC-style replacement); never beyond ``ctx.max_gaussians``."""
+    def _insert(self, sup, frame: Frame, vs, us, stride: int, limit: int, ctx: MapContext, what: str,
+                cap: int) -> int:
+        """Gaussians at the given probe pixels on a ``stride`` grid: appended while under ``cap``, else written
+        over dead (low-opacity) Gaussians (MCMC-style replacement); never beyond ``cap``."""
         if vs.numel() == 0:
             return 0
         mask = torch.zeros_like(sup.valid)
         mask[vs, us] = True
-        room = max(0, ctx.max_gaussians - len(ctx.gmap))
+        room = max(0, cap - len(ctx.gmap))
         dead = torch.zeros(0, dtype=torch.long)
         if room < limit and len(ctx.gmap):
             dead = torch.nonzero(ctx.gmap.opacities.detach().cpu() <= self.cfg.mcmc.min_opacity).squeeze(1)
@@ -115,7 +132,7 @@ class TargetedGrowth(GrowthPolicy):
         if budget <= 0:
             return 0
         means, rgbs, scales = seeds_from_depth(sup.color, sup.depth, sup.camera, frame.T_world_cam, mask, stride,
-                                               budget, self.rng)
+                                               budget, self.rng, self.cfg.footprint)
         m = means.shape[0]
         if m == 0:
             return 0
@@ -138,7 +155,8 @@ class TargetedGrowth(GrowthPolicy):
         return self.mcmc.regulariser(ctx.gmap)
 
     def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
-        self.mcmc.post_step(ctx.gmap, ctx.max_gaussians)
+        self.pixels = int(camera.pixels)
+        self.mcmc.post_step(ctx.gmap, self.cap(ctx, self.pixels))
 
     def counters(self) -> dict:
         return {**self.counts, **self.mcmc.counts, "evidence_voxels": len(self.voxels)}

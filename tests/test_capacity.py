@@ -1,0 +1,125 @@
+"""The budget cap on the map size (scheduling.capacity) and the scale of depth seeds (scheduling.seeding)."""
+
+import numpy as np
+import pytest
+import torch
+
+import eligsir_o3d as eo3d
+from eligsir_o3d.budget.cost import CostModel
+from eligsir_o3d.camera import Camera
+from eligsir_o3d.frame import Frame
+from eligsir_o3d.gaussians import GaussianMap
+from eligsir_o3d.render import get_renderer
+from eligsir_o3d.scheduling import GrowthConfig, MapContext, TargetedGrowth
+from eligsir_o3d.scheduling.capacity import BudgetCap
+from eligsir_o3d.scheduling.seeding import seeds_from_depth
+
+CAM = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
+QVGA = 160 * 120
+
+
+def _frame_cost(cost: CostModel, n: int, m: float, pixels: int) -> float:
+    return cost.frame(n) + m * cost.update(pixels, n)
+
+
+@pytest.mark.parametrize("m", [1, 2, 3.5])
+def test_budget_cap_is_the_largest_map_that_leaves_the_minimum_updates(m):
+    cost, period = CostModel(), 1.0 / 30.0
+    cap = BudgetCap(m, min_gaussians=0)
+    cap.attach(period, cost)
+    n = cap.cap(10**9, QVGA)
+    assert n > 0
+    assert _frame_cost(cost, n, m, QVGA) <= period < _frame_cost(cost, n + 1, m, QVGA)
+
+
+def test_budget_cap_grows_with_the_time_a_frame_grants_and_shrinks_with_resolution():
+    cap = BudgetCap(2, min_gaussians=0)
+    cap.attach(1.0 / 30.0, CostModel())
+    realtime = cap.cap(10**9, QVGA)
+    assert cap.cap(10**9, 4 * QVGA) < realtime  # finer supervision: each update costs more per Gaussian
+    cap.attach(10.0 / 30.0, CostModel())  # --speed 0.1
+    assert cap.cap(10**9, QVGA) > 10 * realtime  # ten times the seconds: more than ten times the Gaussians
+    faster = CostModel(gaussian_s=2e-7, pixel_gaussian_s=1.3e-11)  # a machine where a Gaussian costs half
+    cap.attach(1.0 / 30.0, faster)
+    assert cap.cap(10**9, QVGA) > realtime
+
+
+def test_budget_cap_bounds():
+    cap = BudgetCap(2, min_gaussians=500)
+    assert cap.cap(7000, QVGA) == 7000  # no load handed over yet: the memory cap alone
+    cap.attach(1.0 / 30.0, None)  # no cost model: priced with the shipped one
+    shipped = BudgetCap(2, min_gaussians=0)
+    shipped.attach(1.0 / 30.0, CostModel())
+    assert cap.cap(10**9, QVGA) == shipped.cap(10**9, QVGA)
+    assert cap.cap(100, QVGA) == 100  # never above config.max_gaussians
+    cap.attach(1e-4, CostModel())  # a frame grants almost nothing: the floor
+    assert cap.cap(10**9, QVGA) == 500
+    assert BudgetCap(0).cap(1234, QVGA) == 1234  # off
+    with pytest.raises(ValueError, match="budget_updates"):
+        BudgetCap(-1)
+
+
+def _plane(T, index, cam=CAM, depth=2.0):
+    v, u = np.mgrid[0:cam.height, 0:cam.width]
+    color = np.stack([(u % 8) / 8.0, (v % 6) / 6.0, np.full(u.shape, 0.5)], -1).astype(np.float32)
+    return Frame.from_arrays(color, np.full((cam.height, cam.width), depth, np.float32), cam, T,
+                             timestamp=index / 30.0, index=index)
+
+
+def _map_size(period_s, budget_updates):
+    """Gaussians after mapping 4 frames of a plane with dense seeding and fast MCMC growth at a frame period."""
+    cfg = eo3d.Config(renderer="torch", max_gaussians=400)
+    cfg.growth.seed_stride = 1
+    cfg.growth.min_views = 1
+    cfg.growth.budget_updates = budget_updates
+    cfg.growth.budget_min_gaussians = 10
+    cfg.growth.mcmc.refine_start = 1
+    cfg.growth.mcmc.refine_every = 1
+    cfg.growth.mcmc.growth_rate = 0.5
+    cfg.views.min_novelty = 0.0
+    rec = eo3d.Reconstructor(CAM, config=cfg)
+    cost = CostModel(update_s=0.0, gaussian_s=1e-4, pixel_s=0.0, pixel_gaussian_s=0.0, frame_s=0.0)
+    rec.set_load(0, period_s, cost)  # as a deterministic clock does
+    sizes = []
+    for i in range(4):
+        T = np.eye(4)
+        T[0, 3] = 0.2 * i
+        rec.integrate(_plane(T, i), updates=2)
+        sizes.append(len(rec.gmap))
+    return sizes
+
+
+def test_map_size_follows_the_budget_through_the_reconstructor():
+    # a Gaussian costs 1e-4 s per update and per frame: with 2 updates per frame the cap is period / 3e-4
+    small, large = _map_size(0.03, 2), _map_size(0.09, 2)
+    assert max(small) <= 100 and max(large) <= 300
+    assert max(large) > 2 * max(small)  # three times the seconds per frame: a larger map
+    free = _map_size(0.03, 0)  # budget cap off: only config.max_gaussians bounds the map
+    assert max(free) == 400
+
+
+def test_seed_scale_follows_depth_focal_length_stride_and_footprint():
+    cam = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
+    color = torch.rand(48, 64, 3)
+    depth = torch.full((48, 64), 2.0)
+    depth[:, 32:] = 4.0
+    mask = torch.ones(48, 64, dtype=torch.bool)
+    means, rgbs, scales = seeds_from_depth(color, depth, cam, np.eye(4), mask, 2, 10_000)
+    near = means[:, 2] < 3
+    # 2 pixels at 2 m with f = 50 px span 8 cm; footprint 0.5 -> sigma 4 cm (8 cm at 4 m)
+    assert torch.allclose(scales[near], torch.full_like(scales[near], 0.04))
+    assert torch.allclose(scales[~near], torch.full_like(scales[~near], 0.08))
+    _, _, wide = seeds_from_depth(color, depth, cam, np.eye(4), mask, 2, 10_000, footprint=0.8)
+    assert torch.allclose(wide, scales * 1.6)
+    vs, us = (means[:, 1] / means[:, 2] * 50.0 + 23.5).round().long(), (means[:, 0] / means[:, 2] * 50.0 + 31.5).round().long()
+    assert torch.allclose(rgbs, color[vs, us])  # colours from the image at the seed's pixel
+
+
+def test_growth_policy_inserts_no_more_than_the_budget_cap():
+    gmap, renderer = GaussianMap(0), get_renderer("torch")
+    ctx = MapContext.standalone(gmap, lambda cam, T: renderer.render(*gmap.render_args(), cam, T, torch.zeros(3)),
+                                torch.device("cpu"), 100_000)
+    growth = TargetedGrowth(GrowthConfig(seed_stride=1, budget_updates=2, budget_min_gaussians=10))
+    growth.attach(0.0301, CostModel(update_s=0.0, gaussian_s=1e-4, pixel_s=0.0, pixel_gaussian_s=0.0, frame_s=0.0))
+    T = np.eye(4)
+    assert growth.on_frame(_plane(T, 0), True, ctx) == 100 == len(ctx.gmap)  # 0.0301 s / 3e-4 s per Gaussian, rounded down
