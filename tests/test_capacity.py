@@ -123,3 +123,31 @@ def test_growth_policy_inserts_no_more_than_the_budget_cap():
     growth.attach(0.0301, CostModel(update_s=0.0, gaussian_s=1e-4, pixel_s=0.0, pixel_gaussian_s=0.0, frame_s=0.0))
     T = np.eye(4)
     assert growth.on_frame(_plane(T, 0), True, ctx) == 100 == len(ctx.gmap)  # 0.0301 s / 3e-4 s per Gaussian, rounded down
+
+
+def test_mcmc_densification_fills_the_budget_room():
+    from eligsir_o3d.scheduling.mcmc import MCMCConfig, MCMCRefiner
+
+    def grown(min_add):
+        gmap = GaussianMap(0)
+        gmap.add(torch.rand(100, 3), torch.rand(100, 3), torch.full((100,), 0.05), 0.5)
+        MCMCRefiner(MCMCConfig(refine_start=1, refine_every=1, growth_rate=0.05, noise_lr=0), seed=0).post_step(
+            gmap, cap=1000, min_add=min_add)
+        return len(gmap)
+
+    assert grown(0) == 105  # growth_rate alone: 5 % of the map
+    assert grown(400) == 500  # at least min_add
+    assert grown(5000) == 1000  # never beyond the cap
+    # the growth policy asks for budget_fill of the room under its budget cap
+    gmap, renderer = GaussianMap(0), get_renderer("torch")
+    ctx = MapContext.standalone(gmap, lambda cam, T: renderer.render(*gmap.render_args(), cam, T, torch.zeros(3)),
+                                torch.device("cpu"), 100_000)
+    cfg = GrowthConfig(seed_stride=4, budget_updates=2, budget_min_gaussians=10, budget_fill=0.5)
+    cfg.mcmc.refine_start = cfg.mcmc.refine_every = 1
+    growth = TargetedGrowth(cfg)
+    growth.attach(0.0301, CostModel(update_s=0.0, gaussian_s=1e-4, pixel_s=0.0, pixel_gaussian_s=0.0, frame_s=0.0))
+    frame = _plane(np.eye(4), 0)
+    seeded = growth.on_frame(frame, True, ctx)
+    _, depth, cam = frame.at_scale(1.0)
+    growth.post_step(frame, None, depth, cam, ctx)
+    assert len(gmap) == seeded + -(-(100 - seeded) // 2)  # half the room to the cap of 100, rounded up

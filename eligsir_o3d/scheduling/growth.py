@@ -14,6 +14,7 @@ The evidence store is a :class:`VoxelHash` (an Open3D hash map) with per-voxel v
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -44,6 +45,7 @@ class GrowthConfig:
     # the current supervision scale (0: the cap is config.max_gaussians alone)
     budget_updates: float = 0.0
     budget_min_gaussians: int = 1000  # the budget cap never goes below this
+    budget_fill: float = 0.0  # with a budget cap: each MCMC densification adds at least this share of the room left
     mcmc: MCMCConfig = field(default_factory=MCMCConfig)
 
 
@@ -156,7 +158,11 @@ class TargetedGrowth(GrowthPolicy):
 
     def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
         self.pixels = int(camera.pixels)
-        self.mcmc.post_step(ctx.gmap, self.cap(ctx, self.pixels))
+        cap = self.cap(ctx, self.pixels)
+        fill = 0
+        if self.cfg.budget_updates > 0 and self.cfg.budget_fill > 0:
+            fill = math.ceil(self.cfg.budget_fill * max(0, cap - len(ctx.gmap)))
+        self.mcmc.post_step(ctx.gmap, cap, fill)
 
     def counters(self) -> dict:
         return {**self.counts, **self.mcmc.counts, "evidence_voxels": len(self.voxels)}
