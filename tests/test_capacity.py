@@ -151,3 +151,25 @@ def test_mcmc_densification_fills_the_budget_room():
     _, depth, cam = frame.at_scale(1.0)
     growth.post_step(frame, None, depth, cam, ctx)
     assert len(gmap) == seeded + -(-(100 - seeded) // 2)  # half the room to the cap of 100, rounded up
+
+
+def test_budget_cap_is_priced_at_the_configured_scale_not_the_update_scale():
+    gmap, renderer = GaussianMap(0), get_renderer("torch")
+    ctx = MapContext.standalone(gmap, lambda cam, T: renderer.render(*gmap.render_args(), cam, T, torch.zeros(3)),
+                                torch.device("cpu"), 100_000)
+    cost = CostModel(update_s=0.0, gaussian_s=0.0, pixel_s=0.0, pixel_gaussian_s=1e-7, frame_s=0.0)
+    frame = _plane(np.eye(4), 0)  # 64 x 48
+
+    def cap_after_update(budget_scale, update_scale):
+        growth = TargetedGrowth(GrowthConfig(budget_updates=1, budget_scale=budget_scale, budget_min_gaussians=1))
+        growth.attach(0.03, cost)
+        _, depth, cam = frame.at_scale(update_scale)
+        growth.post_step(frame, None, depth, cam, ctx)
+        return growth.cap(ctx, growth.pixels)
+
+    # priced at 1/4 (16 x 12 pixels): 0.03 s / (192 px * 1e-7 s) whatever the update's scale
+    assert cap_after_update(0.25, 1.0) == cap_after_update(0.25, 0.5) == int(0.03 / (192 * 1e-7))
+    # 0: the current update's scale (a finer update lowers the cap)
+    assert cap_after_update(0.0, 1.0) == int(0.03 / (3072 * 1e-7)) < cap_after_update(0.0, 0.5)
+    with pytest.raises(ValueError, match="budget_scale"):
+        TargetedGrowth(GrowthConfig(budget_scale=2.0))

@@ -44,6 +44,10 @@ class GrowthConfig:
     # budget cap (scheduling.capacity): the map grows only while one source frame still buys this many updates at
     # the current supervision scale (0: the cap is config.max_gaussians alone)
     budget_updates: float = 0.0
+    # the supervision scale that prices the cap: the fidelity controller's idle floor, so the cap does not depend on
+    # the scale of the moment (0: the current update's scale; then a growing map pushes the controller to coarser
+    # scales, which lift the cap again: SUN3D at --speed 0.1 ran away to 105k Gaussians at 1/4, -0.28 dB)
+    budget_scale: float = 0.25
     budget_min_gaussians: int = 1000  # the budget cap never goes below this
     budget_fill: float = 0.0  # with a budget cap: each MCMC densification adds at least this share of the room left
     mcmc: MCMCConfig = field(default_factory=MCMCConfig)
@@ -63,8 +67,10 @@ class TargetedGrowth(GrowthPolicy):
         self.mcmc = MCMCRefiner(self.cfg.mcmc, seed=seed)
         self.rng = torch.Generator().manual_seed(seed + 1)
         self.counts = {"seeded": 0, "inserted": 0, "replaced": 0}
+        if not 0.0 <= self.cfg.budget_scale <= 1.0:
+            raise ValueError(f"growth.budget_scale must lie in [0, 1], got {self.cfg.budget_scale}")
         self.budget = BudgetCap(self.cfg.budget_updates, self.cfg.budget_min_gaussians)
-        self.pixels = 0  # supervised pixels of the last update (prices the budget cap; 0: the probe's until then)
+        self.pixels = 0  # supervised pixels that price the budget cap (0: the probe's until an update or frame sets it)
 
     def attach(self, period_s: float | None, cost=None) -> None:
         self.budget.attach(period_s, cost)
@@ -78,6 +84,8 @@ class TargetedGrowth(GrowthPolicy):
         if not admitted:
             return 0  # evidence comes from distinct (admitted) views only; near-duplicates would double count
         sup = self.probe.check(frame, ctx)
+        if self.cfg.budget_scale > 0:
+            self.pixels = _pixels_at(frame.camera, self.cfg.budget_scale)
         cap = self.cap(ctx, self.pixels or sup.camera.pixels)
         vs, us = torch.nonzero(sup.valid, as_tuple=True)
         if vs.numel() == 0:
@@ -157,7 +165,7 @@ class TargetedGrowth(GrowthPolicy):
         return self.mcmc.regulariser(ctx.gmap)
 
     def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
-        self.pixels = int(camera.pixels)
+        self.pixels = _pixels_at(frame.camera, self.cfg.budget_scale) if self.cfg.budget_scale > 0 else camera.pixels
         cap = self.cap(ctx, self.pixels)
         fill = 0
         if self.cfg.budget_updates > 0 and self.cfg.budget_fill > 0:
@@ -180,6 +188,11 @@ class TargetedGrowth(GrowthPolicy):
         self.mcmc.load_state_dict(state["mcmc"])
         self.rng.set_state(state["rng"])
         self.counts.update(state.get("counts", {}))
+
+
+def _pixels_at(camera: Camera, scale: float) -> int:
+    """Supervised pixels of an update of ``camera``'s image at ``scale``."""
+    return int(camera.scaled(scale).pixels)
 
 
 def _world(depth: torch.Tensor, camera: Camera, T_world_cam, vs: torch.Tensor, us: torch.Tensor) -> torch.Tensor:
