@@ -173,3 +173,23 @@ def test_budget_cap_is_priced_at_the_configured_scale_not_the_update_scale():
     assert cap_after_update(0.0, 1.0) == int(0.03 / (3072 * 1e-7)) < cap_after_update(0.0, 0.5)
     with pytest.raises(ValueError, match="budget_scale"):
         TargetedGrowth(GrowthConfig(budget_scale=2.0))
+
+
+def test_default_map_size_cap_follows_the_budget():
+    """The default ties the map size to the budget: a 640x480 stream at 30 Hz (every 8th frame held out, as in
+    the 7-Scenes runs) is held near 3.8k Gaussians on the shipped cost model; at --speed 0.1 the cap is far above
+    what the map reaches (so it changes nothing there); config.max_gaussians still bounds it."""
+    growth = TargetedGrowth(eo3d.Config().growth)
+    vga = Camera(640, 480, 525.0, 525.0, 319.5, 239.5)
+    frame = Frame.from_arrays(np.zeros((480, 640, 3), np.float32), np.full((480, 640), 2.0, np.float32), vga,
+                              np.eye(4), timestamp=0.0, index=0)
+    _, depth, cam = frame.at_scale(1.0)  # an update at full resolution: the cap is still priced at 1/4
+    period = 1.0 / 30.0 * 8 / 7
+    ctx = MapContext.standalone(GaussianMap(0), None, torch.device("cpu"), 300_000)
+    assert TargetedGrowth(eo3d.Config().growth).cap(ctx, 160 * 120) == 300_000  # no budget handed over yet
+    growth.attach(period, CostModel())
+    growth.post_step(frame, None, depth, cam, ctx)
+    assert growth.pixels == 160 * 120
+    assert 3000 < growth.cap(ctx, growth.pixels) < 4500
+    growth.attach(period / 0.1, CostModel())
+    assert growth.cap(ctx, growth.pixels) > 50_000
