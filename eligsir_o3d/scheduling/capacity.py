@@ -3,7 +3,7 @@
 A Gaussian is not free: every update and every integrated frame pays for each one (the cost model's ``gaussian_s``
 and ``pixel_gaussian_s`` terms). A map that grows until updates become rare trains badly; a map held small stays
 blurry however many updates it gets. The budget cap lets the map grow only while one source frame still buys
-``min_updates`` updates at the current supervision scale:
+``min_updates`` updates of ``pixels`` supervised pixels (the growth policy prices them at ``growth.budget_scale``):
 
     frame(N) + min_updates * update(pixels, N) <= period_s
 

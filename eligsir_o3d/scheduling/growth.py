@@ -43,7 +43,7 @@ class GrowthConfig:
     footprint: float = 0.5  # a new Gaussian's scale as a share of its stride x stride pixel block (0.5: seeds touch)
     # budget cap (scheduling.capacity): the map grows only while one source frame still buys this many updates at
     # ``budget_scale`` (0: the cap is config.max_gaussians alone). 4: 7-Scenes kitchen, 200 frames, default budget
-    # (map held at 3.8k instead of 4.1k-4.6k Gaussians), seeds 0/1/2: 21.48/21.65/21.64 dB vs 21.27/21.51/...;
+    # (map held at 3.8k instead of 4.1k-4.6k Gaussians), seeds 0/1/2: 21.48/21.65/21.64 dB vs 21.27/21.51/21.36;
     # SUN3D study room: the cap does not bind (2.8k); at --speed 0.1 it does not bind either (77k)
     budget_updates: float = 4.0
     # the supervision scale that prices the cap: the fidelity controller's idle floor, so the cap does not depend on
