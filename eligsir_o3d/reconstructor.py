@@ -165,6 +165,7 @@ class Reconstructor:
         if period_s is not None:
             cost_fn = None if cost is None else (lambda pixels: cost.update(pixels, len(self.gmap)))
             self.fidelity.attach(period_s, cost_fn)
+            self.growth.attach(period_s, cost)  # the budget cap on the map size (scheduling.capacity)
 
     def policy_counters(self) -> dict:
         """Each policy's name and what it decided so far (admissions, seeds, insertions, relocations, scales)."""

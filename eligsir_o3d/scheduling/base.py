@@ -147,3 +147,8 @@ class GrowthPolicy(Policy):
 
     def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
         """After the optimizer step (relocation, noise, evidence-gated insertion)."""
+
+    def attach(self, period_s: float | None, cost=None) -> None:
+        """When the load changes (``Reconstructor.set_load``): the seconds one source frame grants and the
+        ``CostModel`` pricing the work (None without a deterministic budget). A policy whose map size does not
+        depend on the budget ignores it."""

@@ -14,6 +14,7 @@ The evidence store is a :class:`VoxelHash` (an Open3D hash map) with per-voxel v
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -22,6 +23,7 @@ from ..camera import Camera
 from ..frame import Frame
 from ..render import RenderOutput
 from .base import GrowthPolicy, MapContext
+from .capacity import BudgetCap
 from .mcmc import MCMCConfig, MCMCRefiner
 from .microcells import VoxelHash, grow
 from .seeding import seeds_from_depth
@@ -38,6 +40,18 @@ class GrowthConfig:
     min_views: int = 2  # distinct views that must find a voxel unexplained before it grows
     min_fraction: float = 0.5  # a view votes for a voxel when at least this share of its samples there are unexplained
     init_opacity: float = 0.5  # opacity of inserted Gaussians (3DGS-MCMC initialises at 0.5)
+    footprint: float = 0.5  # a new Gaussian's scale as a share of its stride x stride pixel block (0.5: seeds touch)
+    # budget cap (scheduling.capacity): the map grows only while one source frame still buys this many updates at
+    # ``budget_scale`` (0: the cap is config.max_gaussians alone). 4: 7-Scenes kitchen, 200 frames, default budget
+    # (map held at 3.8k instead of 4.1k-4.6k Gaussians), seeds 0/1/2: 21.48/21.65/21.64 dB vs 21.27/21.51/21.36;
+    # SUN3D study room: the cap does not bind (2.8k); at --speed 0.1 it does not bind either (77k)
+    budget_updates: float = 4.0
+    # the supervision scale that prices the cap: the fidelity controller's idle floor, so the cap does not depend on
+    # the scale of the moment (0: the current update's scale; then a growing map pushes the controller to coarser
+    # scales, which lift the cap again: SUN3D at --speed 0.1 ran away to 105k Gaussians at 1/4, -0.28 dB)
+    budget_scale: float = 0.25
+    budget_min_gaussians: int = 1000  # the budget cap never goes below this
+    budget_fill: float = 0.0  # with a budget cap: each MCMC densification adds at least this share of the room left
     mcmc: MCMCConfig = field(default_factory=MCMCConfig)
 
 
@@ -55,12 +69,26 @@ class TargetedGrowth(GrowthPolicy):
         self.mcmc = MCMCRefiner(self.cfg.mcmc, seed=seed)
         self.rng = torch.Generator().manual_seed(seed + 1)
         self.counts = {"seeded": 0, "inserted": 0, "replaced": 0}
+        if not 0.0 <= self.cfg.budget_scale <= 1.0:
+            raise ValueError(f"growth.budget_scale must lie in [0, 1], got {self.cfg.budget_scale}")
+        self.budget = BudgetCap(self.cfg.budget_updates, self.cfg.budget_min_gaussians)
+        self.pixels = 0  # supervised pixels that price the budget cap (0: the probe's until an update or frame sets it)
+
+    def attach(self, period_s: float | None, cost=None) -> None:
+        self.budget.attach(period_s, cost)
+
+    def cap(self, ctx: MapContext, pixels: int) -> int:
+        """The map-size cap now: ``ctx.max_gaussians``, lowered by the budget cap when one is set."""
+        return self.budget.cap(ctx.max_gaussians, pixels)
 
     # ---- per released frame ---------------------------------------------------------------------------------
     def on_frame(self, frame: Frame, admitted: bool, ctx: MapContext) -> int:
         if not admitted:
             return 0  # evidence comes from distinct (admitted) views only; near-duplicates would double count
         sup = self.probe.check(frame, ctx)
+        if self.cfg.budget_scale > 0:
+            self.pixels = _pixels_at(frame.camera, self.cfg.budget_scale)
+        cap = self.cap(ctx, self.pixels or sup.camera.pixels)
         vs, us = torch.nonzero(sup.valid, as_tuple=True)
         if vs.numel() == 0:
             return 0
@@ -74,7 +102,7 @@ class TargetedGrowth(GrowthPolicy):
         # sparse structural support where space is seen for the first time and nothing renders there
         new_space = first_seen & sup.unsupported[vs, us]
         added = self._insert(sup, frame, vs[new_space], us[new_space], self.cfg.seed_stride,
-                             self.cfg.max_seeds_per_frame, ctx, "seeded")
+                             self.cfg.max_seeds_per_frame, ctx, "seeded", cap)
 
         # evidence: one vote per distinct view for known voxels it finds mostly unexplained; explained loses one
         known = ~first_seen
@@ -96,18 +124,19 @@ class TargetedGrowth(GrowthPolicy):
             is_ready[ready] = True
             sel = known & bad & is_ready[ids]
             added += self._insert(sup, frame, vs[sel], us[sel], self.cfg.insert_stride,
-                                  self.cfg.max_insert_per_frame, ctx, "inserted")
+                                  self.cfg.max_insert_per_frame, ctx, "inserted", cap)
             self.votes[ready] = 0  # grown: new evidence is needed before this voxel grows again
         return added
 
-    def _insert(self, sup, frame: Frame, vs, us, stride: int, limit: int, ctx: MapContext, what: str) -> int:
-        """Gaussians at the given probe pixels on a ``stride`` grid: appended while under the cap, else written
-        over dead (low-opacity) Gaussians (MCMC-style replacement); never beyond ``ctx.max_gaussians``."""
+    def _insert(self, sup, frame: Frame, vs, us, stride: int, limit: int, ctx: MapContext, what: str,
+                cap: int) -> int:
+        """Gaussians at the given probe pixels on a ``stride`` grid: appended while under ``cap``, else written
+        over dead (low-opacity) Gaussians (MCMC-style replacement); never beyond ``cap``."""
         if vs.numel() == 0:
             return 0
         mask = torch.zeros_like(sup.valid)
         mask[vs, us] = True
-        room = max(0, ctx.max_gaussians - len(ctx.gmap))
+        room = max(0, cap - len(ctx.gmap))
         dead = torch.zeros(0, dtype=torch.long)
         if room < limit and len(ctx.gmap):
             dead = torch.nonzero(ctx.gmap.opacities.detach().cpu() <= self.cfg.mcmc.min_opacity).squeeze(1)
@@ -115,7 +144,7 @@ class TargetedGrowth(GrowthPolicy):
         if budget <= 0:
             return 0
         means, rgbs, scales = seeds_from_depth(sup.color, sup.depth, sup.camera, frame.T_world_cam, mask, stride,
-                                               budget, self.rng)
+                                               budget, self.rng, self.cfg.footprint)
         m = means.shape[0]
         if m == 0:
             return 0
@@ -138,7 +167,12 @@ class TargetedGrowth(GrowthPolicy):
         return self.mcmc.regulariser(ctx.gmap)
 
     def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
-        self.mcmc.post_step(ctx.gmap, ctx.max_gaussians)
+        self.pixels = _pixels_at(frame.camera, self.cfg.budget_scale) if self.cfg.budget_scale > 0 else camera.pixels
+        cap = self.cap(ctx, self.pixels)
+        fill = 0
+        if self.cfg.budget_updates > 0 and self.cfg.budget_fill > 0:
+            fill = math.ceil(self.cfg.budget_fill * max(0, cap - len(ctx.gmap)))
+        self.mcmc.post_step(ctx.gmap, cap, fill)
 
     def counters(self) -> dict:
         return {**self.counts, **self.mcmc.counts, "evidence_voxels": len(self.voxels)}
@@ -156,6 +190,11 @@ class TargetedGrowth(GrowthPolicy):
         self.mcmc.load_state_dict(state["mcmc"])
         self.rng.set_state(state["rng"])
         self.counts.update(state.get("counts", {}))
+
+
+def _pixels_at(camera: Camera, scale: float) -> int:
+    """Supervised pixels of an update of ``camera``'s image at ``scale``."""
+    return int(camera.scaled(scale).pixels)
 
 
 def _world(depth: torch.Tensor, camera: Camera, T_world_cam, vs: torch.Tensor, us: torch.Tensor) -> torch.Tensor:

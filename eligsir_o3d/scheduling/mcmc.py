@@ -161,15 +161,17 @@ class MCMCRefiner:
             return None
         return self.cfg.opacity_reg * gmap.opacities.mean() + self.cfg.scale_reg * gmap.scales.mean()
 
-    def post_step(self, gmap: GaussianMap, cap: int) -> None:
+    def post_step(self, gmap: GaussianMap, cap: int, min_add: int = 0) -> None:
+        """Relocation and densification every ``refine_every`` updates (densification adds ``growth_rate`` of the
+        map, at least ``min_add``, never beyond ``cap``), then the position noise."""
         self.steps += 1
         c = self.cfg
         rng = self.generator(gmap.device)
         if self.steps >= c.refine_start and self.steps % c.refine_every == 0 and len(gmap):
             dead = gmap.opacities.detach() <= c.min_opacity
             self.counts["relocated"] += relocate(gmap, dead, rng, c.min_opacity, c.n_max)
-            self.counts["added"] += sample_add(gmap, math.ceil(c.growth_rate * len(gmap)), cap, rng,
-                                               c.min_opacity, c.n_max)
+            n_add = max(math.ceil(c.growth_rate * len(gmap)), int(min_add))
+            self.counts["added"] += sample_add(gmap, n_add, cap, rng, c.min_opacity, c.n_max)
         if c.noise_lr > 0:
             inject_noise(gmap, gmap.lrs.means * c.noise_lr, rng)
 
