@@ -68,7 +68,7 @@ class Reconstructor:
         self.renderer = get_renderer(self.config.renderer, self.device)
         torch.manual_seed(self.config.seed)
         self.rng = torch.Generator().manual_seed(self.config.seed)
-        self.gmap = GaussianMap(self.config.sh_degree, self.device, self.config.optim.lrs)
+        self.gmap = GaussianMap(self.config.sh_degree, self.device, self.config.optim.lrs, self.config.optim.adam)
         self.views, self.fidelity, self.growth = get_policies(self.config)
         self.fixed_work = LoadScaledChecks(self.config.fixed_work)  # how much fixed work each frame gets, from the backlog
         self.frame_plan = FULL  # the current frame's plan (read by the policies through ctx.plan)
@@ -273,7 +273,7 @@ class Reconstructor:
         """Replace the map with the Gaussians of a 3DGS PLY (optimizer state starts fresh)."""
         from .ply import load_ply
 
-        gmap = load_ply(path, self.device, self.config.optim.lrs)
+        gmap = load_ply(path, self.device, self.config.optim.lrs, self.config.optim.adam)
         self.gmap = gmap
         self.config.sh_degree = gmap.sh_degree
 
