@@ -13,20 +13,23 @@ import torch
 
 
 def _row_factors(gmap, name: str, state: dict, lr: float, b1: float, b2: float, seen: torch.Tensor | None):
-    """(a_rows, b_rows): -lr_r / bias correction 1 and sqrt(bias correction 2) of every row of ``name``."""
+    """(a_rows, b_rows): -lr_r / bias correction 1 and sqrt(bias correction 2) of every row of ``name`` ([1]
+    each when every row has the same)."""
     cfg = gmap.adam
-    k = state["row_step"].double() if cfg.row_bias_correction else torch.full_like(
-        state["row_step"], float(state["step"]), dtype=torch.float64)
-    lr_rows = torch.full_like(k, lr)
+    if cfg.row_bias_correction:
+        k = state["row_step"].double()
+        a_rows, b_rows = -lr / (1.0 - b1 ** k), torch.sqrt(1.0 - b2 ** k)
+    else:
+        step = float(state["step"])
+        a_rows = torch.tensor([-lr / (1.0 - b1 ** step)], dtype=torch.float64, device=state["row_step"].device)
+        b_rows = torch.tensor([(1.0 - b2 ** step) ** 0.5], dtype=torch.float64, device=state["row_step"].device)
+    a_rows, b_rows = a_rows.float(), b_rows.float()
     if seen is not None:
-        s = seen.double()
         if name == "means" and cfg.means_decay_to != 1.0:
-            lr_rows = lr_rows * cfg.means_decay_to ** torch.clamp(s / cfg.means_decay_updates, max=1.0)
+            a_rows = a_rows * torch.pow(cfg.means_decay_to, torch.clamp(seen / cfg.means_decay_updates, max=1.0))
         if cfg.warmup_updates > 0:
-            lr_rows = lr_rows * torch.clamp(s / cfg.warmup_updates, max=1.0)
-    a_rows = -lr_rows / (1.0 - b1 ** k)
-    b_rows = torch.sqrt(1.0 - b2 ** k)
-    return a_rows.float(), b_rows.float()
+            a_rows = a_rows * torch.clamp(seen / cfg.warmup_updates, max=1.0)
+    return a_rows, b_rows
 
 
 def row_adam_step(gmap) -> None:
@@ -64,7 +67,7 @@ def row_adam_step(gmap) -> None:
         return
     with torch.no_grad():
         for p, g, m, v, a_rows, b_rows, (w, beta2, w2, eps) in items:
-            shape = (-1,) + (1,) * (p.ndim - 1)
+            shape = (a_rows.shape[0],) + (1,) * (p.ndim - 1)
             m.add_(w * (g - m))
             v.mul_(beta2).add_(w2 * g * g)
-            p.add_(a_rows.view(shape) * (m / (torch.sqrt(v) / b_rows.view(shape) + eps)))
+            p.add_(a_rows.view(shape) * (m / (torch.sqrt(v) / b_rows.view(b_rows.shape[0], *shape[1:]) + eps)))
