@@ -111,3 +111,36 @@ def mcmc_noise(means, quats, scales, opacities, z, scaler: float) -> None:
     """In place on ``means`` [N, 3] (a float32 CPU tensor): the covariance-shaped, opacity-gated noise of ``z``."""
     f = lambda t: t.detach().contiguous().numpy()  # noqa: E731
     _noise_rows(means.detach().numpy(), f(quats), f(scales), f(opacities), f(z), np.float32(scaler))
+
+
+@_jit_serial
+def _adam_rows_scaled(ps, gs, ms, vs, hyper, a_rows, b_rows, widths):
+    """:func:`_adam_rows` with a step size and a bias correction per Gaussian: element i of parameter t belongs to
+    row i // widths[t]; a_rows[t][r] = -lr_r / bias correction 1 of row r, b_rows[t][r] = sqrt(bias correction 2)
+    of row r (an array of length 1: the same for every row); hyper[t] = (1 - beta1, beta2, 1 - beta2, eps)."""
+    for t in range(len(ps)):
+        p, g, m, v, a, b, wd = ps[t], gs[t], ms[t], vs[t], a_rows[t], b_rows[t], widths[t]
+        w, b2, w2, eps = hyper[t, 0], hyper[t, 1], hyper[t, 2], hyper[t, 3]
+        for r in range(p.shape[0] // wd):
+            ar, br = a[min(r, a.shape[0] - 1)], b[min(r, b.shape[0] - 1)]
+            for i in range(r * wd, (r + 1) * wd):
+                gi = g[i]
+                mi = m[i] + w * (gi - m[i])
+                vi = v[i] * b2 + w2 * gi * gi
+                m[i] = mi
+                v[i] = vi
+                p[i] = p[i] + ar * (mi / (np.sqrt(vi) / br + eps))
+
+
+def adam_rows_step(items) -> None:
+    """One Adam step per item ``(param, grad, exp_avg, exp_avg_sq, a_rows, b_rows, (1 - beta1, beta2, 1 - beta2,
+    eps))``, float32 CPU tensors with rows first, ``a_rows``/``b_rows`` [rows] or [1] as in :func:`_adam_rows_scaled`."""
+    if not items:
+        return
+    f = lambda t: t.detach().contiguous().view(-1).numpy()  # noqa: E731
+    ps = tuple(it[0].detach().view(-1).numpy() for it in items)
+    ms = tuple(it[2].view(-1).numpy() for it in items)
+    vs = tuple(it[3].view(-1).numpy() for it in items)
+    widths = np.array([it[0].numel() // max(it[0].shape[0], 1) for it in items], np.int64)
+    _adam_rows_scaled(ps, tuple(f(it[1]) for it in items), ms, vs, np.array([it[6] for it in items], np.float32),
+                      tuple(f(it[4]) for it in items), tuple(f(it[5]) for it in items), widths)

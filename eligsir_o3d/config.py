@@ -19,7 +19,7 @@ from typing import Any
 
 from .budget.config import ClockConfig
 from .frame import DEPTH_MAX
-from .gaussians import LearningRates
+from .gaussians import AdamConfig, LearningRates
 from .optim import LossConfig
 from .pose_refine import PoseRefineConfig
 from .scheduling.fidelity import FidelityConfig
@@ -50,6 +50,7 @@ ABLATION_RENAMED = {"scheduling": "views"}
 class OptimConfig:
     lrs: LearningRates = field(default_factory=LearningRates)
     loss: LossConfig = field(default_factory=LossConfig)
+    adam: AdamConfig = field(default_factory=AdamConfig)  # Adam's betas/eps and per-Gaussian schedule (off: torch's)
     refine_scale: float = 1.0  # refine(): supervision scale of post-mapping updates (+N PM)
 
 

@@ -38,15 +38,57 @@ class LearningRates:
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
 
 
+@dataclass
+class AdamConfig:
+    """Adam's settings and the per-Gaussian (row) schedule of :meth:`GaussianMap.step`.
+
+    Torch's Adam corrects the bias of its moments with one step count per tensor, so a Gaussian inserted (or
+    relocated, its moments zeroed) after thousands of updates starts with an uncorrected, 3-6x larger step that
+    takes hundreds of updates to settle. ``row_bias_correction`` counts the steps of every row since its moments
+    were zeroed and corrects each row with its own count (exact Adam for every Gaussian from its birth).
+    ``means_decay_to`` < 1 decays the position step size of each Gaussian exponentially with the number of updates
+    that reached it (3DGS decays it with the global iteration; an online map has no fixed length): ``lr_means *
+    means_decay_to ** min(seen / means_decay_updates, 1)``. ``warmup_updates`` > 0 ramps every step size of a new
+    Gaussian linearly over its first updates that reach it. All off by default (= torch's Adam).
+    """
+
+    beta1: float = 0.9
+    beta2: float = 0.999
+    eps: float = 1e-15
+    row_bias_correction: bool = False
+    means_decay_to: float = 1.0
+    means_decay_updates: int = 500
+    warmup_updates: int = 0
+
+    def rows(self) -> bool:
+        """Whether :meth:`GaussianMap.step` needs per-row step counts."""
+        return self.row_bias_correction or self.means_decay_to != 1.0 or self.warmup_updates > 0
+
+
+ROW_STATE = ("row_step", "row_seen")  # per-Gaussian counters in the Adam state (:mod:`.row_adam`)
+
+
+def _check_adam(a: AdamConfig) -> None:
+    if not (0 <= a.beta1 < 1 and 0 <= a.beta2 < 1 and a.eps > 0):
+        raise ValueError(f"optim.adam: betas must lie in [0, 1) and eps > 0, got beta1={a.beta1}, beta2={a.beta2}, "
+                         f"eps={a.eps}")
+    if not 0 < a.means_decay_to <= 1 or a.means_decay_updates < 1 or a.warmup_updates < 0:
+        raise ValueError(f"optim.adam: means_decay_to must lie in (0, 1], means_decay_updates >= 1 and "
+                         f"warmup_updates >= 0, got {a.means_decay_to}, {a.means_decay_updates}, {a.warmup_updates}")
+
+
 class GaussianMap:
     """N 3D Gaussians with spherical-harmonic colour of degree ``sh_degree`` and one Adam per parameter."""
 
-    def __init__(self, sh_degree: int = 0, device: str | torch.device = "cpu", lrs: LearningRates | None = None):
+    def __init__(self, sh_degree: int = 0, device: str | torch.device = "cpu", lrs: LearningRates | None = None,
+                 adam: AdamConfig | None = None):
         if not 0 <= sh_degree <= 3:
             raise ValueError(f"sh_degree must be 0..3, got {sh_degree}")
         self.sh_degree = sh_degree
         self.device = torch.device(device)
         self.lrs = lrs or LearningRates()
+        self.adam = adam or AdamConfig()
+        _check_adam(self.adam)
         k = (sh_degree + 1) ** 2 - 1
         empty = {
             "means": torch.zeros(0, 3), "scales": torch.zeros(0, 3), "quats": torch.zeros(0, 4),
@@ -56,7 +98,8 @@ class GaussianMap:
         self.optimizers = {n: self._make_optimizer(n) for n in PARAM_NAMES}
 
     def _make_optimizer(self, name: str) -> torch.optim.Adam:
-        return torch.optim.Adam([self.params[name]], lr=getattr(self.lrs, name), eps=1e-15)
+        a = self.adam
+        return torch.optim.Adam([self.params[name]], lr=getattr(self.lrs, name), betas=(a.beta1, a.beta2), eps=a.eps)
 
     # ---- activated views -------------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -160,6 +203,11 @@ class GaussianMap:
         pass, :func:`._update_kernels.adam_step`: torch's per-optimizer overhead was most of the cost)."""
         from . import _update_kernels as uk
 
+        if self.adam.rows():
+            from .row_adam import row_adam_step
+
+            row_adam_step(self)
+            return
         fused = []
         for name, opt in self.optimizers.items():
             if self.params[name].grad is not None:
@@ -179,7 +227,9 @@ class GaussianMap:
             if self.optimizers[name].param_groups[0]["params"][0] is not p:
                 raise AssertionError(f"optimizer of {name} does not hold the current parameter")
             for k, s in self.optimizers[name].state.get(p, {}).items():
-                if isinstance(s, torch.Tensor) and s.ndim > 0 and s.shape != p.shape:
+                if k in ROW_STATE and isinstance(s, torch.Tensor) and s.shape != p.shape[:1]:
+                    raise AssertionError(f"optimizer state {name}.{k} has shape {tuple(s.shape)}, map has {n} rows")
+                elif k not in ROW_STATE and isinstance(s, torch.Tensor) and s.ndim > 0 and s.shape != p.shape:
                     raise AssertionError(f"optimizer state {name}.{k} has shape {tuple(s.shape)}, parameter {tuple(p.shape)}")
 
     # ---- persistence -----------------------------------------------------------------------------------

@@ -42,7 +42,7 @@ def save_ply(gmap: GaussianMap, path: str | Path) -> Path:
     return atomic_write(path, ply.write)  # a crash or full disk mid-write leaves the previous file intact
 
 
-def load_ply(path: str | Path, device: str | torch.device = "cpu", lrs=None) -> GaussianMap:
+def load_ply(path: str | Path, device: str | torch.device = "cpu", lrs=None, adam=None) -> GaussianMap:
     """Read a 3DGS PLY into a fresh GaussianMap (SH degree inferred from the number of f_rest fields)."""
     from plyfile import PlyData
 
@@ -70,7 +70,7 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu", lrs=None) -> 
         return torch.from_numpy(np.stack([np.asarray(v[f], dtype=np.float32) for f in fields], -1))
 
     n = len(v.data)
-    gmap = GaussianMap(sh_degree=degree, device=device, lrs=lrs)
+    gmap = GaussianMap(sh_degree=degree, device=device, lrs=lrs, adam=adam)
     k = n_rest // 3
     rest = col(*[f"f_rest_{i}" for i in range(n_rest)]) if n_rest else torch.zeros(n, 0)
     state = {

@@ -69,7 +69,7 @@ class Reconstructor:
         self.renderer = get_renderer(self.config.renderer, self.device)
         torch.manual_seed(self.config.seed)
         self.rng = torch.Generator().manual_seed(self.config.seed)
-        self.gmap = GaussianMap(self.config.sh_degree, self.device, self.config.optim.lrs)
+        self.gmap = GaussianMap(self.config.sh_degree, self.device, self.config.optim.lrs, self.config.optim.adam)
         self.views, self.fidelity, self.growth = get_policies(self.config)
         self.pose_refine = PoseRefiner(self.config.pose_refine, self.device)  # per-training-view pose corrections
         self.fixed_work = LoadScaledChecks(self.config.fixed_work)  # how much fixed work each frame gets, from the backlog
@@ -278,7 +278,7 @@ class Reconstructor:
         """Replace the map with the Gaussians of a 3DGS PLY (optimizer state starts fresh)."""
         from .ply import load_ply
 
-        gmap = load_ply(path, self.device, self.config.optim.lrs)
+        gmap = load_ply(path, self.device, self.config.optim.lrs, self.config.optim.adam)
         self.gmap = gmap
         self.config.sh_degree = gmap.sh_degree
 
