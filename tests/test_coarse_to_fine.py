@@ -94,6 +94,8 @@ def test_offline_means_lr_decays_over_the_schedule(tmp_path):
     assert seen == pytest.approx([lr0 * 0.01 ** (i / 10) for i in range(10)])
     m, flat = _offline(tmp_path / "flat", offline_means_lr_final=1.0)
     assert flat == [lr0] * 10  # 1: constant, as before
+    m, default = _offline(tmp_path / "default")
+    assert default == pytest.approx(seen)  # the default decays 100x over the schedule, as 3DGS
 
 
 def test_offline_stages_come_from_the_config(tmp_path):
