@@ -371,12 +371,13 @@ def _offline_setup(n_source: int):
     policies are replaced after construction, so a resumed run does the same again (``setup=``)."""
     def setup(rec) -> None:
         from .budget import offline_updates
-        from .scheduling.coarse_to_fine import CoarseToFine
+        from .scheduling.coarse_to_fine import offline_schedule
         from .scheduling.plain import NewSpaceSeeding, StrideConfig, StrideKeyframes
 
+        c = rec.config.clock
         rec.views = StrideKeyframes(StrideConfig(every=1, newest_fraction=0.0, max_views=max(n_source, 1)))
-        # coarse updates first, full resolution last (same quality for 40 % of the supervised pixels)
-        rec.fidelity = CoarseToFine(offline_updates(rec.config.clock, n_source))
+        # coarse updates first, full resolution last; the means' step size decays over the schedule
+        offline_schedule(rec, offline_updates(c, n_source), c.offline_stages, c.offline_means_lr_final)
         rec.growth = NewSpaceSeeding(rec.config.seeding, seed=rec.config.seed, probe=rec.config.support)
 
     return setup

@@ -43,3 +43,69 @@ def test_offline_reference_runs_coarse_to_fine(tmp_path):
     fid = m["policies"]["fidelity"]
     assert fid["policy"] == "coarse_to_fine" and fid["updates_by_scale"] == {"0.25": 4, "0.5": 3, "1": 3}
     assert m["updates"] == 10 and m["map_state"] == "offline-reference"
+
+
+def test_decayed_lr_is_log_linear():
+    from eligsir_o3d.scheduling.coarse_to_fine import decayed_lr
+
+    assert decayed_lr(1e-3, 0.01, 0.0) == pytest.approx(1e-3)
+    assert decayed_lr(1e-3, 0.01, 0.5) == pytest.approx(1e-4)
+    assert decayed_lr(1e-3, 0.01, 1.0) == pytest.approx(1e-5)
+    assert decayed_lr(1e-3, 0.01, 3.0) == pytest.approx(1e-5)  # past the end it stays at the final value
+
+
+def _offline(tmp_path, **clock):
+    cfg = Config(renderer="cpu")
+    cfg.clock.offline_updates = 10
+    for k, v in clock.items():
+        setattr(cfg.clock, k, v)
+    seen = []
+    opts = RunOptions(max_frames=8, holdout_every=4, eval_every=0, progress=False, plots=False, pictures=False,
+                      offline_reference=True)
+    from eligsir_o3d import pipeline
+
+    real = pipeline._offline_setup
+
+    def spy(n):  # record the means' step size each update is taken with
+        setup = real(n)
+
+        def wrapped(rec):
+            setup(rec)
+            step = rec._step
+
+            def traced(scale):
+                seen.append(rec.gmap.optimizers["means"].param_groups[0]["lr"])
+                return step(scale)
+            rec._step = traced
+        return wrapped
+
+    pipeline._offline_setup = spy
+    try:
+        m = run_mapping("synthetic", tmp_path, cfg, opts, sequence_options={"n_frames": 8, "width": 64, "height": 48})
+    finally:
+        pipeline._offline_setup = real
+    return m, seen
+
+
+def test_offline_means_lr_decays_over_the_schedule(tmp_path):
+    m, seen = _offline(tmp_path / "decay", offline_means_lr_final=0.01)
+    assert len(seen) == 10 and m["updates"] == 10
+    lr0 = seen[0]
+    assert seen == pytest.approx([lr0 * 0.01 ** (i / 10) for i in range(10)])
+    m, flat = _offline(tmp_path / "flat", offline_means_lr_final=1.0)
+    assert flat == [lr0] * 10  # 1: constant, as before
+    m, default = _offline(tmp_path / "default")
+    assert default == pytest.approx(seen)  # the default decays 100x over the schedule, as 3DGS
+
+
+def test_offline_stages_come_from_the_config(tmp_path):
+    m, _ = _offline(tmp_path, offline_stages=((0.5, 0.5), (1.0, 0.5)))
+    assert m["policies"]["fidelity"]["updates_by_scale"] == {"0.5": 5, "1": 5}
+
+
+def test_bad_offline_lr_decay_is_named():
+    from eligsir_o3d.budget import check_clock_config
+    from eligsir_o3d.budget.config import ClockConfig
+
+    with pytest.raises(ValueError, match="offline_means_lr_final"):
+        check_clock_config(ClockConfig(offline_means_lr_final=0.0))

@@ -1,0 +1,63 @@
+"""tools/ablation.py (Table III): the table, its per-seed means, the CUC@20 cell counts and the issue's criteria,
+read back from results folders (--table-only), and the acquisition-speed default."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def ablation():
+    spec = importlib.util.spec_from_file_location("ablation_tool", ROOT / "tools" / "ablation.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _write(run: Path, psnr, auc, cuc_cells, n_cells, mpix):
+    run.mkdir(parents=True)
+    qs = [25.0] * cuc_cells + [15.0] * (n_cells - cuc_cells) + [30.0]  # the last cell is not evaluable
+    cells = {"q": qs, "eligible": [True] * n_cells + [False], "measurable": [True] * (n_cells + 1)}
+    (run / "cells.json").write_text(json.dumps(cells))
+    m = {"heldout": {"psnr": psnr}, "cvq_auc": auc, "cuc20_final": cuc_cells / n_cells, "supervised_mpix": mpix,
+         "gaussians": 5000, "updates": 100, "curve": [{"progress": 0.1, "cvq": auc}, {"progress": 1.0, "cvq": auc}]}
+    (run / "metrics.json").write_text(json.dumps(m))
+
+
+def test_default_speed_is_the_recorded_rate(ablation):
+    assert ablation.parse_args([]).speed == 1.0  # the paper's online ablations run at acquisition speed
+
+
+def test_seed_means_cell_counts_and_criteria(ablation, tmp_path, capsys):
+    # full: seeds 20.0 / 21.0 (mean 20.5), 30 + 32 of 40 cells; fixed resolution: 20.8 dB, 4x the pixels
+    _write(tmp_path / "full-s0", 20.0, 19.0, 30, 40, 10.0)
+    _write(tmp_path / "full-s1", 21.0, 19.4, 32, 40, 10.0)
+    _write(tmp_path / "fidelity-s0", 20.8, 19.1, 31, 40, 40.0)
+    _write(tmp_path / "fidelity-s1", 20.8, 19.1, 31, 40, 40.0)
+    rc = ablation.main(["--out", str(tmp_path), "--table-only", "--seeds", "0,1", "--variants", "full,fidelity"])
+    assert rc == 0
+    rows = json.loads((tmp_path / "table.json").read_text())["rows"]
+    assert rows["full"]["psnr"] == pytest.approx(20.5) and rows["full"]["psnr_sd"] == pytest.approx(0.7071, abs=1e-3)
+    assert rows["full"]["cells"] == "62/80" and rows["fidelity"]["cells"] == "62/80"
+    assert rows["full"]["cuc20"] == pytest.approx(77.5)
+    out = capsys.readouterr().out
+    assert "full has the best held-out PSNR: NO (20.50 vs w/o adaptive fidelity 20.80" in out
+    assert "full has the best CUC@20: yes" in out
+    assert "4.00x fewer pixels than fixed native resolution (>= 3: yes) at CVQ-AUC 19.20 vs 19.10 (no lower: yes)" in out
+    assert "| full s1 | 21.00 |" in out  # one row per run below the means
+
+
+def test_single_runs_keep_the_variant_folders(ablation, tmp_path, capsys):
+    _write(tmp_path / "full", 21.0, 19.0, 10, 20, 5.0)
+    assert ablation.main(["--out", str(tmp_path), "--table-only", "--variants", "full"]) == 0
+    row = json.loads((tmp_path / "table.json").read_text())["rows"]["full"]
+    assert row["psnr"] == 21.0 and row["cells"] == "10/20" and "psnr_sd" not in row
+
+
+def test_bad_seeds_are_named(ablation, tmp_path):
+    with pytest.raises(SystemExit, match="--seeds"):
+        ablation.main(["--out", str(tmp_path), "--table-only", "--seeds", "0,x"])
