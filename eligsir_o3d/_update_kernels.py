@@ -26,30 +26,12 @@ import numpy as np
 from .render._cpu_kernels import _jit_serial
 
 
-@_jit_serial
-def _adam_rows(ps, gs, ms, vs, hyper):
-    """Adam over the rows of every parameter in ``ps`` (flat float32 arrays; ``gs``/``ms``/``vs`` the same shapes):
-    hyper[i] = (1 - beta1, beta2, 1 - beta2, eps, sqrt(bias correction 2), -lr / bias correction 1) of parameter
-    i (the complements taken in float64, as torch does: 1 - float32(0.999) is 5e-5 off)."""
-    for t in range(len(ps)):
-        p, g, m, v = ps[t], gs[t], ms[t], vs[t]
-        w, b2, w2, eps, bc2_sqrt, neg_step_size = hyper[t, 0], hyper[t, 1], hyper[t, 2], hyper[t, 3], hyper[t, 4], \
-            hyper[t, 5]
-        for i in range(p.shape[0]):
-            gi = g[i]
-            mi = m[i] + w * (gi - m[i])
-            vi = v[i] * b2 + w2 * gi * gi
-            m[i] = mi
-            v[i] = vi
-            p[i] = p[i] + neg_step_size * (mi / (np.sqrt(vi) / bc2_sqrt + eps))
-
-
 def adam_step(opts) -> None:
     """One Adam step of each of ``opts`` (``torch.optim.Adam`` instances over float32 CPU parameters; those
     without a gradient are skipped), in place, in one compiled call."""
     import torch
 
-    ps, gs, ms, vs, hyper = [], [], [], [], []
+    ps, gs, ms, vs, hyper, a_rows, b_rows = [], [], [], [], [], [], []
     for opt in opts:
         group = opt.param_groups[0]
         b1, b2 = group["betas"]
@@ -68,9 +50,12 @@ def adam_step(opts) -> None:
             gs.append(p.grad.detach().contiguous().view(-1).numpy())
             ms.append(state["exp_avg"].view(-1).numpy())
             vs.append(state["exp_avg_sq"].view(-1).numpy())
-            hyper.append((1.0 - b1, b2, 1.0 - b2, group["eps"], bc2 ** 0.5, -group["lr"] / bc1))
+            hyper.append((1.0 - b1, b2, 1.0 - b2, group["eps"]))
+            a_rows.append(np.array([-group["lr"] / bc1], np.float32))  # one step size for the whole tensor
+            b_rows.append(np.array([bc2 ** 0.5], np.float32))
     if ps:
-        _adam_rows(tuple(ps), tuple(gs), tuple(ms), tuple(vs), np.array(hyper, np.float32))
+        _adam_rows_scaled(tuple(ps), tuple(gs), tuple(ms), tuple(vs), np.array(hyper, np.float32), tuple(a_rows),
+                          tuple(b_rows), np.array([len(p) for p in ps], np.int64))
 
 
 def fits(opt) -> bool:
@@ -115,9 +100,12 @@ def mcmc_noise(means, quats, scales, opacities, z, scaler: float) -> None:
 
 @_jit_serial
 def _adam_rows_scaled(ps, gs, ms, vs, hyper, a_rows, b_rows, widths):
-    """:func:`_adam_rows` with a step size and a bias correction per Gaussian: element i of parameter t belongs to
-    row i // widths[t]; a_rows[t][r] = -lr_r / bias correction 1 of row r, b_rows[t][r] = sqrt(bias correction 2)
-    of row r (an array of length 1: the same for every row); hyper[t] = (1 - beta1, beta2, 1 - beta2, eps)."""
+    """Adam over the rows of every parameter in ``ps`` (flat float32 arrays; ``gs``/``ms``/``vs`` the same shapes),
+    with a step size and a bias correction per row (Gaussian): element i of parameter t belongs to row
+    i // widths[t] (widths[t] = its length: one row, plain Adam); a_rows[t][r] = -lr_r / bias correction 1 of row
+    r, b_rows[t][r] = sqrt(bias correction 2) of row r (an array of length 1: the same for every row);
+    hyper[t] = (1 - beta1, beta2, 1 - beta2, eps), the complements taken in float64 as torch does
+    (1 - float32(0.999) is 5e-5 off)."""
     for t in range(len(ps)):
         p, g, m, v, a, b, wd = ps[t], gs[t], ms[t], vs[t], a_rows[t], b_rows[t], widths[t]
         w, b2, w2, eps = hyper[t, 0], hyper[t, 1], hyper[t, 2], hyper[t, 3]
@@ -134,7 +122,8 @@ def _adam_rows_scaled(ps, gs, ms, vs, hyper, a_rows, b_rows, widths):
 
 def adam_rows_step(items) -> None:
     """One Adam step per item ``(param, grad, exp_avg, exp_avg_sq, a_rows, b_rows, (1 - beta1, beta2, 1 - beta2,
-    eps))``, float32 CPU tensors with rows first, ``a_rows``/``b_rows`` [rows] or [1] as in :func:`_adam_rows_scaled`."""
+    eps))``, float32 CPU tensors with rows first, ``a_rows``/``b_rows`` [rows] or [1] as in
+    :func:`_adam_rows_scaled`."""
     if not items:
         return
     f = lambda t: t.detach().contiguous().view(-1).numpy()  # noqa: E731
