@@ -30,12 +30,14 @@ from .base import FidelityPolicy
 class FidelityConfig:
     scales: tuple[float, ...] = (0.125, 0.25, 0.5, 1.0)  # the paper's discrete supervision scales, ascending
     start_scale: float = 0.25  # before anything is measured (cheap, raised within a few updates if it fits)
-    # a scale fits if this many of its updates fit in one frame period: below ~6 updates per frame a finer scale
-    # loses more to the missing updates than it gains in detail (7-Scenes, 200 frames, 2-core CPU: 3 vs 2 updates
-    # +0.78 dB at 0.1x speed, +0.29 dB at 0.3x; 6 vs 3 at 0.1x, i.e. 1/2 instead of full resolution: 7-Scenes
-    # 22.41 vs 21.51 dB, SUN3D study room 20.71 vs 20.24; 1/4 is too coarse there: 21.85 / 20.18 dB; in real time
-    # the floor below decides)
-    min_updates_per_frame: float = 6.0
+    # a scale fits if this many of its updates fit in one frame period: below this a finer scale loses more to the
+    # missing updates than it gains in detail (7-Scenes, 200 frames, 2-core CPU, old cost model: 6 vs 3 at 0.1x,
+    # i.e. 1/2 instead of full resolution: 7-Scenes 22.41 vs 21.51 dB, SUN3D study room 20.71 vs 20.24; 1/4 is too
+    # coarse there: 21.85 / 20.18 dB). The refitted cost model (issue 16) prices an update at half the old figure,
+    # so the same 1/2-vs-full decision needs twice the count: with 6 a young map went to full resolution again
+    # (848 of 1993 updates, 7-Scenes 0.1x); 12 keeps 1/2 (3 seeds, 0.1x: 7-Scenes 22.41 -> 22.75 dB, SUN3D
+    # 20.81 -> 21.05). In real time the floor below decides.
+    min_updates_per_frame: float = 12.0
     backlog_frames: float = 2.0  # a backlog of this many frames halves the time granted per update
     # The lowest scale used while no frame waits (backlog EMA below floor_backlog): only load takes the controller
     # below it. Without it a slow machine sits at 1/8 for a whole real-time run, and on real data 80x60 supervision
