@@ -26,11 +26,22 @@ import numpy as np
 from .render._cpu_kernels import _jit_serial
 
 
+def adam_state(opt, p) -> dict:
+    """Torch Adam's state of parameter ``p`` in ``opt``, created as torch creates it on a first step (step 0, zero
+    moments), so that a later torch step, checkpoints and relocation continue from it."""
+    import torch
+
+    state = opt.state[p]
+    if not state:
+        state["step"] = torch.tensor(0.0)
+        state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+        state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+    return state
+
+
 def adam_step(opts) -> None:
     """One Adam step of each of ``opts`` (``torch.optim.Adam`` instances over float32 CPU parameters; those
     without a gradient are skipped), in place, in one compiled call."""
-    import torch
-
     ps, gs, ms, vs, hyper, a_rows, b_rows = [], [], [], [], [], [], []
     for opt in opts:
         group = opt.param_groups[0]
@@ -38,11 +49,7 @@ def adam_step(opts) -> None:
         for p in group["params"]:
             if p.grad is None or p.numel() == 0:
                 continue
-            state = opt.state[p]
-            if not state:
-                state["step"] = torch.tensor(0.0)
-                state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-                state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+            state = adam_state(opt, p)
             state["step"] += 1
             step = float(state["step"])
             bc1, bc2 = 1.0 - b1 ** step, 1.0 - b2 ** step

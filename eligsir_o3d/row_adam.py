@@ -45,11 +45,7 @@ def row_adam_step(gmap) -> None:
             continue
         group = opt.param_groups[0]
         b1, b2 = group["betas"]
-        state = opt.state[p]
-        if not state:
-            state["step"] = torch.tensor(0.0)
-            state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-            state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
+        state = uk.adam_state(opt, p)
         if "row_step" not in state:  # a state of torch's Adam (a checkpoint without rows): count from now
             state["row_step"] = torch.zeros(n, dtype=torch.float32, device=p.device)
         state["step"] += 1
