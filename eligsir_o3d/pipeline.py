@@ -270,8 +270,8 @@ class MappingPipeline:
                 self._checkpoint(self.rec)
         self.rec.stats.excluded_s += time.perf_counter() - t0
 
-    def _render(self, frame: Frame):
-        return self.rec.render(frame.T_world_cam, frame.camera)
+    def _render(self, frame: Frame):  # a held-out view: its given pose, carried into a pose-refined map's frame
+        return self.rec.render(self.rec.pose_refine.carried_pose(frame.index, frame.T_world_cam), frame.camera)
 
     def _checkpoint(self, r) -> None:
         self.evaluator.checkpoint(self._render, t_s=r.stats.mapping_s,

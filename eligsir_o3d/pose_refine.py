@@ -4,8 +4,14 @@ Real recordings carry pose errors of a few millimetres and a few tenths of a deg
 tracking on 7-Scenes, an SfM reconstruction on SUN3D), i.e. several pixels at 640x480: every training view then
 pulls the map a little elsewhere and the map blurs. Each retained training view gets a small SE(3) correction
 ``xi = (omega, v)`` in its camera frame, ``T' = T @ exp(xi)``, optimised with the map by the same supervision
-loss, with its own Adam moments and an L2 pull toward the identity (the given pose). Held-out views keep their
-given poses (the evaluation protocol), so the map stays in the frame of the given trajectory.
+loss, with its own Adam moments and an L2 pull toward the identity (the given pose).
+
+Held-out views are never refined (their images never reach the map). Their given poses are carried into the
+refined frame the way the training trajectory was (``carried_pose``): the world-frame correction
+``T_a exp(xi_a) T_a^-1`` of the refined training views just before and after the view (by frame index) is
+interpolated and applied to the given pose. This is a local form of the paper's "training-pose alignment" (its
+Table IV renders the original held-out poses after aligning the refined training poses): it uses only training
+views, and the given pose's drift is what it removes. ``carry_to_heldout=False`` renders the given poses as they are.
 
 The correction is applied to the Gaussians rather than to the camera (``corrected_args``): rendering the moved
 Gaussians at ``T`` is rendering the map at ``T @ exp(xi)``, so the gradient reaches ``xi`` through any renderer
@@ -29,6 +35,7 @@ class PoseRefineConfig:
     reg: float = 100.0  # loss weight of |xi|^2 (pull toward the given pose); units: per rad^2 / m^2
     min_updates: int = 10  # a view's pose moves only after it has supervised this many updates (map settles first)
     centred: bool = False  # hold the views' mean correction (in the world frame) at zero: the map cannot drift
+    carry_to_heldout: bool = True  # render a held-out view at its given pose moved by its neighbours' corrections
 
 
 def _skew(w: torch.Tensor) -> torch.Tensor:
@@ -81,6 +88,18 @@ def _rot_quat(R: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q)
 
 
+def _rot_log(R: np.ndarray) -> np.ndarray:
+    """Axis-angle vector of a rotation matrix (angles below pi)."""
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    th = float(np.arccos(c))
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    return w if th < 1e-8 else w * (th / np.sin(th))
+
+
+def _rot_exp(w: np.ndarray) -> np.ndarray:
+    return so3_exp(torch.as_tensor(w, dtype=torch.float64)).numpy()
+
+
 def corrected_args(args: tuple, T_world_cam: np.ndarray, xi: torch.Tensor) -> tuple:
     """``args`` (means, quats, scales, opacities, colors) moved so that rendering them at ``T_world_cam`` is
     rendering the original map at ``T_world_cam @ exp(xi)``; ``xi`` = (omega, v) in the camera frame."""
@@ -125,6 +144,35 @@ class PoseRefiner:
         D[:3, :3] = so3_exp(xi[:3]).numpy()
         D[:3, 3] = xi[3:].numpy()
         return np.asarray(frame.T_world_cam) @ D
+
+    def _world_correction(self, s: dict) -> tuple[np.ndarray, np.ndarray]:
+        """A refined view's correction in world terms: the refined pose is [R Rc, t + R v] = a rotation
+        R Rc R^T about the camera centre followed by a shift R v of the centre; returns (axis-angle of R Rc R^T, R v)."""
+        R = s["R"].numpy()
+        Rc = so3_exp(s["xi"][:3]).numpy()
+        return _rot_log(R @ Rc @ R.T), R @ s["xi"][3:].numpy()
+
+    def carried_pose(self, index: int, T_world_cam: np.ndarray) -> np.ndarray:
+        """A view that is not refined (a held-out view) at its given pose ``T_world_cam``, moved into the refined
+        training frame: the world-frame corrections of the refined views just before and after ``index`` (by frame
+        index; the nearest one at either end) are interpolated linearly and applied about the view's own camera
+        centre. Unchanged when refinement is off, ``carry_to_heldout`` is False or no view has moved yet."""
+        T = np.asarray(T_world_cam, dtype=np.float64)
+        if not (self.active and self.cfg.carry_to_heldout):
+            return T
+        keys = sorted(k for k, s in self.state.items() if s["t"] > 0)
+        if not keys:
+            return T
+        pos = int(np.searchsorted(keys, index))
+        a, b = keys[max(pos - 1, 0)], keys[min(pos, len(keys) - 1)]
+        wa = 1.0 if a == b else (b - index) / (b - a)
+        ra, ta = self._world_correction(self.state[a])
+        rb, tb = self._world_correction(self.state[b])
+        r, t = wa * ra + (1 - wa) * rb, wa * ta + (1 - wa) * tb
+        out = T.copy()
+        out[:3, :3] = _rot_exp(r) @ T[:3, :3]
+        out[:3, 3] = T[:3, 3] + t
+        return out
 
     def render_args(self, frame, args: tuple) -> tuple:
         """The map's render args as seen from ``frame``'s refined pose (unchanged when off)."""
