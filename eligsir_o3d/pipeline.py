@@ -271,7 +271,10 @@ class MappingPipeline:
         self.rec.stats.excluded_s += time.perf_counter() - t0
 
     def _render(self, frame: Frame):  # a held-out view: its given pose, carried into a pose-refined map's frame
-        return self.rec.render(self.rec.pose_refine.carried_pose(frame.index, frame.T_world_cam), frame.camera)
+        T = frame.T_world_cam
+        if self.pose_source is None:  # tracked training poses have errors the (ground-truth) held-out poses lack
+            T = self.rec.pose_refine.carried_pose(frame.index, T)
+        return self.rec.render(T, frame.camera)
 
     def _checkpoint(self, r) -> None:
         self.evaluator.checkpoint(self._render, t_s=r.stats.mapping_s,
@@ -333,6 +336,9 @@ class MappingPipeline:
             for f in self.heldout_frames:
                 f.T_world_cam = T_est_gt @ f.T_world_cam
         self.final = self.evaluator.final(self._render)
+        self.given_pose_scores = None
+        if self.rec.pose_refine.carries and self.pose_source is None:  # the strict figure: given poses as they are
+            self.given_pose_scores = self.evaluator.scores(lambda f: self.rec.render(f.T_world_cam, f.camera))
 
     # ---- write ---------------------------------------------------------------------------------------------
     def write(self) -> dict:

@@ -21,6 +21,7 @@ Off by default (config ``pose_refine.enabled``); with it off nothing is computed
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,6 +37,7 @@ class PoseRefineConfig:
     min_updates: int = 10  # a view's pose moves only after it has supervised this many updates (map settles first)
     centred: bool = False  # hold the views' mean correction (in the world frame) at zero: the map cannot drift
     carry_to_heldout: bool = True  # render a held-out view at its given pose moved by its neighbours' corrections
+    warm_start: bool = False  # a new view starts at its refined predecessors' correction (not at the given pose)
 
 
 def _skew(w: torch.Tensor) -> torch.Tensor:
@@ -132,6 +134,11 @@ class PoseRefiner:
     def active(self) -> bool:
         return bool(self.cfg.enabled)
 
+    @property
+    def carries(self) -> bool:
+        """Whether held-out views are rendered at carried poses (refinement on, ``carry_to_heldout``, views moved)."""
+        return self.active and self.cfg.carry_to_heldout and any(s["t"] > 0 for s in self.state.values())
+
     def correction(self, index: int) -> torch.Tensor:
         """The view's current xi (zeros for a view never refined)."""
         s = self.state.get(int(index))
@@ -152,13 +159,13 @@ class PoseRefiner:
         Rc = so3_exp(s["xi"][:3]).numpy()
         return _rot_log(R @ Rc @ R.T), R @ s["xi"][3:].numpy()
 
-    def carried_pose(self, index: int, T_world_cam: np.ndarray) -> np.ndarray:
+    def carried_pose(self, index: int, T_world_cam: np.ndarray, always: bool = False) -> np.ndarray:
         """A view that is not refined (a held-out view) at its given pose ``T_world_cam``, moved into the refined
         training frame: the world-frame corrections of the refined views just before and after ``index`` (by frame
         index; the nearest one at either end) are interpolated linearly and applied about the view's own camera
         centre. Unchanged when refinement is off, ``carry_to_heldout`` is False or no view has moved yet."""
         T = np.asarray(T_world_cam, dtype=np.float64)
-        if not (self.active and self.cfg.carry_to_heldout):
+        if not (self.active and (always or self.cfg.carry_to_heldout)):
             return T
         keys = sorted(k for k, s in self.state.items() if s["t"] > 0)
         if not keys:
@@ -174,18 +181,42 @@ class PoseRefiner:
         out[:3, 3] = T[:3, 3] + t
         return out
 
+    def _new_state(self, frame, xi: torch.Tensor | None = None) -> dict:
+        z = torch.zeros(6, dtype=torch.float64)
+        return {"xi": z.clone() if xi is None else xi, "m": z.clone(), "v": z.clone(), "t": 0, "seen": 0,
+                "R": torch.as_tensor(np.asarray(frame.T_world_cam)[:3, :3], dtype=torch.float64)}
+
+    def warm_start(self, frame) -> None:
+        """Start a new training view at the correction its refined predecessors imply (``carried_pose``), so
+        that its first updates and its new Gaussians already sit in the refined frame (``cfg.warm_start``)."""
+        if not (self.active and self.cfg.warm_start) or int(frame.index) in self.state:
+            return
+        T = np.asarray(frame.T_world_cam, dtype=np.float64)
+        D = np.linalg.inv(T) @ self.carried_pose(frame.index, T, always=True)
+        xi = torch.as_tensor(np.concatenate([_rot_log(D[:3, :3]), D[:3, 3]]), dtype=torch.float64)
+        self.state[int(frame.index)] = self._new_state(frame, xi)
+
+    def posed(self, frame):
+        """``frame`` itself, or a shallow copy at its refined pose once it has a correction (what growth
+        back-projects with, so new Gaussians land where the view's render shows the holes)."""
+        s = self.state.get(int(frame.index)) if self.active else None
+        if s is None or not s["xi"].any():
+            return frame
+        moved = copy.copy(frame)
+        moved.T_world_cam = self.pose(frame)
+        return moved
+
     def render_args(self, frame, args: tuple) -> tuple:
         """The map's render args as seen from ``frame``'s refined pose (unchanged when off)."""
         if not self.active:
             return args
-        s = self.state.setdefault(int(frame.index), {
-            "xi": torch.zeros(6, dtype=torch.float64), "m": torch.zeros(6, dtype=torch.float64),
-            "v": torch.zeros(6, dtype=torch.float64), "t": 0, "seen": 0,
-            "R": torch.as_tensor(np.asarray(frame.T_world_cam)[:3, :3], dtype=torch.float64)})
+        s = self.state.get(int(frame.index))
+        if s is None:
+            s = self.state[int(frame.index)] = self._new_state(frame)
         s["seen"] += 1
-        if s["seen"] <= self.cfg.min_updates and not s["xi"].any():
+        if s["seen"] <= self.cfg.min_updates:  # the map settles first; a warm-started correction already applies
             self._live = None
-            return args
+            return corrected_args(args, frame.T_world_cam, s["xi"].float()) if s["xi"].any() else args
         xi = s["xi"].to(torch.float32).clone().requires_grad_(True)
         self._live = (int(frame.index), xi)
         return corrected_args(args, frame.T_world_cam, xi)

@@ -101,7 +101,9 @@ class Reconstructor:
             admitted = self.views.admit(frame, self.ctx)
         self.stats.frames_admitted += int(admitted)
         with self.timing("growth"):
-            added = self.growth.on_frame(frame, admitted, self.ctx)
+            if admitted:
+                self.pose_refine.warm_start(frame)  # off unless pose_refine.warm_start
+            added = self.growth.on_frame(self.pose_refine.posed(frame), admitted, self.ctx)
         self.stats.mapping_s += time.perf_counter() - t0
         if updates is None and deadline is None:
             updates = self.config.clock.updates_per_frame
@@ -142,8 +144,9 @@ class Reconstructor:
         self.gmap.zero_grad()
         loss.backward()
         self.gmap.step()
+        posed = self.pose_refine.posed(frame)  # the pose the view was rendered at (before its correction steps)
         self.pose_refine.step()
-        self.growth.post_step(frame, out, depth, cam, self.ctx)
+        self.growth.post_step(posed, out, depth, cam, self.ctx)
         self.views.feedback(frame, out, error, depth, cam)
         dt = time.perf_counter() - t0
         self.stats.updates += 1

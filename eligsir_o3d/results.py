@@ -47,6 +47,9 @@ def collect_metrics(p) -> dict:
         "cost_model": {**p.cost_model_source, "terms": rec.config.clock.cost.to_dict()}
         if p.cost_model_source.get("source") else None,
         "heldout": {k: final.get(k) for k in ("psnr", "ssim", "lpips", "depth_rmse_m", "depth_rmse_2m_m")},
+        # with pose refinement: the same views rendered at their given poses, not carried into the refined frame
+        "heldout_given_poses": getattr(p, "given_pose_scores", None),
+        "pose_refine": rec.pose_refine.summary() if rec.pose_refine.active else None,
         "cvq_auc": final.get("cvq_auc"),
         "cvq_final": final.get("cvq_final"),
         "cuc20_final": final.get("cuc20_final"),
@@ -99,7 +102,7 @@ def write_results(p, metrics: dict) -> None:
         from .visual.results import write_result_pictures
 
         metrics["pictures"] = outputs.stage(out / "heldout", write_result_pictures, out, rec, p.heldout_frames,
-                                            p.trajectory)
+                                            p.trajectory, render_heldout=p._render)
     cam = rec.camera
     run = {"sequence": p.path, "options": {f.name: getattr(p.opts, f.name) for f in dataclasses.fields(p.opts)
                                            if f.name not in ("resume", "progress", "view", "force_unlock")},

@@ -10,7 +10,7 @@ import torch
 
 import eligsir_o3d as eo3d
 from eligsir_o3d.camera import Camera
-from eligsir_o3d.pose_refine import PoseRefineConfig, PoseRefiner, corrected_args, so3_exp
+from eligsir_o3d.pose_refine import PoseRefineConfig, PoseRefiner, _rot_log, corrected_args, so3_exp
 from eligsir_o3d.render import get_renderer
 
 W, H = 48, 36
@@ -170,3 +170,56 @@ def test_centred_corrections_keep_the_map_on_the_given_trajectory():
             assert float(mean_t.norm()) < 1e-9 and float(mean_w.norm()) < 1e-9
         else:  # uncentred, the views move together toward the common error
             assert float(mean_t.norm()) > 5e-3, mean_t
+
+
+def _refined(indices, xis, poses):
+    ref = PoseRefiner(PoseRefineConfig(enabled=True, min_updates=0))
+    for i, xi, T in zip(indices, xis, poses):
+        ref.render_args(SimpleNamespace(index=i, T_world_cam=T), _textured_wall(4))
+        ref.state[i]["xi"] = xi.double()
+        ref.state[i]["t"] = 1
+    return ref
+
+
+def _general_pose(w, t):
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(torch.tensor(w, dtype=torch.float64)).numpy()
+    T[:3, 3] = t
+    return T
+
+
+def test_a_held_out_pose_is_carried_by_its_neighbours_world_correction():
+    """A held-out view between two refined views that share one world-frame pose error gets that error removed."""
+    Ta, Tb = _general_pose([0.1, 0.3, -0.05], [0.2, 0.1, 1.0]), _general_pose([0.12, 0.4, -0.02], [0.3, 0.1, 1.1])
+    Th = _general_pose([0.11, 0.35, -0.04], [0.25, 0.1, 1.05])  # the held-out camera, between them
+    E = _general_pose([0.01, -0.02, 0.005], [0.0, 0.0, 0.0])  # a common drift: rotation about each camera centre
+    shift = np.array([0.02, -0.01, 0.015])
+    # each refined view's correction xi in its own frame, so that T exp(xi) = [Er R, t + shift]
+    xis = []
+    for T in (Ta, Tb):
+        Rc = T[:3, :3].T @ E[:3, :3] @ T[:3, :3]
+        w = torch.as_tensor(_rot_log(Rc))
+        xis.append(torch.cat([w, torch.as_tensor(T[:3, :3].T @ shift)]))
+    ref = _refined([10, 20], xis, [Ta, Tb])
+    for i, T in ((10, Ta), (20, Tb)):  # a refined view's carried pose is its refined pose
+        np.testing.assert_allclose(ref.carried_pose(i, T), ref.pose(SimpleNamespace(index=i, T_world_cam=T)),
+                                   atol=1e-10)
+    got = ref.carried_pose(15, Th)
+    np.testing.assert_allclose(got[:3, :3], E[:3, :3] @ Th[:3, :3], atol=1e-9)
+    np.testing.assert_allclose(got[:3, 3], Th[:3, 3] + shift, atol=1e-9)
+    # before the first refined view, the nearest correction; with carrying off, the given pose
+    np.testing.assert_allclose(ref.carried_pose(3, Th)[:3, 3], Th[:3, 3] + shift, atol=1e-9)
+    ref.cfg.carry_to_heldout = False
+    assert np.array_equal(ref.carried_pose(15, Th), Th) and not ref.carries
+
+
+def test_carrying_interpolates_between_neighbours_and_ignores_unmoved_views():
+    T = np.eye(4)
+    ref = _refined([0, 10], [torch.tensor([0.0, 0, 0, 0.01, 0, 0]), torch.tensor([0.0, 0, 0, 0.03, 0, 0])], [T, T])
+    assert ref.carries
+    np.testing.assert_allclose(ref.carried_pose(5, T)[:3, 3], [0.02, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(ref.carried_pose(8, T)[:3, 3], [0.026, 0, 0], atol=1e-12)
+    ref.render_args(SimpleNamespace(index=6, T_world_cam=T), _textured_wall(4))  # seen, never stepped: no say
+    np.testing.assert_allclose(ref.carried_pose(5, T)[:3, 3], [0.02, 0, 0], atol=1e-12)
+    off = PoseRefiner(PoseRefineConfig(enabled=False))
+    assert np.array_equal(off.carried_pose(5, T), T) and not off.carries

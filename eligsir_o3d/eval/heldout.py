@@ -122,6 +122,12 @@ class HeldoutEvaluator:
         }
         return views, colors, agg
 
+    def scores(self, render_fn: Callable) -> dict:
+        """Mean held-out PSNR and SSIM of ``render_fn`` (no curve record, no regional quality)."""
+        with self.timed():
+            _, _, agg = self._score_views(render_fn, with_lpips=False, with_ssim=True)
+        return {"psnr": agg["psnr"], "ssim": agg["ssim"]}
+
     # --- during mapping ------------------------------------------------------------------------------------------
     def checkpoint(self, render_fn: Callable, *, t_s: float, progress: float, updates: int,
                    supervised_mpix: float, gaussians: int, extra: dict | None = None) -> dict:

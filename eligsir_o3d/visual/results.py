@@ -16,17 +16,19 @@ FLYTHROUGH_MAX_FRAMES = 240
 FLYTHROUGH_FPS = 24.0
 
 
-def write_result_pictures(out_dir: str | Path, rec, heldout_frames: list, trajectory: dict) -> dict:
+def write_result_pictures(out_dir: str | Path, rec, heldout_frames: list, trajectory: dict,
+                          render_heldout=None) -> dict:
     """Write the pictures of a run into ``out_dir``. ``rec``: the Reconstructor; ``heldout_frames``: the
     evaluated held-out :class:`Frame` s; ``trajectory``: {frame index: (timestamp, T_world_cam)} of the mapped
-    frames. Returns what was written and the seconds it took (for metrics.json)."""
+    frames; ``render_heldout(frame)``: how the metrics rendered a held-out view (default: at its pose as it is).
+    Returns what was written and the seconds it took (for metrics.json)."""
     from .pictures import write_heldout_pictures
     from .video import render_path, smooth_path
 
     out = Path(out_dir)
     t0 = time.perf_counter()
-    pics = write_heldout_pictures(out / "heldout", heldout_frames, lambda f: rec.render(f.T_world_cam, f.camera),
-                                  HELDOUT_PICTURES) if heldout_frames else []
+    render = render_heldout or (lambda f: rec.render(f.T_world_cam, f.camera))
+    pics = write_heldout_pictures(out / "heldout", heldout_frames, render, HELDOUT_PICTURES) if heldout_frames else []
     t1 = time.perf_counter()
     summary = {"heldout": [str(p.relative_to(out)) for p in pics], "heldout_s": t1 - t0}
     poses = [T for _, (_, T) in sorted(trajectory.items())]
