@@ -3,10 +3,11 @@
 import json
 import time
 
+import numpy as np
 import pytest
 
 from eligsir_o3d import Config
-from eligsir_o3d.pipeline import RunOptions, heldout_indices, run_mapping
+from eligsir_o3d.pipeline import MappingPipeline, RunOptions, heldout_indices, run_mapping
 from eligsir_o3d.results import read_cells, read_fidelity_trace
 
 
@@ -158,3 +159,32 @@ def test_progress_is_the_streams_so_a_run_that_drops_frames_still_ends_at_p_1(tm
     assert ps[-1] == 1.0 and ps == sorted(ps)
     # few updates (one every 0.2 modelled s), yet checkpoints every ~10 % of the stream
     assert m["updates"] < 40 and len(ps) >= 8 and max(b - a for a, b in zip(ps, ps[1:])) <= 0.1 + 1 / 42 + 1e-9
+
+
+def test_pose_refined_run_renders_heldout_views_at_carried_poses_and_reports_the_given_pose_figure(tmp_path,
+                                                                                                   monkeypatch):
+    from eligsir_o3d.reconstructor import Reconstructor
+
+    rendered = []
+    orig = Reconstructor.render
+
+    def spy(self, pose, *a, **kw):
+        rendered.append(np.array(pose))
+        return orig(self, pose, *a, **kw)
+
+    monkeypatch.setattr(Reconstructor, "render", spy)
+    cfg = _cfg()
+    cfg.pose_refine.enabled, cfg.pose_refine.lr, cfg.pose_refine.min_updates = True, 2e-3, 0
+    p = MappingPipeline("synthetic", tmp_path, cfg, _opts(max_frames=12, eval_every=0, pictures=False))
+    m = p.run()
+    held = p.heldout_frames
+    assert m["pose_refine"]["views"] > 0 and m["heldout_given_poses"]["psnr"] > 0
+    carried = [p.rec.pose_refine.carried_pose(f.index, f.T_world_cam) for f in held]
+    assert all(not np.allclose(c, f.T_world_cam, atol=1e-9) for c, f in zip(carried, held))
+    # the final evaluation rendered each held-out view at its carried pose, then at its given pose
+    final = rendered[-2 * len(held):]
+    for c, r in zip(carried, final[:len(held)]):
+        np.testing.assert_allclose(r, c, atol=1e-12)
+    for f, r in zip(held, final[len(held):]):
+        np.testing.assert_allclose(r, f.T_world_cam, atol=1e-12)
+    assert m["heldout"]["psnr"] != m["heldout_given_poses"]["psnr"]

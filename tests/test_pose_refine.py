@@ -140,7 +140,7 @@ def test_reconstructor_learns_saves_and_restores_training_view_corrections(tmp_p
 
 
 def test_zero_learning_rate_is_the_plain_mapper():
-    plain, zero = _rec(), _rec(enabled=True, lr=0.0, reg=0.0, min_updates=0)
+    plain, zero = _rec(enabled=False), _rec(enabled=True, lr=0.0, reg=0.0, min_updates=0)
     _feed(plain)
     _feed(zero)
     assert not plain.pose_refine.state
@@ -223,3 +223,27 @@ def test_carrying_interpolates_between_neighbours_and_ignores_unmoved_views():
     np.testing.assert_allclose(ref.carried_pose(5, T)[:3, 3], [0.02, 0, 0], atol=1e-12)
     off = PoseRefiner(PoseRefineConfig(enabled=False))
     assert np.array_equal(off.carried_pose(5, T), T) and not off.carries
+
+
+def test_growth_sees_the_refined_pose_and_a_warm_start_begins_at_the_predecessors_correction():
+    T0, T1 = np.eye(4), _general_pose([0.0, 0.05, 0.0], [0.1, 0.0, 0.0])
+    ref = _refined([0], [torch.tensor([0.0, 0.01, 0.0, 0.02, 0.0, 0.0])], [T0])
+    f0 = SimpleNamespace(index=0, T_world_cam=T0)
+    moved = ref.posed(f0)
+    assert moved is not f0 and f0.T_world_cam is T0  # a copy: the stored view keeps its given pose
+    np.testing.assert_allclose(moved.T_world_cam, ref.pose(f0), atol=1e-12)
+    f1 = SimpleNamespace(index=1, T_world_cam=T1)
+    assert ref.posed(f1) is f1  # no correction yet: growth uses the given pose
+    ref.warm_start(f1)  # off by default
+    assert 1 not in ref.state
+    ref.cfg.warm_start = True
+    ref.warm_start(f1)
+    np.testing.assert_allclose(ref.pose(f1), ref.carried_pose(1, T1, always=True), atol=1e-10)
+    assert ref.state[1]["t"] == 0 and 1 not in [k for k, s in ref.state.items() if s["t"] > 0]
+    # during its first min_updates the warm-started correction is applied but not learned
+    ref.cfg.min_updates = 5
+    args = _textured_wall(8)
+    got = ref.render_args(f1, args)
+    assert ref.regulariser() is None
+    np.testing.assert_allclose(got[0].numpy(), corrected_args(args, T1, ref.correction(1).float())[0].numpy(),
+                               atol=1e-6)
