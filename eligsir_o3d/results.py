@@ -1,7 +1,8 @@
 """The results folder of a run (ARCHITECTURE.md's contract): map.ply, trajectory.txt, config.json (the resolved
 config), run.json (the sequence, the run options and the camera: with config.json, everything a rerun needs),
 metrics.json (the summary a user reads), cells.json (the final per-cell table of the regional evaluation),
-fidelity_trace.csv (Load-Adaptive Fidelity's decisions, one row per update) and plots. metrics.json names the
+fidelity_trace.csv (Load-Adaptive Fidelity's decisions, one row per update), trajectory_refined.txt (with pose
+refinement: the mapped frames' poses in the map's refined frame) and plots. metrics.json names the
 side files it comes with in ``files`` (read them with :func:`read_cells`, :func:`read_fidelity_trace`).
 
     eligsir map --rerun runs/kitchen --out runs/kitchen-again     # the same run again, from the folder alone
@@ -21,6 +22,7 @@ import numpy as np
 RUN_FILE = "run.json"  # read back by pipeline.read_run
 CELLS_FILE = "cells.json"
 FIDELITY_TRACE_FILE = "fidelity_trace.csv"
+REFINED_TRAJECTORY_FILE = "trajectory_refined.txt"  # pose refinement: the mapped frames in the map's frame
 
 
 def collect_metrics(p) -> dict:
@@ -97,6 +99,9 @@ def write_results(p, metrics: dict) -> None:
     items = sorted(p.trajectory.items())
     outputs.stage(out / "trajectory.txt", write_tum_trajectory, out / "trajectory.txt",
                   [ts for _, (ts, _) in items], [T for _, (_, T) in items])
+    if rec.pose_refine.carries:  # the mapped frames' poses in the map's refined frame
+        outputs.stage(out / REFINED_TRAJECTORY_FILE, write_tum_trajectory, out / REFINED_TRAJECTORY_FILE,
+                      [ts for _, (ts, _) in items], [rec.pose_refine.carried_pose(i, T) for i, (_, T) in items])
     outputs.stage(out / "config.json", rec.config.save, out / "config.json")
     if p.opts.pictures:
         from .visual.results import write_result_pictures

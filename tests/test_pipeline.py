@@ -188,3 +188,8 @@ def test_pose_refined_run_renders_heldout_views_at_carried_poses_and_reports_the
     for f, r in zip(held, final[len(held):]):
         np.testing.assert_allclose(r, f.T_world_cam, atol=1e-12)
     assert m["heldout"]["psnr"] != m["heldout_given_poses"]["psnr"]
+    rows = [ln.split() for ln in (tmp_path / "trajectory_refined.txt").read_text().splitlines()
+            if not ln.startswith("#")]
+    assert len(rows) == len(p.trajectory)
+    given = [ln.split() for ln in (tmp_path / "trajectory.txt").read_text().splitlines() if not ln.startswith("#")]
+    assert rows != given and [r[0] for r in rows] == [g[0] for g in given]  # same frames, refined poses

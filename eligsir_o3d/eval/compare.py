@@ -11,6 +11,7 @@ ROWS = [
     ("map state", [("map_state",)], "s"),
     ("dataset", [("dataset",)], "s"),
     ("PSNR [dB]", [("heldout", "psnr")], ".2f"),
+    ("PSNR at given poses [dB]", [("heldout_given_poses", "psnr")], ".2f"),  # pose-refined runs only
     ("SSIM", [("heldout", "ssim")], ".3f"),
     ("LPIPS", [("heldout", "lpips")], ".3f"),
     ("depth RMSE [m]", [("heldout", "depth_rmse_m")], ".3f"),
