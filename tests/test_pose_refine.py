@@ -81,7 +81,7 @@ def test_a_views_pose_error_is_learned_back_from_its_image():
 def test_disabled_or_regularised_refiner():
     args = _textured_wall(50)
     frame = SimpleNamespace(index=0, T_world_cam=np.eye(4))
-    off = PoseRefiner(PoseRefineConfig())
+    off = PoseRefiner(PoseRefineConfig(enabled=False))
     assert off.render_args(frame, args) is args and off.regulariser() is None and not off.state
     off.step()  # nothing to step: no error
     late = PoseRefiner(PoseRefineConfig(enabled=True, min_updates=2))
@@ -247,3 +247,9 @@ def test_growth_sees_the_refined_pose_and_a_warm_start_begins_at_the_predecessor
     assert ref.regulariser() is None
     np.testing.assert_allclose(got[0].numpy(), corrected_args(args, T1, ref.correction(1).float())[0].numpy(),
                                atol=1e-6)
+
+
+def test_refinement_is_on_by_default_with_the_measured_settings():
+    cfg = eo3d.Config().pose_refine
+    assert cfg.enabled and cfg.carry_to_heldout and not cfg.warm_start
+    assert (cfg.lr, cfg.reg, cfg.min_updates) == (1e-3, 1.0, 10)
