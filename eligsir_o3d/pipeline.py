@@ -22,6 +22,7 @@ import numpy as np
 from .config import Config
 from .frame import Frame
 from .frame_faults import BAD_FRAME_ERRORS, frame_fault
+from .pose_refine import HELDOUT_POSE_RULES
 from .resume_check import apply_new_settings, check_resume, run_record
 from .runlock import RunLock
 from .safe_outputs import Outputs, PeriodicCheckpoints
@@ -270,10 +271,10 @@ class MappingPipeline:
                 self._checkpoint(self.rec)
         self.rec.stats.excluded_s += time.perf_counter() - t0
 
-    def _render(self, frame: Frame):  # a held-out view: its given pose, carried into a pose-refined map's frame
+    def _render(self, frame: Frame):  # a held-out view: its given pose, moved into a pose-refined map's frame
         T = frame.T_world_cam
         if self.pose_source is None:  # tracked training poses have errors the (ground-truth) held-out poses lack
-            T = self.rec.pose_refine.carried_pose(frame.index, T)
+            T = self.rec.pose_refine.heldout_pose(frame.index, T)
         return self.rec.render(T, frame.camera)
 
     def _checkpoint(self, r) -> None:
@@ -336,9 +337,12 @@ class MappingPipeline:
             for f in self.heldout_frames:
                 f.T_world_cam = T_est_gt @ f.T_world_cam
         self.final = self.evaluator.final(self._render)
-        self.given_pose_scores = None
-        if self.rec.pose_refine.carries and self.pose_source is None:  # the strict figure: given poses as they are
-            self.given_pose_scores = self.evaluator.scores(lambda f: self.rec.render(f.T_world_cam, f.camera))
+        self.pose_rule_scores = None  # a pose-refined map: the held-out figure under each rule (given: the strict one)
+        if self.rec.pose_refine.moved and self.pose_source is None:
+            ref = self.rec.pose_refine
+            self.pose_rule_scores = {rule: self.evaluator.scores(
+                lambda f: self.rec.render(ref.heldout_pose(f.index, f.T_world_cam, rule), f.camera))
+                for rule in HELDOUT_POSE_RULES}
 
     # ---- write ---------------------------------------------------------------------------------------------
     def write(self) -> dict:

@@ -13,9 +13,10 @@ interpolated and applied to the given pose. This is a local form of the paper's 
 Table IV renders the original held-out poses after aligning the refined training poses): it uses only training
 views, and the given pose's drift is what it removes. ``carry_to_heldout=False`` renders the given poses as they are.
 
-The correction is applied to the Gaussians rather than to the camera (``corrected_args``): rendering the moved
-Gaussians at ``T`` is rendering the map at ``T @ exp(xi)``, so the gradient reaches ``xi`` through any renderer
-that differentiates means and rotations (every backend here does), and the renderer's pose stays a plain matrix.
+The view is rendered at its refined pose; the map's means and rotations pass through a probe (``_PoseProbe``) that
+is the identity forward and, in the update's backward, sums the gradients the renderer returns for them into the
+gradient of a right perturbation of the pose. The correction thus costs three reductions over the Gaussians per
+update, on every renderer (each differentiates means and rotations), and the renderer's pose stays a plain matrix.
 On by default (config ``pose_refine.enabled``); with it off nothing is computed.
 """
 
@@ -28,6 +29,9 @@ import numpy as np
 import torch
 
 
+HELDOUT_POSE_RULES = ("carried", "aligned", "given")
+
+
 @dataclass
 class PoseRefineConfig:
     enabled: bool = True
@@ -37,7 +41,10 @@ class PoseRefineConfig:
     reg: float = 1.0  # loss weight of |xi|^2 (pull toward the given pose); units: per rad^2 / m^2
     min_updates: int = 10  # a view's pose moves only after it has supervised this many updates (map settles first)
     centred: bool = False  # hold the views' mean correction (in the world frame) at zero: the map cannot drift
-    carry_to_heldout: bool = True  # render a held-out view at its given pose moved by its neighbours' corrections
+    # how a held-out view's given pose enters the refined map's frame: "carried" (moved by its neighbouring
+    # training views' corrections), "aligned" (one rigid alignment of the refined training poses to their given
+    # poses, the paper's "training-pose alignment") or "given" (as it is)
+    heldout_poses: str = "carried"
     warm_start: bool = False  # a new view starts at its refined predecessors' correction (not at the given pose)
 
 
@@ -58,85 +65,62 @@ def so3_exp(w: torch.Tensor) -> torch.Tensor:
     return torch.eye(3, dtype=w.dtype, device=w.device) + a * K + b * (K @ K)
 
 
-def _axis_quat(w: torch.Tensor) -> torch.Tensor:
-    """Unit quaternion (wxyz) of the axis-angle vector ``w``."""
-    th = torch.sqrt((w * w).sum() + 1e-24)
-    return torch.cat([torch.cos(th / 2).reshape(1), (torch.sin(th / 2) / th) * w])
-
-
-def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
-
-
-def _rot_quat(R: np.ndarray) -> np.ndarray:
-    """wxyz quaternion of a rotation matrix (Shepperd's method, any rotation)."""
-    R = np.asarray(R, dtype=np.float64)
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
-        q = [0.0] * 4
-        q[0] = (R[k, j] - R[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (R[j, i] + R[i, j]) / s
-        q[1 + k] = (R[k, i] + R[i, k]) / s
-    q = np.array(q)
-    return q / np.linalg.norm(q)
-
-
 def _rot_log(R: np.ndarray) -> np.ndarray:
-    """Axis-angle vector of a rotation matrix (angles below pi)."""
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    th = float(np.arccos(c))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
-    return w if th < 1e-8 else w * (th / np.sin(th))
+    """Axis-angle vector of a rotation matrix (angles below pi; exact to rounding at small angles)."""
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0  # sin(th) * axis
+    s = float(np.linalg.norm(w))
+    th = float(np.arctan2(s, (np.trace(R) - 1.0) / 2.0))
+    return w if s < 1e-12 else w * (th / s)
 
 
 def _rot_exp(w: np.ndarray) -> np.ndarray:
     return so3_exp(torch.as_tensor(w, dtype=torch.float64)).numpy()
 
 
-def _left_matrix(p: torch.Tensor) -> torch.Tensor:
-    """The 4x4 matrix of quaternion left-multiplication: ``quat_mul(p, q) == q @ _left_matrix(p).T``."""
-    pw, px, py, pz = p.unbind(-1)
-    return torch.stack([torch.stack([pw, -px, -py, -pz]), torch.stack([px, pw, -pz, py]),
-                        torch.stack([py, pz, pw, -px]), torch.stack([pz, -py, px, pw])])
+class _PoseProbe(torch.autograd.Function):
+    """Identity on (means, quats) whose backward also returns the loss gradient with respect to a right
+    perturbation ``delta = (omega, v)`` of the camera pose the map was rendered at, ``T' exp(delta)`` at 0.
+
+    Rendering at ``T' exp(delta)`` is rendering the map moved by ``M^-1``, ``M = T' exp(delta) T'^-1``: to first
+    order ``x -> x - w x (x - c) - t`` with ``w = R' omega``, ``t = R' v`` and ``c`` the camera centre, and every
+    orientation left-multiplied by the quaternion ``(1, -w / 2)``. So the gradient is a sum over the Gaussians of
+    the gradients the renderer already returns: ``dL/dt = -sum g_m``, ``dL/dw = -sum (x - c) x g_m
+    - 1/2 sum (q_w g_u - g_w q_u + q_u x g_u)``, rotated into the camera frame by ``R'^T``. The forward costs
+    nothing and the backward three reductions over the Gaussians, with no autograd over the small algebra."""
+
+    @staticmethod
+    def forward(ctx, means, quats, probe, R, c):
+        ctx.save_for_backward(means, quats, R, c)
+        return means.view_as(means), quats.view_as(quats)
+
+    @staticmethod
+    def backward(ctx, g_means, g_quats):
+        means, quats, R, c = ctx.saved_tensors
+        w_world = torch.zeros(3, dtype=means.dtype, device=means.device)
+        t_world = torch.zeros_like(w_world)
+        if g_means is not None:  # sum (x - c) x g = vee(M - M^T) - c x sum g, with M = x^T g: one 3 x N x 3 product
+            g_sum = g_means.sum(0)
+            t_world = -g_sum
+            w_world = torch.linalg.cross(c, g_sum) - _vee(means.T @ g_means)
+        if g_quats is not None:  # sum (q_w g_u - g_w q_u + q_u x g_u) from Q = q^T g: one 4 x N x 4 product
+            Q = quats.T @ g_quats
+            w_world = w_world - 0.5 * (Q[0, 1:] - Q[1:, 0] + _vee(Q[1:, 1:]))
+        g_probe = torch.cat([R.T @ w_world, R.T @ t_world])
+        return g_means, g_quats, g_probe, None, None
 
 
-def corrected_args(args: tuple, T_world_cam: np.ndarray, xi: torch.Tensor) -> tuple:
-    """``args`` (means, quats, scales, opacities, colors) moved so that rendering them at ``T_world_cam`` is
-    rendering the original map at ``T_world_cam @ exp(xi)``; ``xi`` = (omega, v) in the camera frame.
-
-    The move is one rigid motion of the world, so it is applied as one [N, 3] x [3, 3] and one [N, 4] x [4, 4]
-    product (row vectors): means ``m A + b`` with ``A = R Rc R^T`` (as a right factor) and ``b = t - t A - v Rc R^T``,
-    quaternions left-multiplied by the world rotation ``R Rc^T R^T``. Per Gaussian that is two small matrix
-    products forward and two backward, so a refined update costs little more than a plain one."""
-    means, quats, scales, opacities, colors = args
-    dev, dt = means.device, means.dtype
-    R = torch.as_tensor(np.asarray(T_world_cam)[:3, :3], dtype=dt, device=dev)
-    t = torch.as_tensor(np.asarray(T_world_cam)[:3, 3], dtype=dt, device=dev)
-    xi = xi.to(dev, dt)
-    w, v = xi[:3], xi[3:]
-    RcRt = so3_exp(w) @ R.T
-    A = R @ RcRt
-    b = t - t @ A - v @ RcRt
-    qR = torch.as_tensor(_rot_quat(T_world_cam[:3, :3]), dtype=dt, device=dev)
-    qR_inv = qR * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=dt, device=dev)
-    qM = quat_mul(quat_mul(qR, _axis_quat(-w)), qR_inv)  # the world rotation R Rc^T R^T
-    return means @ A + b, quats @ _left_matrix(qM).T, scales, opacities, colors
+def _vee(M: torch.Tensor) -> torch.Tensor:
+    """(M12 - M21, M20 - M02, M01 - M10): for M = sum_i a_i b_i^T this is sum_i a_i x b_i."""
+    return torch.stack([M[1, 2] - M[2, 1], M[2, 0] - M[0, 2], M[0, 1] - M[1, 0]])
 
 
 class PoseRefiner:
     """Per-view SE(3) corrections (keyed by frame index) with their own Adam moments."""
 
     def __init__(self, cfg: PoseRefineConfig, device: torch.device | str = "cpu"):
+        if cfg.heldout_poses not in HELDOUT_POSE_RULES:
+            raise ValueError(f"pose_refine.heldout_poses: unknown rule {cfg.heldout_poses!r}; "
+                             f"choose from {', '.join(HELDOUT_POSE_RULES)}")
         self.cfg = cfg
         self.device = torch.device(device)
         self.state: dict[int, dict] = {}  # index -> {"xi", "m", "v", "t", "seen"}
@@ -147,9 +131,45 @@ class PoseRefiner:
         return bool(self.cfg.enabled)
 
     @property
+    def moved(self) -> bool:
+        """Whether any view's pose has been refined (the map then lives in the refined frame)."""
+        return self.active and any(s["t"] > 0 for s in self.state.values())
+
+    @property
     def carries(self) -> bool:
-        """Whether held-out views are rendered at carried poses (refinement on, ``carry_to_heldout``, views moved)."""
-        return self.active and self.cfg.carry_to_heldout and any(s["t"] > 0 for s in self.state.values())
+        """Whether held-out views are rendered at poses moved into the refined frame (``heldout_poses`` is not
+        "given" and some view has moved)."""
+        return self.moved and self.cfg.heldout_poses != "given"
+
+    def heldout_pose(self, index: int, T_world_cam: np.ndarray, rule: str | None = None) -> np.ndarray:
+        """The pose a held-out view (frame ``index``, given pose ``T_world_cam``) is rendered at, by ``rule``
+        (default: ``heldout_poses``): "carried", "aligned" or "given"."""
+        rule = self.cfg.heldout_poses if rule is None else rule
+        if rule not in HELDOUT_POSE_RULES:
+            raise ValueError(f"unknown held-out pose rule {rule!r}; choose from {', '.join(HELDOUT_POSE_RULES)}")
+        if not self.moved or rule == "given":
+            return np.asarray(T_world_cam, dtype=np.float64)
+        if rule == "aligned":
+            return self.alignment() @ np.asarray(T_world_cam, dtype=np.float64)
+        return self.carried_pose(index, T_world_cam, always=True)
+
+    def alignment(self) -> np.ndarray:
+        """T_refined_given: the one rigid motion that best takes the refined views' given poses onto their refined
+        poses (rotation from all orientations, then the mean translation; ``pose.accuracy.pose_alignment``)."""
+        from .pose.accuracy import pose_alignment
+
+        views = [s for s in self.state.values() if s["t"] > 0 and "T" in s]
+        if not views:
+            return np.eye(4)
+        given = [s["T"].numpy() for s in views]
+        return pose_alignment(given, [T @ self._delta(s["xi"]) for T, s in zip(given, views)])
+
+    @staticmethod
+    def _delta(xi: torch.Tensor) -> np.ndarray:
+        D = np.eye(4)
+        D[:3, :3] = so3_exp(xi[:3].double()).numpy()
+        D[:3, 3] = xi[3:].double().numpy()
+        return D
 
     def correction(self, index: int) -> torch.Tensor:
         """The view's current xi (zeros for a view never refined)."""
@@ -158,11 +178,7 @@ class PoseRefiner:
 
     def pose(self, frame) -> np.ndarray:
         """``frame``'s refined T_world_cam (its given pose when refinement is off or has not moved it)."""
-        xi = self.correction(frame.index).double()
-        D = np.eye(4)
-        D[:3, :3] = so3_exp(xi[:3]).numpy()
-        D[:3, 3] = xi[3:].numpy()
-        return np.asarray(frame.T_world_cam) @ D
+        return np.asarray(frame.T_world_cam) @ self._delta(self.correction(frame.index))
 
     def _world_correction(self, s: dict) -> tuple[np.ndarray, np.ndarray]:
         """A refined view's correction in world terms: the refined pose is [R Rc, t + R v] = a rotation
@@ -175,9 +191,10 @@ class PoseRefiner:
         """A view that is not refined (a held-out view) at its given pose ``T_world_cam``, moved into the refined
         training frame: the world-frame corrections of the refined views just before and after ``index`` (by frame
         index; the nearest one at either end) are interpolated linearly and applied about the view's own camera
-        centre. Unchanged when refinement is off, ``carry_to_heldout`` is False or no view has moved yet."""
+        centre. Unchanged when refinement is off or no view has moved yet (``always=False``: also when held-out views
+        are not carried, ``heldout_poses`` other than "carried")."""
         T = np.asarray(T_world_cam, dtype=np.float64)
-        if not (self.active and (always or self.cfg.carry_to_heldout)):
+        if not (self.active and (always or self.cfg.heldout_poses == "carried")):
             return T
         keys = sorted(k for k, s in self.state.items() if s["t"] > 0)
         if not keys:
@@ -195,8 +212,9 @@ class PoseRefiner:
 
     def _new_state(self, frame, xi: torch.Tensor | None = None) -> dict:
         z = torch.zeros(6, dtype=torch.float64)
+        T = torch.as_tensor(np.asarray(frame.T_world_cam), dtype=torch.float64)
         return {"xi": z.clone() if xi is None else xi, "m": z.clone(), "v": z.clone(), "t": 0, "seen": 0,
-                "R": torch.as_tensor(np.asarray(frame.T_world_cam)[:3, :3], dtype=torch.float64)}
+                "R": T[:3, :3].clone(), "T": T.clone()}
 
     def warm_start(self, frame) -> None:
         """Start a new training view at the correction its refined predecessors imply (``carried_pose``), so
@@ -218,46 +236,48 @@ class PoseRefiner:
         moved.T_world_cam = self.pose(frame)
         return moved
 
-    def render_args(self, frame, args: tuple) -> tuple:
-        """The map's render args as seen from ``frame``'s refined pose (unchanged when off)."""
+    def render_args(self, frame, args: tuple) -> tuple[tuple, np.ndarray]:
+        """The map's render args and the pose to render ``frame`` at: its refined pose, with the args wrapped so
+        that the update's backward also leaves the gradient of the view's correction (``step`` applies it).
+        Off, or for a view that has not moved yet and is still settling: ``(args, frame.T_world_cam)`` as they are."""
         if not self.active:
-            return args
+            return args, frame.T_world_cam
         s = self.state.get(int(frame.index))
         if s is None:
             s = self.state[int(frame.index)] = self._new_state(frame)
         s["seen"] += 1
+        T = self.pose(frame) if s["xi"].any() else frame.T_world_cam
         if s["seen"] <= self.cfg.min_updates:  # the map settles first; a warm-started correction already applies
             self._live = None
-            return corrected_args(args, frame.T_world_cam, s["xi"].float()) if s["xi"].any() else args
-        xi = s["xi"].to(torch.float32).clone().requires_grad_(True)
-        self._live = (int(frame.index), xi)
-        return corrected_args(args, frame.T_world_cam, xi)
-
-    def regulariser(self) -> torch.Tensor | None:
-        """``reg * |xi|^2`` of the view being rendered (None when nothing is refined this update)."""
-        if self._live is None or self.cfg.reg <= 0:
-            return None
-        xi = self._live[1]
-        return self.cfg.reg * (xi * xi).sum()
+            return args, T
+        means, quats, *rest = args
+        probe = torch.zeros(6, dtype=means.dtype, device=means.device, requires_grad=True)
+        R = torch.as_tensor(np.asarray(T)[:3, :3], dtype=means.dtype, device=means.device)
+        c = torch.as_tensor(np.asarray(T)[:3, 3], dtype=means.dtype, device=means.device)
+        self._live = (int(frame.index), probe)
+        return (*_PoseProbe.apply(means, quats, probe, R, c), *rest), T
 
     @torch.no_grad()
     def step(self) -> None:
-        """One Adam step on the rendered view's xi, from the gradient the update's backward left on it."""
+        """One Adam step on the rendered view's correction, from the gradient its probe received in the update's
+        backward plus that of ``reg * |xi|^2``; the step is composed on the right: ``exp(xi) <- exp(xi) exp(step)``."""
         if self._live is None:
             return
-        index, xi = self._live
+        index, probe = self._live
         self._live = None
-        if xi.grad is None:
+        if probe.grad is None:
             return
         s = self.state[index]
-        g = xi.grad.to(torch.float64)
+        g = probe.grad.to(torch.float64) + 2.0 * self.cfg.reg * s["xi"]
         b1, b2, eps = 0.9, 0.999, 1e-15
         s["t"] += 1
         s["m"].mul_(b1).add_(g, alpha=1 - b1)
         s["v"].mul_(b2).addcmul_(g, g, value=1 - b2)
         mh = s["m"] / (1 - b1 ** s["t"])
         vh = s["v"] / (1 - b2 ** s["t"])
-        s["xi"] -= self.cfg.lr * mh / (vh.sqrt() + eps)
+        d = -self.cfg.lr * mh / (vh.sqrt() + eps)
+        Rc = so3_exp(s["xi"][:3])
+        s["xi"] = torch.cat([torch.as_tensor(_rot_log((Rc @ so3_exp(d[:3])).numpy())), s["xi"][3:] + Rc @ d[3:]])
         if self.cfg.centred and len(self.state) > 1:
             self._centre()
 
@@ -284,14 +304,12 @@ class PoseRefiner:
                 "median_trans_mm": float(xs[:, 3:].norm(dim=1).median()) * 1000.0}
 
     def state_dict(self) -> dict:
-        return {str(k): {"xi": s["xi"].clone(), "m": s["m"].clone(), "v": s["v"].clone(), "t": int(s["t"]),
-                         "seen": int(s["seen"]), "R": s["R"].clone()} for k, s in self.state.items()}
+        return {str(k): {n: v.clone() if torch.is_tensor(v) else int(v) for n, v in s.items()}
+                for k, s in self.state.items()}
 
     def load_state_dict(self, state: dict | None) -> None:
-        self.state = {int(k): {"xi": torch.as_tensor(s["xi"], dtype=torch.float64).clone(),
-                               "m": torch.as_tensor(s["m"], dtype=torch.float64).clone(),
-                               "v": torch.as_tensor(s["v"], dtype=torch.float64).clone(),
-                               "t": int(s["t"]), "seen": int(s["seen"]),
-                               "R": torch.as_tensor(s["R"], dtype=torch.float64).clone()}
-                      for k, s in (state or {}).items()}
+        """Restore ``state_dict``'s output (a checkpoint from before the given pose was kept lacks "T": such
+        views take no part in ``alignment``)."""
+        self.state = {int(k): {n: int(v) if n in ("t", "seen") else torch.as_tensor(v, dtype=torch.float64).clone()
+                               for n, v in s.items()} for k, s in (state or {}).items()}
         self._live = None

@@ -135,12 +135,12 @@ class Reconstructor:
         frame = self.views.select(self.rng)
         s = self.fidelity.scale() if scale is None else scale
         color, depth, cam = frame.at_scale(s, self.device)
-        args = self.pose_refine.render_args(frame, self.gmap.render_args())  # the view's refined pose (off: as is)
-        out = self.renderer.render(*args, cam, frame.T_world_cam, self._background)
+        args, T = self.pose_refine.render_args(frame, self.gmap.render_args())  # at the refined pose (off: as is)
+        out = self.renderer.render(*args, cam, T, self._background)
         loss, error = supervision_loss(out, color, depth, self.config.optim.loss)
-        for reg in (self.growth.pre_backward(out, self.ctx), self.pose_refine.regulariser()):
-            if reg is not None:
-                loss = loss + reg
+        reg = self.growth.pre_backward(out, self.ctx)
+        if reg is not None:
+            loss = loss + reg
         self.gmap.zero_grad()
         loss.backward()
         self.gmap.step()

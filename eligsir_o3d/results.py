@@ -49,8 +49,10 @@ def collect_metrics(p) -> dict:
         "cost_model": {**p.cost_model_source, "terms": rec.config.clock.cost.to_dict()}
         if p.cost_model_source.get("source") else None,
         "heldout": {k: final.get(k) for k in ("psnr", "ssim", "lpips", "depth_rmse_m", "depth_rmse_2m_m")},
-        # with pose refinement: the same views rendered at their given poses, not carried into the refined frame
-        "heldout_given_poses": getattr(p, "given_pose_scores", None),
+        # with pose refinement: the same views at their given poses as they are (the strict figure), and under
+        # each rule of pose_refine.heldout_poses ("heldout" is the configured one's)
+        "heldout_given_poses": (getattr(p, "pose_rule_scores", None) or {}).get("given"),
+        "heldout_by_pose_rule": getattr(p, "pose_rule_scores", None),
         "pose_refine": rec.pose_refine.summary() if rec.pose_refine.active else None,
         "cvq_auc": final.get("cvq_auc"),
         "cvq_final": final.get("cvq_final"),
@@ -99,9 +101,10 @@ def write_results(p, metrics: dict) -> None:
     items = sorted(p.trajectory.items())
     outputs.stage(out / "trajectory.txt", write_tum_trajectory, out / "trajectory.txt",
                   [ts for _, (ts, _) in items], [T for _, (_, T) in items])
-    if rec.pose_refine.carries:  # the mapped frames' poses in the map's refined frame
+    if rec.pose_refine.moved:  # the mapped frames' poses in the map's refined frame
+        moved = [rec.pose_refine.carried_pose(i, T, always=True) for i, (_, T) in items]
         outputs.stage(out / REFINED_TRAJECTORY_FILE, write_tum_trajectory, out / REFINED_TRAJECTORY_FILE,
-                      [ts for _, (ts, _) in items], [rec.pose_refine.carried_pose(i, T) for i, (_, T) in items])
+                      [ts for _, (ts, _) in items], moved)
     outputs.stage(out / "config.json", rec.config.save, out / "config.json")
     if p.opts.pictures:
         from .visual.results import write_result_pictures

@@ -181,12 +181,18 @@ def test_pose_refined_run_renders_heldout_views_at_carried_poses_and_reports_the
     assert m["pose_refine"]["views"] > 0 and m["heldout_given_poses"]["psnr"] > 0
     carried = [p.rec.pose_refine.carried_pose(f.index, f.T_world_cam) for f in held]
     assert all(not np.allclose(c, f.T_world_cam, atol=1e-9) for c, f in zip(carried, held))
-    # the final evaluation rendered each held-out view at its carried pose, then at its given pose
-    final = rendered[-2 * len(held):]
-    for c, r in zip(carried, final[:len(held)]):
-        np.testing.assert_allclose(r, c, atol=1e-12)
-    for f, r in zip(held, final[len(held):]):
-        np.testing.assert_allclose(r, f.T_world_cam, atol=1e-12)
+    # the final evaluation rendered each held-out view at its carried pose (the headline), then under each rule:
+    # carried, aligned (the training views' one rigid alignment), given
+    n = len(held)
+    final = rendered[-4 * n:]
+    A = p.rec.pose_refine.alignment()
+    assert not np.allclose(A, np.eye(4), atol=1e-9)
+    for k, want in enumerate((carried, carried, [A @ f.T_world_cam for f in held], [f.T_world_cam for f in held])):
+        for w, r in zip(want, final[k * n:(k + 1) * n]):
+            np.testing.assert_allclose(r, w, atol=1e-12)
+    rules = m["heldout_by_pose_rule"]
+    assert list(rules) == ["carried", "aligned", "given"] and rules["given"] == m["heldout_given_poses"]
+    assert abs(rules["carried"]["psnr"] - m["heldout"]["psnr"]) < 1e-9
     assert m["heldout"]["psnr"] != m["heldout_given_poses"]["psnr"]
     rows = [ln.split() for ln in (tmp_path / "trajectory_refined.txt").read_text().splitlines()
             if not ln.startswith("#")]

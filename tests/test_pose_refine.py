@@ -1,16 +1,17 @@
-"""Per-training-view pose refinement (eligsir_o3d/pose_refine.py): the Gaussian-side correction is the camera-side
-one, a view's correction is learned back from its image, and the Reconstructor learns, saves and restores it for
+"""Per-training-view pose refinement (eligsir_o3d/pose_refine.py): the probe's gradient is the pose gradient, a
+view's correction is learned back from its image, and the Reconstructor learns, saves and restores it for
 training renders only."""
 
 from types import SimpleNamespace
 
 import numpy as np
 import open3d as o3d
+import pytest
 import torch
 
 import eligsir_o3d as eo3d
 from eligsir_o3d.camera import Camera
-from eligsir_o3d.pose_refine import PoseRefineConfig, PoseRefiner, _rot_log, corrected_args, so3_exp
+from eligsir_o3d.pose_refine import PoseRefineConfig, PoseRefiner, _rot_log, so3_exp
 from eligsir_o3d.render import get_renderer
 
 W, H = 48, 36
@@ -41,20 +42,66 @@ def _camera():
     return Camera(W, H, 40.0, 40.0, (W - 1) / 2, (H - 1) / 2)
 
 
-def test_moving_the_gaussians_is_moving_the_camera():
-    r = get_renderer("cpu", torch.device("cpu"))
-    args, cam, bg = _textured_wall(), _camera(), torch.zeros(3)
-    T = np.eye(4)
-    T[:3, :3] = so3_exp(torch.tensor([0.1, -0.2, 0.05], dtype=torch.float64)).numpy()
-    T[:3, 3] = [0.2, -0.1, 0.05]
-    T = np.linalg.inv(T)  # some general pose, still looking at the wall
-    xi = torch.tensor([0.02, -0.03, 0.01, 0.03, -0.02, 0.05])
-    moved = r.render(*corrected_args(args, T, xi), cam, T, bg)
-    ref = r.render(*args, cam, T @ _pose(xi), bg)
-    plain = r.render(*args, cam, T, bg)
-    assert (moved.color - ref.color).abs().max() < 1e-4
-    assert (moved.depth - ref.depth).abs().max() < 1e-4
-    assert (plain.color - ref.color).abs().max() > 0.2  # the correction is visible
+def _qmul(a, b):
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
+def _moved_map(args, T, delta):
+    """The oracle: the map moved exactly (differentiably in ``delta``) so that rendering it at ``T`` is rendering
+    the original at ``T exp(delta)``: points by ``T exp(delta)^-1 T^-1``, orientations by the world rotation
+    ``R Rd^T R^T`` as a quaternion ``qR (qd^-1) qR^-1``."""
+    means, quats, *rest = args
+    R, t = torch.as_tensor(T[:3, :3]), torch.as_tensor(T[:3, 3])
+    Rd = so3_exp(delta[:3])
+    A = R @ Rd.T @ R.T  # the world rotation of the move, about the camera centre, then the shift -R Rd^T v
+    moved = (means - t) @ A.T + t - R @ Rd.T @ delta[3:]
+    th = torch.sqrt((delta[:3] ** 2).sum() + 1e-30)
+    q_inv = torch.cat([torch.cos(th / 2).reshape(1), -torch.sin(th / 2) / th * delta[:3]])
+    w = 0.5 * np.sqrt(max(1.0 + np.trace(T[:3, :3]), 1e-12))  # qR of a pose with trace > -1 (true here)
+    qR = torch.tensor([w, (T[2, 1] - T[1, 2]) / (4 * w), (T[0, 2] - T[2, 0]) / (4 * w), (T[1, 0] - T[0, 1]) / (4 * w)],
+                      dtype=torch.float64)
+    qM = _qmul(_qmul(qR, q_inv), qR * torch.tensor([1.0, -1, -1, -1], dtype=torch.float64))
+    return (moved, _qmul(qM.expand_as(quats), quats), *rest)
+
+
+def test_the_probe_gradient_is_the_gradient_of_the_rendered_pose():
+    """The gradient the probe sums from the means' and rotations' gradients equals autograd through an exact move
+    of the map by a right perturbation of the pose, on the fast CPU rasteriser and on the reference (colour and
+    depth; finite differences are no oracle here, the rasterisers' cut-offs make the loss piecewise)."""
+    wall = _textured_wall()
+    g = torch.Generator().manual_seed(1)
+    quats = torch.randn(len(wall[0]), 4, generator=g)  # general orientations: the rotation term matters
+    scales = torch.rand(len(wall[0]), 3, generator=g) * 0.04 + 0.01
+    args = tuple(a.double() for a in (wall[0], quats, scales, wall[3], wall[4]))
+    cam, bg = _camera(), torch.zeros(3, dtype=torch.float64)
+    T = np.linalg.inv(_general_pose([0.1, -0.2, 0.05], [0.2, -0.1, 0.05]))
+    frame = SimpleNamespace(index=0, T_world_cam=T)
+    for backend in ("cpu", "torch"):
+        r = get_renderer(backend, torch.device("cpu"))
+        target = r.render(*args, cam, T, bg).color.detach() * 0.8
+
+        def loss(out):
+            return ((out.color - target) ** 2).sum() + 0.1 * (out.depth ** 2).sum()
+
+        ref = PoseRefiner(PoseRefineConfig(enabled=True, min_updates=0, reg=0.0))
+        ref.state[0] = ref._new_state(frame, torch.tensor([0.01, -0.02, 0.005, 0.01, 0.02, -0.01], dtype=torch.float64))
+        probed, Tr = ref.render_args(frame, args)
+        np.testing.assert_allclose(Tr, ref.pose(frame))
+        assert torch.equal(probed[0], args[0]) and torch.equal(probed[1], args[1])  # the identity forward
+        loss(r.render(*probed, cam, Tr, bg)).backward()
+        got = ref._live[1].grad.numpy()
+        delta = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+        loss(r.render(*_moved_map(args, Tr, delta), cam, Tr, bg)).backward()
+        want = delta.grad.numpy()
+        assert np.abs(want[:3]).max() > 1.0 and np.abs(want[3:]).max() > 1.0  # the pose matters to this loss
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6 * np.abs(want).max(), err_msg=backend)
+        delta.grad = None  # the oracle's map moved by a small delta renders as the original at T exp(delta)
+        e = torch.tensor([0.02, -0.01, 0.03, 0.01, 0.02, -0.02], dtype=torch.float64)
+        moved = r.render(*_moved_map(args, Tr, e), cam, Tr, bg).color
+        assert (moved - r.render(*args, cam, Tr @ _pose(e), bg).color).abs().max() < 1e-4
 
 
 def test_a_views_pose_error_is_learned_back_from_its_image():
@@ -66,8 +113,8 @@ def test_a_views_pose_error_is_learned_back_from_its_image():
     ref = PoseRefiner(PoseRefineConfig(enabled=True, lr=3e-3, reg=0.0, min_updates=0))
     losses = []
     for _ in range(80):
-        out = r.render(*ref.render_args(frame, args), cam, frame.T_world_cam, bg)
-        loss = (out.color - target).abs().mean()
+        probed, T = ref.render_args(frame, args)
+        loss = (r.render(*probed, cam, T, bg).color - target).abs().mean()
         loss.backward()
         ref.step()
         losses.append(float(loss.detach()))
@@ -82,17 +129,20 @@ def test_disabled_or_regularised_refiner():
     args = _textured_wall(50)
     frame = SimpleNamespace(index=0, T_world_cam=np.eye(4))
     off = PoseRefiner(PoseRefineConfig(enabled=False))
-    assert off.render_args(frame, args) is args and off.regulariser() is None and not off.state
+    assert off.render_args(frame, args) == (args, frame.T_world_cam) and not off.state
     off.step()  # nothing to step: no error
     late = PoseRefiner(PoseRefineConfig(enabled=True, min_updates=2))
-    assert late.render_args(frame, args) is args and late.render_args(frame, args) is args  # the view's first 2
-    assert late.render_args(frame, args) is not args and late.regulariser() is not None  # then it is refined
-    on = PoseRefiner(PoseRefineConfig(enabled=True, reg=2.0, min_updates=0))
-    on.state[0] = {"xi": torch.full((6,), 0.1, dtype=torch.float64), "m": torch.zeros(6, dtype=torch.float64),
-                   "R": torch.eye(3, dtype=torch.float64),
-                   "v": torch.zeros(6, dtype=torch.float64), "t": 0, "seen": 0}
-    on.render_args(frame, args)
-    assert abs(float(on.regulariser()) - 2.0 * 6 * 0.01) < 1e-6  # reg * |xi|^2 pulls toward the given pose
+    for _ in range(2):  # the view's first 2 renders: the map as it is, at the given pose, nothing learned
+        assert late.render_args(frame, args) == (args, frame.T_world_cam) and late._live is None
+    probed, _ = late.render_args(frame, args)  # then it is refined
+    assert probed[0] is not args[0] and probed[2] is args[2] and late._live is not None
+    on = PoseRefiner(PoseRefineConfig(enabled=True, reg=2.0, lr=1e-3, min_updates=0))
+    on.state[0] = on._new_state(frame, torch.full((6,), 0.1, dtype=torch.float64))
+    _, T = on.render_args(frame, args)
+    np.testing.assert_allclose(T, on.pose(frame))  # rendered at the refined pose
+    on._live[1].grad = torch.zeros(6)  # an image that says nothing: reg * |xi|^2 pulls toward the given pose
+    on.step()
+    np.testing.assert_allclose(on.correction(0).numpy(), np.full(6, 0.1 - 1e-3), atol=1e-5)
 
 
 def _images(shift):
@@ -160,8 +210,8 @@ def test_centred_corrections_keep_the_map_on_the_given_trajectory():
         ref = PoseRefiner(PoseRefineConfig(enabled=True, lr=3e-3, reg=0.0, min_updates=0, centred=centred))
         for _ in range(8):
             for frame, target in frames:
-                out = r.render(*ref.render_args(frame, args), cam, frame.T_world_cam, bg)
-                (out.color - target).abs().mean().backward()
+                probed, T = ref.render_args(frame, args)
+                (r.render(*probed, cam, T, bg).color - target).abs().mean().backward()
                 ref.step()
         R = [torch.as_tensor(f.T_world_cam[:3, :3]) for f, _ in frames]
         mean_t = sum(R[i] @ ref.correction(i)[3:] for i in range(3)) / 3
@@ -209,8 +259,35 @@ def test_a_held_out_pose_is_carried_by_its_neighbours_world_correction():
     np.testing.assert_allclose(got[:3, 3], Th[:3, 3] + shift, atol=1e-9)
     # before the first refined view, the nearest correction; with carrying off, the given pose
     np.testing.assert_allclose(ref.carried_pose(3, Th)[:3, 3], Th[:3, 3] + shift, atol=1e-9)
-    ref.cfg.carry_to_heldout = False
+    ref.cfg.heldout_poses = "given"
     assert np.array_equal(ref.carried_pose(15, Th), Th) and not ref.carries
+    assert np.array_equal(ref.heldout_pose(15, Th), Th)
+
+
+def test_aligned_held_out_poses_take_the_one_rigid_motion_of_the_training_views():
+    """``heldout_poses="aligned"``: when every refined view moved by one rigid motion E of the world, a held-out pose
+    is rendered at E times its given pose; per-view scatter around E averages out; unknown rules are refused."""
+    poses = [_general_pose([0.1 * k, 0.3 - 0.1 * k, 0.02 * k], [0.2 * k, 0.1, 1.0 - 0.1 * k]) for k in range(4)]
+    E = _general_pose([0.01, -0.02, 0.015], [0.03, -0.01, 0.02])
+    xis = []
+    for T in poses:  # T exp(xi) = E T
+        D = np.linalg.inv(T) @ E @ T
+        xis.append(torch.as_tensor(np.concatenate([_rot_log(D[:3, :3]), D[:3, 3]])))
+    ref = _refined([0, 10, 20, 30], xis, poses)
+    ref.cfg.heldout_poses = "aligned"
+    np.testing.assert_allclose(ref.alignment(), E, atol=1e-9)
+    Th = _general_pose([0.15, 0.2, 0.03], [0.25, 0.1, 0.9])
+    np.testing.assert_allclose(ref.heldout_pose(15, Th), E @ Th, atol=1e-9)
+    assert np.array_equal(ref.heldout_pose(15, Th, "given"), Th)
+    np.testing.assert_allclose(ref.heldout_pose(15, Th, "carried"), ref.carried_pose(15, Th, always=True), atol=1e-12)
+    for rule in ("nearest", ""):
+        with pytest.raises(ValueError, match="held-out pose rule"):
+            ref.heldout_pose(15, Th, rule)
+    with pytest.raises(ValueError, match="pose_refine.heldout_poses"):
+        PoseRefiner(PoseRefineConfig(heldout_poses="nearest"))
+    back = PoseRefiner(PoseRefineConfig(heldout_poses="aligned"))
+    back.load_state_dict(ref.state_dict())
+    np.testing.assert_allclose(back.alignment(), E, atol=1e-9)
 
 
 def test_carrying_interpolates_between_neighbours_and_ignores_unmoved_views():
@@ -243,13 +320,12 @@ def test_growth_sees_the_refined_pose_and_a_warm_start_begins_at_the_predecessor
     # during its first min_updates the warm-started correction is applied but not learned
     ref.cfg.min_updates = 5
     args = _textured_wall(8)
-    got = ref.render_args(f1, args)
-    assert ref.regulariser() is None
-    np.testing.assert_allclose(got[0].numpy(), corrected_args(args, T1, ref.correction(1).float())[0].numpy(),
-                               atol=1e-6)
+    got, T = ref.render_args(f1, args)
+    assert got is args and ref._live is None
+    np.testing.assert_allclose(T, ref.pose(f1), atol=1e-12)
 
 
 def test_refinement_is_on_by_default_with_the_measured_settings():
     cfg = eo3d.Config().pose_refine
-    assert cfg.enabled and cfg.carry_to_heldout and not cfg.warm_start
+    assert cfg.enabled and cfg.heldout_poses == "carried" and not cfg.warm_start
     assert (cfg.lr, cfg.reg, cfg.min_updates) == (1e-3, 1.0, 10)
