@@ -13,6 +13,7 @@ the first run on a machine calibrates (seconds), later ones reuse it. Delete the
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import os
@@ -34,8 +35,9 @@ def cache_dir() -> Path:
     return Path(base) / "eligsir_o3d"
 
 
-def machine_key(device, renderer: str) -> dict:
-    """What a fit depends on: this machine, the device and the renderer (and the code that runs)."""
+def machine_key(device, renderer: str, pose_refine: bool = True) -> dict:
+    """What a fit depends on: this machine, the device and the renderer (and the code that runs, with or without
+    per-view pose refinement, which adds a little to every refined update)."""
     import torch
 
     from .._version import __version__
@@ -44,7 +46,8 @@ def machine_key(device, renderer: str) -> dict:
     name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else _cpu_name()
     return {"host": platform.node(), "machine": platform.machine(), "cpus": os.cpu_count(), "device": str(dev),
             "device_name": name, "renderer": renderer, "torch": torch.__version__, "eligsir_o3d": __version__,
-            "fit": 2}  # 2: frame_s measured (fits cached before scaled it with the updates)
+            "pose_refine": bool(pose_refine),
+            "fit": 3}  # 2: frame_s measured (fits cached before scaled it with the updates); 3: refined updates timed
 
 
 def cache_path(key: dict) -> Path:
@@ -99,7 +102,7 @@ def calibrate(rec, frames=None, *, n_frames: int = 6, updates_per_scale: int = 3
     else:
         frames = list(frames)[:max(n_frames, 2)] if n_frames else list(frames)
         camera = frames[0].camera
-    make = make_scratch or (lambda cam: type(rec)(cam, str(rec.device), rec.config))
+    make = make_scratch or (lambda cam: type(rec)(cam, str(rec.device), _timing_config(rec.config)))
     scratch = make(camera)
     scratch.warmup()
     t0 = time.perf_counter()
@@ -131,10 +134,18 @@ def calibrate(rec, frames=None, *, n_frames: int = 6, updates_per_scale: int = 3
     return model, report
 
 
+def _timing_config(config):
+    """``config`` for the scratch mapper: pose refinement (when on) from each view's first update, as in a long
+    run, where nearly every update is of a view past its ``min_updates``; a few calibration frames never get there."""
+    cfg = copy.deepcopy(config)
+    cfg.pose_refine.min_updates = 0
+    return cfg
+
+
 def cached_cost_model(rec, frames=None, **kw) -> tuple[CostModel, dict]:
     """The cached fit for ``rec``'s machine, device and renderer, calibrating (and caching) it on first use.
     Returns (model, info) where info names the cache file and whether it was just calibrated."""
-    key = machine_key(rec.device, rec.config.renderer)
+    key = machine_key(rec.device, rec.config.renderer, rec.config.pose_refine.enabled)
     path = cache_path(key)
     if path.is_file():
         try:

@@ -12,6 +12,7 @@ ROWS = [
     ("dataset", [("dataset",)], "s"),
     ("PSNR [dB]", [("heldout", "psnr")], ".2f"),
     ("PSNR at given poses [dB]", [("heldout_given_poses", "psnr")], ".2f"),  # pose-refined runs only
+    ("PSNR, aligned poses [dB]", [("heldout_by_pose_rule", "aligned", "psnr")], ".2f"),  # pose-refined runs only
     ("SSIM", [("heldout", "ssim")], ".3f"),
     ("LPIPS", [("heldout", "lpips")], ".3f"),
     ("depth RMSE [m]", [("heldout", "depth_rmse_m")], ".3f"),
