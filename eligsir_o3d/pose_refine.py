@@ -48,23 +48,6 @@ class PoseRefineConfig:
     warm_start: bool = False  # a new view starts at its refined predecessors' correction (not at the given pose)
 
 
-def _skew(w: torch.Tensor) -> torch.Tensor:
-    z = torch.zeros((), dtype=w.dtype, device=w.device)
-    return torch.stack([torch.stack([z, -w[2], w[1]]), torch.stack([w[2], z, -w[0]]),
-                        torch.stack([-w[1], w[0], z])])
-
-
-def so3_exp(w: torch.Tensor) -> torch.Tensor:
-    """Rotation matrix of the axis-angle vector ``w`` (Rodrigues; smooth at 0)."""
-    th2 = (w * w).sum()
-    th = torch.sqrt(th2 + 1e-24)
-    K = _skew(w)
-    small = th2 < 1e-12
-    a = torch.where(small, 1.0 - th2 / 6.0, torch.sin(th) / th)
-    b = torch.where(small, 0.5 - th2 / 24.0, (1.0 - torch.cos(th)) / (th2 + 1e-24))
-    return torch.eye(3, dtype=w.dtype, device=w.device) + a * K + b * (K @ K)
-
-
 def _rot_log(R: np.ndarray) -> np.ndarray:
     """Axis-angle vector of a rotation matrix (angles below pi; exact to rounding at small angles)."""
     w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0  # sin(th) * axis
@@ -73,8 +56,18 @@ def _rot_log(R: np.ndarray) -> np.ndarray:
     return w if s < 1e-12 else w * (th / s)
 
 
-def _rot_exp(w: np.ndarray) -> np.ndarray:
-    return so3_exp(torch.as_tensor(w, dtype=torch.float64)).numpy()
+def _rot_exp(w) -> np.ndarray:
+    """Rotation matrix of the axis-angle vector ``w`` (Rodrigues, float64, smooth at 0). The per-update pose
+    algebra is numpy on 3-vectors: small torch ops cost ~10x more here."""
+    w = np.asarray(w, dtype=np.float64)
+    th2 = float(w @ w)
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th2 < 1e-12:
+        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+    else:
+        th = np.sqrt(th2)
+        a, b = np.sin(th) / th, (1.0 - np.cos(th)) / th2
+    return np.eye(3) + a * K + b * (K @ K)
 
 
 class _PoseProbe(torch.autograd.Function):
@@ -111,7 +104,7 @@ class _PoseProbe(torch.autograd.Function):
 
 def _vee(M: torch.Tensor) -> torch.Tensor:
     """(M12 - M21, M20 - M02, M01 - M10): for M = sum_i a_i b_i^T this is sum_i a_i x b_i."""
-    return torch.stack([M[1, 2] - M[2, 1], M[2, 0] - M[0, 2], M[0, 1] - M[1, 0]])
+    return (M - M.T).reshape(-1)[[5, 6, 1]]
 
 
 class PoseRefiner:
@@ -125,6 +118,7 @@ class PoseRefiner:
         self.device = torch.device(device)
         self.state: dict[int, dict] = {}  # index -> {"xi", "m", "v", "t", "seen"}
         self._live: tuple[int, torch.Tensor] | None = None
+        self._rendered: tuple | None = None  # ((index, its xi's bytes), the pose render_args returned)
 
     @property
     def active(self) -> bool:
@@ -167,8 +161,9 @@ class PoseRefiner:
     @staticmethod
     def _delta(xi: torch.Tensor) -> np.ndarray:
         D = np.eye(4)
-        D[:3, :3] = so3_exp(xi[:3].double()).numpy()
-        D[:3, 3] = xi[3:].double().numpy()
+        x = xi.numpy() if torch.is_tensor(xi) else np.asarray(xi)
+        D[:3, :3] = _rot_exp(x[:3])
+        D[:3, 3] = x[3:]
         return D
 
     def correction(self, index: int) -> torch.Tensor:
@@ -184,7 +179,7 @@ class PoseRefiner:
         """A refined view's correction in world terms: the refined pose is [R Rc, t + R v] = a rotation
         R Rc R^T about the camera centre followed by a shift R v of the centre; returns (axis-angle of R Rc R^T, R v)."""
         R = s["R"].numpy()
-        Rc = so3_exp(s["xi"][:3]).numpy()
+        Rc = _rot_exp(s["xi"][:3].numpy())
         return _rot_log(R @ Rc @ R.T), R @ s["xi"][3:].numpy()
 
     def carried_pose(self, index: int, T_world_cam: np.ndarray, always: bool = False) -> np.ndarray:
@@ -233,7 +228,9 @@ class PoseRefiner:
         if s is None or not s["xi"].any():
             return frame
         moved = copy.copy(frame)
-        moved.T_world_cam = self.pose(frame)
+        key = (int(frame.index), s["xi"].numpy().tobytes())  # the pose this update rendered at, if xi is unchanged
+        hit = self._rendered is not None and self._rendered[0] == key
+        moved.T_world_cam = self._rendered[1] if hit else np.asarray(frame.T_world_cam) @ self._delta(s["xi"])
         return moved
 
     def render_args(self, frame, args: tuple) -> tuple[tuple, np.ndarray]:
@@ -247,6 +244,7 @@ class PoseRefiner:
             s = self.state[int(frame.index)] = self._new_state(frame)
         s["seen"] += 1
         T = self.pose(frame) if s["xi"].any() else frame.T_world_cam
+        self._rendered = ((int(frame.index), s["xi"].numpy().tobytes()), T)
         if s["seen"] <= self.cfg.min_updates:  # the map settles first; a warm-started correction already applies
             self._live = None
             return args, T
@@ -268,16 +266,17 @@ class PoseRefiner:
         if probe.grad is None:
             return
         s = self.state[index]
-        g = probe.grad.to(torch.float64) + 2.0 * self.cfg.reg * s["xi"]
+        xi, m, v = s["xi"].numpy(), s["m"].numpy(), s["v"].numpy()  # float64 views: numpy on 6-vectors is cheap
+        g = probe.grad.detach().cpu().numpy().astype(np.float64) + 2.0 * self.cfg.reg * xi
         b1, b2, eps = 0.9, 0.999, 1e-15
         s["t"] += 1
-        s["m"].mul_(b1).add_(g, alpha=1 - b1)
-        s["v"].mul_(b2).addcmul_(g, g, value=1 - b2)
-        mh = s["m"] / (1 - b1 ** s["t"])
-        vh = s["v"] / (1 - b2 ** s["t"])
-        d = -self.cfg.lr * mh / (vh.sqrt() + eps)
-        Rc = so3_exp(s["xi"][:3])
-        s["xi"] = torch.cat([torch.as_tensor(_rot_log((Rc @ so3_exp(d[:3])).numpy())), s["xi"][3:] + Rc @ d[3:]])
+        m *= b1
+        m += (1 - b1) * g
+        v *= b2
+        v += (1 - b2) * g * g
+        d = -self.cfg.lr * (m / (1 - b1 ** s["t"])) / (np.sqrt(v / (1 - b2 ** s["t"])) + eps)
+        Rc = _rot_exp(xi[:3])
+        s["xi"] = torch.from_numpy(np.concatenate([_rot_log(Rc @ _rot_exp(d[:3])), xi[3:] + Rc @ d[3:]]))
         if self.cfg.centred and len(self.state) > 1:
             self._centre()
 

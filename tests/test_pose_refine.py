@@ -11,7 +11,7 @@ import torch
 
 import eligsir_o3d as eo3d
 from eligsir_o3d.camera import Camera
-from eligsir_o3d.pose_refine import PoseRefineConfig, PoseRefiner, _rot_log, so3_exp
+from eligsir_o3d.pose_refine import PoseRefineConfig, PoseRefiner, _rot_exp, _rot_log
 from eligsir_o3d.render import get_renderer
 
 W, H = 48, 36
@@ -33,7 +33,7 @@ def _textured_wall(n=400, seed=0):
 
 def _pose(xi: torch.Tensor) -> np.ndarray:
     D = np.eye(4)
-    D[:3, :3] = so3_exp(xi[:3].double()).numpy()
+    D[:3, :3] = _rot_exp(xi[:3].double().numpy())
     D[:3, 3] = xi[3:].double().numpy()
     return D
 
@@ -49,13 +49,21 @@ def _qmul(a, b):
                         aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
 
 
+def _so3_exp(w: torch.Tensor) -> torch.Tensor:
+    """Differentiable Rodrigues in torch (the oracle's; the package's pose algebra is numpy)."""
+    th = torch.sqrt((w * w).sum() + 1e-30)
+    z = torch.zeros((), dtype=w.dtype)
+    K = torch.stack([torch.stack([z, -w[2], w[1]]), torch.stack([w[2], z, -w[0]]), torch.stack([-w[1], w[0], z])])
+    return torch.eye(3, dtype=w.dtype) + torch.sin(th) / th * K + (1 - torch.cos(th)) / th ** 2 * (K @ K)
+
+
 def _moved_map(args, T, delta):
     """The oracle: the map moved exactly (differentiably in ``delta``) so that rendering it at ``T`` is rendering
     the original at ``T exp(delta)``: points by ``T exp(delta)^-1 T^-1``, orientations by the world rotation
     ``R Rd^T R^T`` as a quaternion ``qR (qd^-1) qR^-1``."""
     means, quats, *rest = args
     R, t = torch.as_tensor(T[:3, :3]), torch.as_tensor(T[:3, 3])
-    Rd = so3_exp(delta[:3])
+    Rd = _so3_exp(delta[:3])
     A = R @ Rd.T @ R.T  # the world rotation of the move, about the camera centre, then the shift -R Rd^T v
     moved = (means - t) @ A.T + t - R @ Rd.T @ delta[3:]
     th = torch.sqrt((delta[:3] ** 2).sum() + 1e-30)
@@ -233,7 +241,7 @@ def _refined(indices, xis, poses):
 
 def _general_pose(w, t):
     T = np.eye(4)
-    T[:3, :3] = so3_exp(torch.tensor(w, dtype=torch.float64)).numpy()
+    T[:3, :3] = _rot_exp(w)
     T[:3, 3] = t
     return T
 
