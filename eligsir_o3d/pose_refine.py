@@ -82,29 +82,38 @@ class _PoseProbe(torch.autograd.Function):
     nothing and the backward three reductions over the Gaussians, with no autograd over the small algebra."""
 
     @staticmethod
-    def forward(ctx, means, quats, probe, R, c):
-        ctx.save_for_backward(means, quats, R, c)
+    def forward(ctx, means, quats, sink):
+        ctx.save_for_backward(means, quats)
+        ctx.sink = sink
         return means.view_as(means), quats.view_as(quats)
 
     @staticmethod
     def backward(ctx, g_means, g_quats):
-        means, quats, R, c = ctx.saved_tensors
-        w_world = torch.zeros(3, dtype=means.dtype, device=means.device)
-        t_world = torch.zeros_like(w_world)
-        if g_means is not None:  # sum (x - c) x g = vee(M - M^T) - c x sum g, with M = x^T g: one 3 x N x 3 product
-            g_sum = g_means.sum(0)
-            t_world = -g_sum
-            w_world = torch.linalg.cross(c, g_sum) - _vee(means.T @ g_means)
-        if g_quats is not None:  # sum (q_w g_u - g_w q_u + q_u x g_u) from Q = q^T g: one 4 x N x 4 product
-            Q = quats.T @ g_quats
-            w_world = w_world - 0.5 * (Q[0, 1:] - Q[1:, 0] + _vee(Q[1:, 1:]))
-        g_probe = torch.cat([R.T @ w_world, R.T @ t_world])
-        return g_means, g_quats, g_probe, None, None
+        means, quats = ctx.saved_tensors
+        z = means.new_zeros(16)  # sum (x - c) x g = vee(M - M^T) - c x sum g with M = x^T g (3 x N x 3), and
+        M = means.T @ g_means if g_means is not None else z[:9].reshape(3, 3)  # the rotations' sum from Q = q^T g
+        g_sum = g_means.sum(0) if g_means is not None else z[:3]
+        Q = quats.T @ g_quats if g_quats is not None else z.reshape(4, 4)
+        small = torch.cat([M.reshape(-1), g_sum, Q.reshape(-1)]).detach().cpu().numpy().astype(np.float64)
+        M, g_sum, Q = small[:9].reshape(3, 3), small[9:12], small[12:].reshape(4, 4)
+        sink = ctx.sink
+        w_world = np.cross(sink.c, g_sum) - _vee(M) - 0.5 * (Q[0, 1:] - Q[1:, 0] + _vee(Q[1:, 1:]))
+        sink.grad = np.concatenate([sink.R.T @ w_world, -sink.R.T @ g_sum])
+        return g_means, g_quats, None
 
 
-def _vee(M: torch.Tensor) -> torch.Tensor:
+class _PoseGrad:
+    """Where ``_PoseProbe`` leaves the pose gradient: the rendered pose's rotation ``R`` and centre ``c``, and
+    ``grad`` (float64 (omega, v); None until the backward ran)."""
+
+    def __init__(self, T: np.ndarray):
+        T = np.asarray(T, dtype=np.float64)
+        self.R, self.c, self.grad = T[:3, :3], T[:3, 3], None
+
+
+def _vee(M: np.ndarray) -> np.ndarray:
     """(M12 - M21, M20 - M02, M01 - M10): for M = sum_i a_i b_i^T this is sum_i a_i x b_i."""
-    return (M - M.T).reshape(-1)[[5, 6, 1]]
+    return np.array([M[1, 2] - M[2, 1], M[2, 0] - M[0, 2], M[0, 1] - M[1, 0]])
 
 
 class PoseRefiner:
@@ -117,7 +126,7 @@ class PoseRefiner:
         self.cfg = cfg
         self.device = torch.device(device)
         self.state: dict[int, dict] = {}  # index -> {"xi", "m", "v", "t", "seen"}
-        self._live: tuple[int, torch.Tensor] | None = None
+        self._live: tuple[int, _PoseGrad] | None = None
         self._rendered: tuple | None = None  # ((index, its xi's bytes), the pose render_args returned)
 
     @property
@@ -249,25 +258,25 @@ class PoseRefiner:
             self._live = None
             return args, T
         means, quats, *rest = args
-        probe = torch.zeros(6, dtype=means.dtype, device=means.device, requires_grad=True)
-        R = torch.as_tensor(np.asarray(T)[:3, :3], dtype=means.dtype, device=means.device)
-        c = torch.as_tensor(np.asarray(T)[:3, 3], dtype=means.dtype, device=means.device)
-        self._live = (int(frame.index), probe)
-        return (*_PoseProbe.apply(means, quats, probe, R, c), *rest), T
+        if not (means.requires_grad or quats.requires_grad):  # a frozen map (localisation): the pose still learns
+            means = means.detach().requires_grad_(True)
+        sink = _PoseGrad(T)
+        self._live = (int(frame.index), sink)
+        return (*_PoseProbe.apply(means, quats, sink), *rest), T
 
     @torch.no_grad()
     def step(self) -> None:
-        """One Adam step on the rendered view's correction, from the gradient its probe received in the update's
+        """One Adam step on the rendered view's correction, from the gradient its probe left in the update's
         backward plus that of ``reg * |xi|^2``; the step is composed on the right: ``exp(xi) <- exp(xi) exp(step)``."""
         if self._live is None:
             return
-        index, probe = self._live
+        index, sink = self._live
         self._live = None
-        if probe.grad is None:
+        if sink.grad is None:
             return
         s = self.state[index]
         xi, m, v = s["xi"].numpy(), s["m"].numpy(), s["v"].numpy()  # float64 views: numpy on 6-vectors is cheap
-        g = probe.grad.detach().cpu().numpy().astype(np.float64) + 2.0 * self.cfg.reg * xi
+        g = sink.grad + 2.0 * self.cfg.reg * xi
         b1, b2, eps = 0.9, 0.999, 1e-15
         s["t"] += 1
         m *= b1

@@ -100,12 +100,17 @@ def test_the_probe_gradient_is_the_gradient_of_the_rendered_pose():
         np.testing.assert_allclose(Tr, ref.pose(frame))
         assert torch.equal(probed[0], args[0]) and torch.equal(probed[1], args[1])  # the identity forward
         loss(r.render(*probed, cam, Tr, bg)).backward()
-        got = ref._live[1].grad.numpy()
+        got = ref._live[1].grad
         delta = torch.zeros(6, dtype=torch.float64, requires_grad=True)
         loss(r.render(*_moved_map(args, Tr, delta), cam, Tr, bg)).backward()
         want = delta.grad.numpy()
         assert np.abs(want[:3]).max() > 1.0 and np.abs(want[3:]).max() > 1.0  # the pose matters to this loss
         np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6 * np.abs(want).max(), err_msg=backend)
+        leaves = (args[0].clone().requires_grad_(True), args[1].clone().requires_grad_(True), *args[2:])
+        probed, _ = ref.render_args(frame, leaves)  # a map that learns too: the same pose gradient, and its own
+        loss(r.render(*probed, cam, Tr, bg)).backward()
+        np.testing.assert_allclose(ref._live[1].grad, got, rtol=1e-9, atol=1e-9 * np.abs(got).max())
+        assert leaves[0].grad is not None and leaves[1].grad is not None
         delta.grad = None  # the oracle's map moved by a small delta renders as the original at T exp(delta)
         e = torch.tensor([0.02, -0.01, 0.03, 0.01, 0.02, -0.02], dtype=torch.float64)
         moved = r.render(*_moved_map(args, Tr, e), cam, Tr, bg).color
@@ -148,7 +153,7 @@ def test_disabled_or_regularised_refiner():
     on.state[0] = on._new_state(frame, torch.full((6,), 0.1, dtype=torch.float64))
     _, T = on.render_args(frame, args)
     np.testing.assert_allclose(T, on.pose(frame))  # rendered at the refined pose
-    on._live[1].grad = torch.zeros(6)  # an image that says nothing: reg * |xi|^2 pulls toward the given pose
+    on._live[1].grad = np.zeros(6)  # an image that says nothing: reg * |xi|^2 pulls toward the given pose
     on.step()
     np.testing.assert_allclose(on.correction(0).numpy(), np.full(6, 0.1 - 1e-3), atol=1e-5)
 
