@@ -97,7 +97,10 @@ class _PoseProbe(torch.autograd.Function):
         small = torch.cat([M.reshape(-1), g_sum, Q.reshape(-1)]).detach().cpu().numpy().astype(np.float64)
         M, g_sum, Q = small[:9].reshape(3, 3), small[9:12], small[12:].reshape(4, 4)
         sink = ctx.sink
-        w_world = np.cross(sink.c, g_sum) - _vee(M) - 0.5 * (Q[0, 1:] - Q[1:, 0] + _vee(Q[1:, 1:]))
+        c = sink.c
+        c_x_g = np.array([c[1] * g_sum[2] - c[2] * g_sum[1], c[2] * g_sum[0] - c[0] * g_sum[2],
+                          c[0] * g_sum[1] - c[1] * g_sum[0]])  # np.cross costs ~25 us on 3-vectors
+        w_world = c_x_g - _vee(M) - 0.5 * (Q[0, 1:] - Q[1:, 0] + _vee(Q[1:, 1:]))
         sink.grad = np.concatenate([sink.R.T @ w_world, -sink.R.T @ g_sum])
         return g_means, g_quats, None
 
