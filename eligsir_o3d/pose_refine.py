@@ -6,17 +6,20 @@ pulls the map a little elsewhere and the map blurs. Each retained training view 
 ``xi = (omega, v)`` in its camera frame, ``T' = T @ exp(xi)``, optimised with the map by the same supervision
 loss, with its own Adam moments and an L2 pull toward the identity (the given pose).
 
-Held-out views are never refined (their images never reach the map). Their given poses are carried into the
-refined frame the way the training trajectory was (``carried_pose``): the world-frame correction
-``T_a exp(xi_a) T_a^-1`` of the refined training views just before and after the view (by frame index) is
-interpolated and applied to the given pose. This is a local form of the paper's "training-pose alignment" (its
-Table IV renders the original held-out poses after aligning the refined training poses): it uses only training
-views, and the given pose's drift is what it removes. ``carry_to_heldout=False`` renders the given poses as they are.
+Held-out views are never refined (their images never reach the map). ``heldout_pose`` brings a held-out view's
+given pose into the refined frame by one of three rules (``pose_refine.heldout_poses``), using training views only:
+"carried" (default, ``carried_pose``): the world-frame corrections ``T_a exp(xi_a) T_a^-1`` of the refined training
+views just before and after it (by frame index) are interpolated and applied to its given pose; "aligned"
+(``alignment``): one rigid motion fitted from the refined views' given to their refined poses, the paper's
+"training-pose alignment" (its Table IV renders the original held-out poses after aligning the refined training
+poses); "given": as it is. Measured on real recordings the corrections drift along the trajectory, so one rigid
+motion removes little of a held-out pose's error and the local rule removes most of it.
 
 The view is rendered at its refined pose; the map's means and rotations pass through a probe (``_PoseProbe``) that
 is the identity forward and, in the update's backward, sums the gradients the renderer returns for them into the
-gradient of a right perturbation of the pose. The correction thus costs three reductions over the Gaussians per
-update, on every renderer (each differentiates means and rotations), and the renderer's pose stays a plain matrix.
+gradient of a right perturbation of the pose. The correction thus costs two small matrix products over the
+Gaussians per update, on every renderer (each differentiates means and rotations), and the renderer's pose stays a
+plain matrix; the per-view algebra (Rodrigues, Adam on the 6-vector) is numpy.
 On by default (config ``pose_refine.enabled``); with it off nothing is computed.
 """
 
@@ -79,7 +82,8 @@ class _PoseProbe(torch.autograd.Function):
     orientation left-multiplied by the quaternion ``(1, -w / 2)``. So the gradient is a sum over the Gaussians of
     the gradients the renderer already returns: ``dL/dt = -sum g_m``, ``dL/dw = -sum (x - c) x g_m
     - 1/2 sum (q_w g_u - g_w q_u + q_u x g_u)``, rotated into the camera frame by ``R'^T``. The forward costs
-    nothing and the backward three reductions over the Gaussians, with no autograd over the small algebra."""
+    nothing; the backward takes the sums from ``x^T g_m`` and ``q^T g_q`` (two small matrix products), finishes in
+    numpy and leaves the result in ``sink.grad`` (a ``_PoseGrad``); the map's gradients pass through unchanged."""
 
     @staticmethod
     def forward(ctx, means, quats, sink):
