@@ -332,7 +332,9 @@ class MappingPipeline:
 
             # Evaluation poses stay the ground truth's; they are expressed in the map's frame through the
             # alignment of the tracked source poses to the ground truth (the paper's "training-pose alignment").
-            T_est_gt = np.linalg.inv(pose_alignment([T for _, T in self.trajectory.values()],
+            ref = self.rec.pose_refine  # the map lives in the refined frame: align the refined tracked poses
+            T_est_gt = np.linalg.inv(pose_alignment([ref.carried_pose(i, T, always=True)
+                                                     for i, (_, T) in self.trajectory.items()],
                                                     [self.seq.poses[i] for i in self.trajectory]))
             for f in self.heldout_frames:
                 f.T_world_cam = T_est_gt @ f.T_world_cam

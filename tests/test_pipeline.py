@@ -118,6 +118,32 @@ def test_pose_from_a_trajectory_file_is_used_and_scored(tmp_path):
     assert m["pose_source"] == str(traj) and (tmp_path / "out" / "trajectory.txt").is_file()
 
 
+def test_a_tracked_and_pose_refined_map_is_aligned_to_the_ground_truth_by_its_refined_poses(tmp_path, monkeypatch):
+    """With a pose source the held-out ground-truth poses enter the map's frame by one alignment; the map lives in the
+    refined frame, so the alignment takes the refined tracked poses, not the tracked poses as they came."""
+    from eligsir_o3d.datasets import open_sequence
+    from eligsir_o3d.pose import accuracy, write_tum_trajectory
+
+    seq = open_sequence("synthetic")
+    traj = tmp_path / "traj.txt"
+    write_tum_trajectory(traj, seq.timestamps[:12], seq.poses[:12])
+    seen = []
+    orig = accuracy.pose_alignment
+    monkeypatch.setattr(accuracy, "pose_alignment", lambda est, gt: seen.append(list(est)) or orig(est, gt))
+    cfg = _cfg()
+    cfg.pose_refine.lr, cfg.pose_refine.min_updates = 2e-3, 0
+    p = MappingPipeline("synthetic", tmp_path / "out", cfg, _opts(max_frames=12, pose=str(traj), eval_every=0,
+                                                                  pictures=False))
+    p.run()
+    ref = p.rec.pose_refine
+    assert ref.moved and seen
+    items = list(p.trajectory.items())
+    want = [ref.carried_pose(i, T, always=True) for i, (_, T) in items]
+    for got, w in zip(seen[-1], want):
+        np.testing.assert_allclose(got, w, atol=1e-12)
+    assert any(not np.allclose(w, T, atol=1e-9) for w, (_, (_, T)) in zip(want, items))
+
+
 def test_cli_keeps_the_config_files_values_unless_an_option_overrides_them(tmp_path):
     from typer.testing import CliRunner
 
