@@ -35,6 +35,13 @@ import torch
 HELDOUT_POSE_RULES = ("carried", "aligned", "given")
 
 
+def _check_rule(rule: str) -> str:
+    if rule not in HELDOUT_POSE_RULES:
+        raise ValueError(f"pose_refine.heldout_poses: unknown held-out pose rule {rule!r}; "
+                         f"choose from {', '.join(HELDOUT_POSE_RULES)}")
+    return rule
+
+
 @dataclass
 class PoseRefineConfig:
     enabled: bool = True
@@ -127,14 +134,11 @@ class PoseRefiner:
     """Per-view SE(3) corrections (keyed by frame index) with their own Adam moments."""
 
     def __init__(self, cfg: PoseRefineConfig, device: torch.device | str = "cpu"):
-        if cfg.heldout_poses not in HELDOUT_POSE_RULES:
-            raise ValueError(f"pose_refine.heldout_poses: unknown rule {cfg.heldout_poses!r}; "
-                             f"choose from {', '.join(HELDOUT_POSE_RULES)}")
+        _check_rule(cfg.heldout_poses)
         self.cfg = cfg
         self.device = torch.device(device)
         self.state: dict[int, dict] = {}  # index -> {"xi", "m", "v", "t", "seen"}
         self._live: tuple[int, _PoseGrad] | None = None
-        self._rendered: tuple | None = None  # ((index, its xi's bytes), the pose render_args returned)
 
     @property
     def active(self) -> bool:
@@ -154,9 +158,7 @@ class PoseRefiner:
     def heldout_pose(self, index: int, T_world_cam: np.ndarray, rule: str | None = None) -> np.ndarray:
         """The pose a held-out view (frame ``index``, given pose ``T_world_cam``) is rendered at, by ``rule``
         (default: ``heldout_poses``): "carried", "aligned" or "given"."""
-        rule = self.cfg.heldout_poses if rule is None else rule
-        if rule not in HELDOUT_POSE_RULES:
-            raise ValueError(f"unknown held-out pose rule {rule!r}; choose from {', '.join(HELDOUT_POSE_RULES)}")
+        rule = _check_rule(self.cfg.heldout_poses if rule is None else rule)
         if not self.moved or rule == "given":
             return np.asarray(T_world_cam, dtype=np.float64)
         if rule == "aligned":
@@ -244,9 +246,7 @@ class PoseRefiner:
         if s is None or not s["xi"].any():
             return frame
         moved = copy.copy(frame)
-        key = (int(frame.index), s["xi"].numpy().tobytes())  # the pose this update rendered at, if xi is unchanged
-        hit = self._rendered is not None and self._rendered[0] == key
-        moved.T_world_cam = self._rendered[1] if hit else np.asarray(frame.T_world_cam) @ self._delta(s["xi"])
+        moved.T_world_cam = np.asarray(frame.T_world_cam) @ self._delta(s["xi"])
         return moved
 
     def render_args(self, frame, args: tuple) -> tuple[tuple, np.ndarray]:
@@ -260,7 +260,6 @@ class PoseRefiner:
             s = self.state[int(frame.index)] = self._new_state(frame)
         s["seen"] += 1
         T = self.pose(frame) if s["xi"].any() else frame.T_world_cam
-        self._rendered = ((int(frame.index), s["xi"].numpy().tobytes()), T)
         if s["seen"] <= self.cfg.min_updates:  # the map settles first; a warm-started correction already applies
             self._live = None
             return args, T
