@@ -72,8 +72,8 @@ def worker(threads: int, gaussians: list[int], scales: list[float], reps: int, u
     first_call = warmup()
     k = cb._kernels()
     pk = cb._proj_kernels()
-    from eligsir_o3d import _dssim_kernels as dk
-    from eligsir_o3d.optim import _window
+    from eligsir_o3d.optim import dssim_kernels as dk
+    from eligsir_o3d.optim.losses import _window
     cases = []
     for n in gaussians:
         params, color0, depth0, T0 = load_scene(n)

@@ -1,6 +1,6 @@
 """Real time under load (issue 18): the 1,000-frame 7-Scenes kitchen replayed with ``--realtime`` while the
 renderer is artificially slowed 1x, 2x and 4x, with the load-scaled fixed work (``fixed_work.enabled``, the
-:class:`~eligsir_o3d.scheduling.load.LoadScaledChecks` policy) switched off ("before") and on ("after"), side by
+:class:`~eligsir_o3d.scheduling.fixed_work.LoadScaledChecks` policy) switched off ("before") and on ("after"), side by
 side in one process. For each: dropped source frames, updates, held-out PSNR, and where the mapper's time went
 (``stage_times``: admission, growth, update, ...).
 
@@ -35,7 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from eligsir_o3d import Config  # noqa: E402
-from eligsir_o3d.pipeline import RunOptions, run_mapping  # noqa: E402
+from eligsir_o3d.run.pipeline import RunOptions, run_mapping  # noqa: E402
 
 KITCHEN = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 
@@ -88,7 +88,7 @@ class _Cached:
         return len(self._seq)
 
     def frame(self, i, **kw):
-        from eligsir_o3d.frame import Frame
+        from eligsir_o3d.core.frame import Frame
 
         key = (i, tuple(sorted(kw.items())))
         if key not in self._frames:
@@ -105,7 +105,7 @@ def run(path: Path, out: Path, factor: float, policy_on: bool, max_frames: int |
     import eligsir_o3d.datasets as datasets
     import eligsir_o3d.reconstructor as reconstructor
     from eligsir_o3d.budget.stages import detail
-    from eligsir_o3d.pipeline import MappingPipeline
+    from eligsir_o3d.run.pipeline import MappingPipeline
 
     real_get, real_build, real_open = reconstructor.get_renderer, MappingPipeline.build, datasets.open_sequence
 

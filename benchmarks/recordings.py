@@ -45,7 +45,7 @@ def write_all(frames: int, work: Path) -> dict[str, Path]:
 
 
 def map_psnr(path: Path, frames: int, out: Path) -> float:
-    cmd = [sys.executable, "-c", "from eligsir_o3d.cli import main; main()", "map", str(path), "--out", str(out),
+    cmd = [sys.executable, "-c", "from eligsir_o3d.cli.app import main; main()", "map", str(path), "--out", str(out),
            "--max-frames", str(frames), "-q"]
     subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.DEVNULL)
     return json.loads((out / "metrics.json").read_text())["heldout"]["psnr"]

@@ -42,7 +42,7 @@ import torch  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from eligsir_o3d.camera import Camera, pose_from_tum  # noqa: E402
+from eligsir_o3d.core.camera import Camera, pose_from_tum  # noqa: E402
 from eligsir_o3d.render import available_backends, get_renderer  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_jpg1000"

@@ -30,7 +30,7 @@ sys.path.insert(0, str(ROOT))
 import eligsir_o3d as eo3d  # noqa: E402
 from eligsir_o3d.datasets import open_sequence  # noqa: E402
 from eligsir_o3d.eval.metrics import psnr  # noqa: E402
-from eligsir_o3d.gaussians import GaussianMap  # noqa: E402
+from eligsir_o3d.core.gaussians import GaussianMap  # noqa: E402
 
 
 def _perturb_gradients(eps: float, seed: int) -> None:

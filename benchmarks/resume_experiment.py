@@ -28,12 +28,12 @@ def child(args) -> None:
     import torch
 
     import eligsir_o3d as eo3d
-    from eligsir_o3d.camera import pose_to_tum
-    from eligsir_o3d.checkpoint import read_checkpoint, save_checkpoint
+    from eligsir_o3d.core.camera import pose_to_tum
+    from eligsir_o3d.io.checkpoint import read_checkpoint, save_checkpoint
     from eligsir_o3d.budget import CostModel
     from eligsir_o3d.datasets import open_sequence
     from eligsir_o3d.eval.metrics import depth_rmse, psnr
-    from eligsir_o3d.memory import peak_rss_mb
+    from eligsir_o3d.budget.memory import peak_rss_mb
 
     out = Path(args.run_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -201,7 +201,7 @@ def main() -> None:
     pa, pb = torch.load(args.out / "reference" / "params.pt"), torch.load(args.out / "resumed" / "params.pt")
     identical = pa.keys() == pb.keys() and all(pa[k].shape == pb[k].shape and torch.equal(pa[k], pb[k]) for k in pa)
 
-    from eligsir_o3d.camera import Camera
+    from eligsir_o3d.core.camera import Camera
     from eligsir_o3d.export import export_from_ply, look_at
 
     t0 = time.perf_counter()

@@ -59,8 +59,8 @@ sys.path.insert(0, str(ROOT))
 import eligsir_o3d as eo3d  # noqa: E402
 from eligsir_o3d.budget import CostModel  # noqa: E402
 from eligsir_o3d.datasets.synthetic import SyntheticRoom, look_at  # noqa: E402
-from eligsir_o3d.frame import Frame  # noqa: E402
-from eligsir_o3d.memory import current_rss_mb, map_memory_mb, peak_rss_mb, views_memory_mb  # noqa: E402
+from eligsir_o3d.core.frame import Frame  # noqa: E402
+from eligsir_o3d.budget.memory import current_rss_mb, map_memory_mb, peak_rss_mb, views_memory_mb  # noqa: E402
 
 MIB = 1024.0 * 1024.0
 KITCHEN = "../shared/data/7scenes_redkitchen_jpg1000"
@@ -271,7 +271,7 @@ def kitchen(frames: int = 1000, sample_every: int = 50, path: str = KITCHEN, pic
             slack_mb: float = 64.0, eval_every: int = 0, out=print) -> dict:
     """The real-time replay of ``path`` (``eligsir map path --realtime --max-frames frames --eval-every N``), RSS
     sampled."""
-    from eligsir_o3d.pipeline import MappingPipeline, RunOptions
+    from eligsir_o3d.run.pipeline import MappingPipeline, RunOptions
 
     cfg = eo3d.Config()
     cfg.clock.mode = "realtime"

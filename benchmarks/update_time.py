@@ -82,8 +82,8 @@ def write_maps(sizes: list[int], out: Path, data: Path, seed: int = 0) -> list[P
     import torch
 
     from eligsir_o3d.datasets import open_sequence
-    from eligsir_o3d.gaussians import GaussianMap
-    from eligsir_o3d.ply import save_ply
+    from eligsir_o3d.core.gaussians import GaussianMap
+    from eligsir_o3d.io.ply import save_ply
 
     seq = open_sequence(data)
     pts, cols = [], []

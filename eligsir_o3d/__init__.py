@@ -7,14 +7,17 @@ import os
 # idle. It only takes effect if set before torch is first imported; a user's own setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from .camera import Camera  # noqa: E402
+from .core.camera import Camera  # noqa: E402
 from .config import Config
-from .frame import Frame, FrameError
-from .gaussians import GaussianMap
+from .core.frame import Frame, FrameError
+from .core.gaussians import GaussianMap
 from .reconstructor import Reconstructor
 from .render import RenderOutput, get_renderer
 
 from ._version import __version__  # noqa: E402
+from ._moved import install as _install_moved  # noqa: E402
+
+_install_moved()  # old module paths (eligsir_o3d.pipeline, eligsir_o3d.clock, ...) for one release
 
 __all__ = ["Camera", "Config", "Frame", "FrameError", "GaussianMap", "Reconstructor", "RenderOutput", "get_renderer",
            "__version__"]

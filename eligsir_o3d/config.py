@@ -17,16 +17,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .budget.config import ClockConfig
-from .frame import DEPTH_MAX
-from .gaussians import AdamConfig, LearningRates
-from .optim import LossConfig
-from .pose_refine import PoseRefineConfig
+from .budget.clock import ClockConfig
+from .core.frame import DEPTH_MAX
+from .core.gaussians import AdamConfig, LearningRates
+from .optim.losses import LossConfig
+from .pose.refine import PoseRefineConfig
 from .scheduling.fidelity import FidelityConfig
 from .scheduling.growth import GrowthConfig
-from .scheduling.load import LoadConfig
-from .scheduling.plain import SeedingConfig, StrideConfig
-from .scheduling.support import ProbeConfig
+from .scheduling.fixed_work import FixedWorkConfig
+from .scheduling.keyframes import KeyframesConfig
+from .scheduling.seeding import SeedingConfig
+from .scheduling.support import SupportConfig
 from .scheduling.views import ViewConfig
 
 log = logging.getLogger("eligsir_o3d")
@@ -66,14 +67,14 @@ class Config:
     seed: int = 0
     ablate: tuple[str, ...] = ()  # any of: views, fidelity, growth (each swaps in the plain policy)
     optim: OptimConfig = field(default_factory=OptimConfig)
-    keyframes: StrideConfig = field(default_factory=StrideConfig)  # plain view policy (views ablated)
+    keyframes: KeyframesConfig = field(default_factory=KeyframesConfig)  # plain view policy (views ablated)
     seeding: SeedingConfig = field(default_factory=SeedingConfig)  # plain growth policy (growth ablated)
     views: ViewConfig = field(default_factory=ViewConfig)  # Map-Guided View Scheduling
     fidelity: FidelityConfig = field(default_factory=FidelityConfig)  # Load-Adaptive Fidelity
     growth: GrowthConfig = field(default_factory=GrowthConfig)  # Targeted Geometry Growth (+ 3DGS-MCMC)
-    support: ProbeConfig = field(default_factory=ProbeConfig)  # the low-res support render admission and growth share
+    support: SupportConfig = field(default_factory=SupportConfig)  # the low-res support render admission and growth share
     clock: ClockConfig = field(default_factory=ClockConfig)  # the budget: clock mode, per-frame/drain/offline budgets
-    fixed_work: LoadConfig = field(default_factory=LoadConfig)  # per-frame fixed work scaled with the backlog (issue 18)
+    fixed_work: FixedWorkConfig = field(default_factory=FixedWorkConfig)  # per-frame fixed work scaled with the backlog (issue 18)
     pose_refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)  # per-training-view pose corrections
 
     def resolve(self, **changes) -> "Config":
@@ -83,7 +84,7 @@ class Config:
         not changed. Resolving a resolved config changes nothing."""
         import torch
 
-        from .budget.config import check_clock_config
+        from .budget.clock import check_clock_config
         from .render import resolve_backend
         from .scheduling import ABLATIONS
 
@@ -111,7 +112,7 @@ class Config:
         return dataclasses.asdict(self)
 
     def save(self, path: str | Path) -> None:
-        from .atomic_io import atomic_write_text
+        from .io.atomic import atomic_write_text
 
         atomic_write_text(path, json.dumps(self.to_dict(), indent=2))  # a full disk leaves the old file intact
 

@@ -21,9 +21,9 @@ import numpy as np
 import open3d as o3d
 import torch
 
-from .camera import Camera, check_pose, invert_pose
+from .core.camera import Camera, check_pose, invert_pose
 from .render.projection import quat_to_rotmat  # columns are the Gaussians' axes
-from .gaussians import GaussianMap, sh0_to_rgb
+from .core.gaussians import GaussianMap, sh0_to_rgb
 
 log = logging.getLogger("eligsir_o3d")
 
@@ -184,7 +184,7 @@ def _subsample(poses: list[np.ndarray], max_views: int) -> list[np.ndarray]:
     return [poses[i] for i in idx]
 
 
-def _camera_next_to(map_ply: Path) -> Camera | None:
+def camera_next_to(map_ply: Path) -> Camera | None:
     """The camera recorded in a results folder's ``run.json`` (key ``camera``), a ``config.json`` (key ``camera``
     or ``intrinsic``, as older versions wrote it) or ``intrinsics.json`` beside the map, if any."""
     for name in ("run.json", "config.json", "intrinsics.json"):
@@ -220,7 +220,7 @@ def export_from_ply(map_ply: str | Path, mesh_path: str | Path | None = None, cl
     surface 3 m away every 1.1 cm, finer than the default 2 cm voxels).
     """
     from .datasets.base import read_tum_trajectory
-    from .ply import load_ply
+    from .io.ply import load_ply
     from .render import get_renderer
 
     map_ply = Path(map_ply)
@@ -231,7 +231,7 @@ def export_from_ply(map_ply: str | Path, mesh_path: str | Path | None = None, cl
     gmap = load_ply(map_ply, device)
     if len(gmap) == 0:
         raise ValueError(f"{map_ply}: the map has no Gaussians")
-    camera = camera or _camera_next_to(map_ply) or DEFAULT_CAMERA
+    camera = camera or camera_next_to(map_ply) or DEFAULT_CAMERA
     source = "given"
     if isinstance(poses, (str, Path)):
         source = str(poses)

@@ -18,17 +18,17 @@ import numpy as np
 import open3d as o3d
 import torch
 
-from .camera import Camera, check_pose
+from .core.camera import Camera, check_pose
 from .budget.stages import StageTimes
-from .checkpoint import CheckpointError, read_checkpoint, save_checkpoint
+from .io.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
 from .config import Config
-from .frame import Frame, FrameError
-from .gaussians import GaussianMap
-from .optim import supervision_loss
-from .pose_refine import PoseRefiner
+from .core.frame import Frame, FrameError
+from .core.gaussians import GaussianMap
+from .optim.losses import supervision_loss
+from .pose.refine import PoseRefiner
 from .render import RenderOutput, get_renderer
 from .scheduling import MapContext, get_policies
-from .scheduling.load import FULL, LoadScaledChecks
+from .scheduling.fixed_work import FULL, LoadScaledChecks
 
 
 @dataclass
@@ -273,13 +273,13 @@ class Reconstructor:
     # ---- persistence -----------------------------------------------------------------------------------
     def save_ply(self, path: str | Path) -> Path:
         """Write the map as a standard 3DGS PLY (atomic replace)."""
-        from .ply import save_ply
+        from .io.ply import save_ply
 
         return save_ply(self.gmap, path)
 
     def load_ply(self, path: str | Path) -> None:
         """Replace the map with the Gaussians of a 3DGS PLY (optimizer state starts fresh)."""
-        from .ply import load_ply
+        from .io.ply import load_ply
 
         gmap = load_ply(path, self.device, self.config.optim.lrs, self.config.optim.adam)
         self.gmap = gmap

@@ -16,12 +16,12 @@ import pytest
 import torch
 
 import eligsir_o3d as eo3d
-from eligsir_o3d.camera import pose_to_tum
-from eligsir_o3d.checkpoint import CheckpointError, read_checkpoint
+from eligsir_o3d.core.camera import pose_to_tum
+from eligsir_o3d.io.checkpoint import CheckpointError, read_checkpoint
 from eligsir_o3d.config import ConfigError
 from eligsir_o3d.datasets import DatasetError, open_sequence
-from eligsir_o3d.frame import FrameError
-from eligsir_o3d.ply import PlyError
+from eligsir_o3d.core.frame import FrameError
+from eligsir_o3d.io.ply import PlyError
 from eligsir_o3d.pose import TrajectoryError, get_pose_source, write_tum_trajectory
 
 W, H, N = 40, 30, 6
@@ -345,7 +345,7 @@ def test_bad_input_raises_clearly_and_leaves_the_map(built, tmp_path, name, acti
 def test_cli_skips_or_stops_on_a_bad_frame(tmp_path):
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     root = tmp_path / "room"
     _write_folder(root)
@@ -401,7 +401,7 @@ def _cli_bad_file(kind, folder, tmp):
 def test_cli_names_a_malformed_input_file_in_one_line(folder, tmp_path, kind):
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     args, expected = _cli_bad_file(kind, folder, tmp_path)
     r = CliRunner().invoke(app, args)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from eligsir_o3d.camera import Camera
+from eligsir_o3d.core.camera import Camera
 from eligsir_o3d.datasets import DatasetError, open_sequence
 
 pytest.importorskip("rosbags")
@@ -73,7 +73,7 @@ def test_tf_poses_between_named_frames(tmp_path, src):
 
 def test_bag_without_poses_maps_with_odometry(tmp_path, src, caplog):
     from eligsir_o3d import Config
-    from eligsir_o3d.pipeline import RunOptions, run_mapping
+    from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 
     out = tmp_path / "np"
     write_rosbag(src, out, ros=2, frames=range(8), poses=None)
@@ -148,7 +148,7 @@ def test_cli_maps_a_bag_and_reports_bad_ones_without_traceback(tmp_path, src):
     from typer.testing import CliRunner
 
     import eligsir_o3d as eo3d
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     bag = tmp_path / "k.bag"
     write_rosbag(src, bag, ros=1, frames=range(6), extra_topics=["/other/image"])

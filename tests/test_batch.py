@@ -19,7 +19,7 @@ from typer.testing import CliRunner
 
 from eligsir_o3d.batch import BatchError, SequenceSpec, expand_inputs, read_manifest
 from eligsir_o3d.batch.specs import Defaults, build_request, folder_status, write_state
-from eligsir_o3d.cli import app
+from eligsir_o3d.cli.app import app
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 SEVEN = DATA / "7scenes_redkitchen_jpg1000"
@@ -86,7 +86,7 @@ def test_folder_states(tmp_path):
 def test_ray_is_imported_only_when_there_is_mapping_to_do():
     import subprocess
 
-    code = "import sys, eligsir_o3d.batch, eligsir_o3d.cli; print('ray' in sys.modules)"
+    code = "import sys, eligsir_o3d.batch, eligsir_o3d.cli.app; print('ray' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() \
         == "False"
 

@@ -116,7 +116,7 @@ def test_calibration_times_refined_updates_without_touching_the_callers_config(s
 def test_a_pinned_cost_model_file_is_used_and_recorded(tmp_path):
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     terms = {"update_s": 0.02, "gaussian_s": 0.0, "pixel_s": 0.0, "pixel_gaussian_s": 0.0, "frame_s": 0.001}
     (tmp_path / "cost.json").write_text(json.dumps(terms))

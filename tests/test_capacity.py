@@ -6,9 +6,9 @@ import torch
 
 import eligsir_o3d as eo3d
 from eligsir_o3d.budget.cost import CostModel
-from eligsir_o3d.camera import Camera
-from eligsir_o3d.frame import Frame
-from eligsir_o3d.gaussians import GaussianMap
+from eligsir_o3d.core.camera import Camera
+from eligsir_o3d.core.frame import Frame
+from eligsir_o3d.core.gaussians import GaussianMap
 from eligsir_o3d.render import get_renderer
 from eligsir_o3d.scheduling import GrowthConfig, MapContext, TargetedGrowth
 from eligsir_o3d.scheduling.capacity import BudgetCap

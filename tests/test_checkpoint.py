@@ -15,8 +15,8 @@ import pytest
 import torch
 
 import eligsir_o3d as eo3d
-from eligsir_o3d import checkpoint as ckpt
-from eligsir_o3d.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
+from eligsir_o3d.io import checkpoint as ckpt
+from eligsir_o3d.io.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
 
 load_checkpoint = eo3d.Reconstructor.load
 from eligsir_o3d.datasets import open_sequence
@@ -195,7 +195,7 @@ MAPPER = textwrap.dedent("""
     import json, sys, time
     import torch
     import eligsir_o3d as eo3d
-    from eligsir_o3d.checkpoint import save_checkpoint
+    from eligsir_o3d.io.checkpoint import save_checkpoint
     load_checkpoint = eo3d.Reconstructor.load
     from eligsir_o3d.datasets import open_sequence
 

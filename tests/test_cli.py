@@ -9,7 +9,7 @@ import pytest
 from typer.testing import CliRunner
 
 import eligsir_o3d as eo3d
-from eligsir_o3d.cli import app
+from eligsir_o3d.cli.app import app
 from eligsir_o3d.config import Config, apply_override
 
 RUN = ["map", "synthetic", "--max-frames", "10", "--holdout-every", "5", "--eval-every", "0", "--renderer", "torch",

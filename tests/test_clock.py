@@ -8,7 +8,7 @@ import pytest
 
 import eligsir_o3d as eo3d
 from eligsir_o3d.budget import BudgetClock, ClockConfig, CostModel, RealtimeClock, get_clock
-from eligsir_o3d.frame import Frame, FrameError
+from eligsir_o3d.core.frame import Frame, FrameError
 
 
 class StubMapper:

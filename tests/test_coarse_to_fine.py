@@ -3,7 +3,7 @@
 import pytest
 
 from eligsir_o3d import Config
-from eligsir_o3d.pipeline import RunOptions, run_mapping
+from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 from eligsir_o3d.scheduling.coarse_to_fine import CoarseToFine
 
 
@@ -62,7 +62,7 @@ def _offline(tmp_path, **clock):
     seen = []
     opts = RunOptions(max_frames=8, holdout_every=4, eval_every=0, progress=False, plots=False, pictures=False,
                       offline_reference=True)
-    from eligsir_o3d import pipeline
+    from eligsir_o3d.run import pipeline
 
     real = pipeline._offline_setup
 
@@ -105,7 +105,7 @@ def test_offline_stages_come_from_the_config(tmp_path):
 
 def test_bad_offline_lr_decay_is_named():
     from eligsir_o3d.budget import check_clock_config
-    from eligsir_o3d.budget.config import ClockConfig
+    from eligsir_o3d.budget.clock import ClockConfig
 
     with pytest.raises(ValueError, match="offline_means_lr_final"):
         check_clock_config(ClockConfig(offline_means_lr_final=0.0))

@@ -11,11 +11,11 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from eligsir_o3d.camera import Camera, invert_pose, pose_from_tum, pose_to_tum
+from eligsir_o3d.core.camera import Camera, invert_pose, pose_from_tum, pose_to_tum
 from eligsir_o3d.datasets import (DatasetError, RGBDSequence, SequenceFrame, SyntheticRoom, list_formats,
                                   open_sequence, register_format)
 from eligsir_o3d.datasets.tum import associate
-from eligsir_o3d.frame import Frame
+from eligsir_o3d.core.frame import Frame
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
 SEVEN = DATA / "7scenes_redkitchen_jpg1000"

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import torch
 
-from eligsir_o3d.camera import Camera
+from eligsir_o3d.core.camera import Camera
 from eligsir_o3d.eval import (PSNR_CAP, HeldoutEvaluator, RegionalQuality, compare_results, cvq_auc, depth_rmse,
                               lpips_or_none, psnr, ssim, write_plots)
-from eligsir_o3d.frame import Frame
+from eligsir_o3d.core.frame import Frame
 
 W = H = 20
 CAM = Camera(W, H, 100.0, 100.0, (W - 1) / 2, (H - 1) / 2)

@@ -38,7 +38,7 @@ def test_every_example_has_a_test():
 def test_integrate_loop_then_export_mesh(tmp_path, capsys, monkeypatch):
     out = run_example("integrate_loop.py", SEVEN, "--frames", 6, "--updates", 2, "--drain", 5, "--out", tmp_path, capsys=capsys)
     assert "Gaussians" in out and (tmp_path / "map.ply").is_file()
-    from eligsir_o3d.ply import load_ply
+    from eligsir_o3d.io.ply import load_ply
 
     assert len(load_ply(tmp_path / "map.ply")) > 100
     # export_mesh needs viewpoints: the loop wrote no trajectory.txt, so give it the frames' poses

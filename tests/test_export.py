@@ -10,12 +10,12 @@ import pytest
 import torch
 
 import eligsir_o3d as eo3d
-from eligsir_o3d.camera import pose_to_tum
+from eligsir_o3d.core.camera import pose_to_tum
 from eligsir_o3d.datasets import open_sequence
 from eligsir_o3d.export import export_from_ply, extract_point_cloud, extract_triangle_mesh, orient_towards, \
     sphere_poses
-from eligsir_o3d.gaussians import GaussianMap, sh0_to_rgb
-from eligsir_o3d.ply import PlyError, load_ply, save_ply
+from eligsir_o3d.core.gaussians import GaussianMap, sh0_to_rgb
+from eligsir_o3d.io.ply import PlyError, load_ply, save_ply
 
 N_FRAMES, W, H = 12, 80, 60
 

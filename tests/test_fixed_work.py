@@ -6,7 +6,7 @@ import pytest
 
 import eligsir_o3d as eo3d
 from eligsir_o3d.budget.stages import StageTimes, detail
-from eligsir_o3d.scheduling.load import FULL, FramePlan, LoadConfig, LoadScaledChecks
+from eligsir_o3d.scheduling.fixed_work import FULL, FramePlan, LoadConfig, LoadScaledChecks
 
 
 def _plans(policy, backlogs, at_lowest=False):

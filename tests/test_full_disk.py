@@ -15,9 +15,9 @@ from pathlib import Path
 import pytest
 
 from eligsir_o3d import Config
-from eligsir_o3d.atomic_io import WriteFailed, atomic_write, atomic_write_text, write_failed
-from eligsir_o3d.checkpoint import read_checkpoint
-from eligsir_o3d.pipeline import MappingPipeline, RunOptions, run_mapping
+from eligsir_o3d.io.atomic import WriteFailed, atomic_write, atomic_write_text, write_failed
+from eligsir_o3d.io.checkpoint import read_checkpoint
+from eligsir_o3d.run.pipeline import MappingPipeline, RunOptions, run_mapping
 
 ENOSPC = f"[Errno {errno.ENOSPC} ENOSPC] {os.strerror(errno.ENOSPC)}"
 
@@ -108,7 +108,7 @@ def finished(tmp_path_factory):
     """A finished results folder (pictures included): what a second run over it must not destroy."""
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     out = tmp_path_factory.mktemp("full_disk") / "run"
     r = CliRunner().invoke(app, MAP_ARGS + ["--out", str(out)])
@@ -119,7 +119,7 @@ def finished(tmp_path_factory):
 def _loads(path: Path) -> None:
     """Raises unless ``path`` is a readable file of its kind."""
     if path.suffix == ".ply":
-        from eligsir_o3d.ply import load_ply
+        from eligsir_o3d.io.ply import load_ply
 
         assert len(load_ply(path)) > 0
     elif path.suffix == ".json":
@@ -135,7 +135,7 @@ def test_a_full_disk_at_each_final_output_keeps_the_old_file_writes_the_rest_and
                                                                                          disk_full, stage):
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     out = tmp_path / "run"
     shutil.copytree(finished, out)

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from eligsir_o3d.gaussians import GaussianMap
-from eligsir_o3d.ply import PlyError, load_ply, save_ply
+from eligsir_o3d.core.gaussians import GaussianMap
+from eligsir_o3d.io.ply import PlyError, load_ply, save_ply
 
 
 def _filled(n=50, sh_degree=0, seed=0):

@@ -22,7 +22,7 @@ import pytest
 import torch
 
 import gsplat_standin
-from eligsir_o3d.camera import Camera
+from eligsir_o3d.core.camera import Camera
 from eligsir_o3d.render import get_renderer
 from eligsir_o3d.render.gsplat_backend import GsplatRenderer
 from test_render_agreement import CAMERAS, PARAMS, assert_grads_close, edge_case_scene, look_at_pose, render_with_grads

@@ -100,7 +100,7 @@ def test_cpu_device_says_why_and_mentions_the_gpu(fake_gpu, monkeypatch, caplog,
     """The default device is the CPU: ``auto`` maps with the cpu renderer and its log line says why, including what
     a GPU that is present could do - here: nothing, its gsplat extension is missing."""
     from eligsir_o3d import Config
-    from eligsir_o3d.pipeline import RunOptions, run_mapping
+    from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 
     _fake_backend(monkeypatch, compiled=False)
     cfg = Config(renderer="auto")
@@ -117,7 +117,7 @@ def test_cpu_device_says_why_and_mentions_the_gpu(fake_gpu, monkeypatch, caplog,
 def test_explicit_gsplat_on_the_cpu_is_a_one_line_cli_error(tmp_path):
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     r = CliRunner().invoke(app, ["map", "synthetic", "--max-frames", "6", "--renderer", "gsplat", "-q",
                                  "--out", str(tmp_path)])

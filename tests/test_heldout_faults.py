@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from eligsir_o3d.datasets import DatasetError, open_sequence
-from eligsir_o3d.frame import FrameError
-from eligsir_o3d.frame_faults import read_heldout
+from eligsir_o3d.core.frame import FrameError
+from eligsir_o3d.run.frame_faults import read_heldout
 
 SEVEN = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 LISTS = ("rgb.txt", "depth.txt", "groundtruth.txt")
@@ -48,7 +48,7 @@ def _truncate(path: Path, keep: float = 0.5) -> None:
 def test_bad_heldout_and_source_frames_are_reported_and_the_run_completes(tmp_path):
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     root = kitchen_copy(tmp_path / "kitchen", 60)
     (root / "depth" / "000012.png").unlink()  # held out: 12 % 8 == 4

@@ -11,7 +11,7 @@ from eligsir_o3d.datasets import open_sequence
 
 pytest.importorskip("rosbags")
 from eligsir_o3d.datasets.writers import write_realsense_bag  # noqa: E402
-from eligsir_o3d.live import SequenceReplay, run_live  # noqa: E402
+from eligsir_o3d.run.live_run import SequenceReplay, run_live  # noqa: E402
 
 SEVEN = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 pytestmark = pytest.mark.skipif(not SEVEN.is_dir(), reason="../shared/data is not available")
@@ -28,7 +28,7 @@ def _cfg():
 def test_cli_live_replays_a_realsense_bag_in_real_time(tmp_path):
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     seq = open_sequence(SEVEN)  # frames on the colour camera (f 525), depth registered into it
     bag = write_realsense_bag(seq, tmp_path / "cap.bag", frames=range(12))
@@ -54,7 +54,7 @@ def test_unpaced_stream_overflows_the_queue_and_drops_oldest(tmp_path):
 def test_live_without_a_camera_is_a_one_line_error(tmp_path):
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     r = CliRunner().invoke(app, ["live", "--replay", str(tmp_path / "missing.bag"), "--out", str(tmp_path / "x")])
     assert r.exit_code == 2 and "Traceback" not in r.output and "missing.bag" in r.output, r.output

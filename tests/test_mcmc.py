@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from eligsir_o3d.camera import Camera
-from eligsir_o3d.gaussians import GaussianMap
+from eligsir_o3d.core.camera import Camera
+from eligsir_o3d.core.gaussians import GaussianMap
 from eligsir_o3d.render import get_renderer
 from eligsir_o3d.scheduling.mcmc import MCMCConfig, MCMCRefiner, inject_noise, relocate, relocation_params, sample_add
 

@@ -4,7 +4,7 @@ import pytest
 
 import eligsir_o3d as eo3d
 from eligsir_o3d.datasets import open_sequence
-from eligsir_o3d.memory import current_rss_mb, map_memory_mb, memory_report, peak_rss_mb, views_memory_mb
+from eligsir_o3d.budget.memory import current_rss_mb, map_memory_mb, memory_report, peak_rss_mb, views_memory_mb
 
 CAP, MAX_VIEWS, FRAMES = 120, 3, 24
 
@@ -45,7 +45,7 @@ def test_rss_helpers_see_an_allocation():
     import subprocess
     import sys
 
-    code = ("import json, numpy as np; from eligsir_o3d.memory import current_rss_mb, peak_rss_mb; "
+    code = ("import json, numpy as np; from eligsir_o3d.budget.memory import current_rss_mb, peak_rss_mb; "
             "a = (current_rss_mb(), peak_rss_mb()); x = np.ones(int(a[1] - a[0] + 200) * 2**20 // 8); "
             "b = (current_rss_mb(), peak_rss_mb()); del x; c = (current_rss_mb(), peak_rss_mb()); "
             "print(json.dumps([a, b, c]))")

@@ -2,7 +2,7 @@ import pytest
 import torch
 from pytorch_msssim import ssim
 
-from eligsir_o3d.optim import dssim, dssim_torch
+from eligsir_o3d.optim.losses import dssim, dssim_torch
 
 
 def _pair(h, w, seed=0):

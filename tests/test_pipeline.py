@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from eligsir_o3d import Config
-from eligsir_o3d.pipeline import MappingPipeline, RunOptions, heldout_indices, run_mapping
-from eligsir_o3d.results import read_cells, read_fidelity_trace
+from eligsir_o3d.run.pipeline import MappingPipeline, RunOptions, heldout_indices, run_mapping
+from eligsir_o3d.run.results import read_cells, read_fidelity_trace
 
 
 def _cfg():
@@ -147,7 +147,7 @@ def test_a_tracked_and_pose_refined_map_is_aligned_to_the_ground_truth_by_its_re
 def test_cli_keeps_the_config_files_values_unless_an_option_overrides_them(tmp_path):
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     cfg = _cfg()
     cfg.seed, cfg.renderer, cfg.ablate = 3, "torch", ("views",)

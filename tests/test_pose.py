@@ -24,7 +24,7 @@ import open3d.core as o3c
 import pytest
 import torch
 
-from eligsir_o3d.camera import Camera, invert_pose, rotation_angle_deg
+from eligsir_o3d.core.camera import Camera, invert_pose, rotation_angle_deg
 from eligsir_o3d.datasets import open_sequence
 from eligsir_o3d.pose import (PoseSource, TrackingLost, get_pose_source, plot_trajectories, read_tum_trajectory,
                               trajectory_accuracy, umeyama_alignment, write_tum_trajectory)

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 import eligsir_o3d as eo3d
-from eligsir_o3d.camera import Camera
-from eligsir_o3d.pose_refine import PoseRefineConfig, PoseRefiner, _rot_exp, _rot_log
+from eligsir_o3d.core.camera import Camera
+from eligsir_o3d.pose.refine import PoseRefineConfig, PoseRefiner, _rot_exp, _rot_log
 from eligsir_o3d.render import get_renderer
 
 W, H = 48, 36

@@ -9,7 +9,7 @@ import pytest
 
 from eligsir_o3d import Config
 from eligsir_o3d.budget import CostModel
-from eligsir_o3d.pipeline import MappingPipeline, RunOptions, run_mapping
+from eligsir_o3d.run.pipeline import MappingPipeline, RunOptions, run_mapping
 
 N_FRAMES, W, H = 48, 64, 48
 

@@ -11,9 +11,9 @@ import open3d as o3d
 import pytest
 from typer.testing import CliRunner
 
-from eligsir_o3d.camera import Camera, invert_pose, pose_to_tum
-from eligsir_o3d.cli import app
-from eligsir_o3d.color_calibration import calibrate_color, choose_pairs
+from eligsir_o3d.core.camera import Camera, invert_pose, pose_to_tum
+from eligsir_o3d.cli.app import app
+from eligsir_o3d.datasets.color_calibration import calibrate_color, choose_pairs
 from eligsir_o3d.datasets import DatasetError, RGBDSequence, SyntheticRoom, open_sequence
 from eligsir_o3d.datasets.registration import TwoCameraRig, read_color_block, register_depth
 
@@ -231,8 +231,9 @@ def test_calibration_on_real_sequences():
 
 
 def test_map_sees_the_colour_camera_unless_told_not_to(tmp_path, room, monkeypatch):
-    from eligsir_o3d import Config, pipeline
-    from eligsir_o3d.pipeline import RunOptions, run_mapping
+    from eligsir_o3d import Config
+    from eligsir_o3d.run import pipeline
+    from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 
     root = write_two_camera_room(tmp_path / "cap", room, COLOR_CAM, n=8, color_block=True)
     cfg = Config(renderer="cpu")

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from eligsir_o3d.camera import Camera
+from eligsir_o3d.core.camera import Camera
 from eligsir_o3d.render import available_backends, get_renderer
 from eligsir_o3d.render.sh import C0, C1, rgb_to_sh0, sh0_to_rgb, sh_bases, sh_eval, view_dirs
 

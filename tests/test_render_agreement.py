@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from eligsir_o3d.camera import Camera
+from eligsir_o3d.core.camera import Camera
 from eligsir_o3d.render import get_renderer
 from eligsir_o3d.render.cpu_backend import CpuRenderer
 

@@ -18,7 +18,7 @@ PACKAGE = Path(eligsir_o3d.__file__).parent
 
 
 def test_no_policy_or_loss_module_names_the_backend_specific_fields():
-    modules = sorted((PACKAGE / "scheduling").glob("*.py")) + [PACKAGE / "optim.py", PACKAGE / "reconstructor.py"]
+    modules = sorted((PACKAGE / "scheduling").glob("*.py")) + [PACKAGE / "optim" / "losses.py", PACKAGE / "reconstructor.py"]
     hits = []
     for path in modules:
         for node in ast.walk(ast.parse(path.read_text(), str(path))):

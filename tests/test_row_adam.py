@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from eligsir_o3d.config import Config, apply_override
-from eligsir_o3d.gaussians import AdamConfig, GaussianMap
+from eligsir_o3d.core.gaussians import AdamConfig, GaussianMap
 
 
 def _add(gmap, n, seed):
@@ -36,7 +36,7 @@ def _targets(n, seed, sh=0):
 def test_rows_born_together_step_as_torch_adam(monkeypatch, device_fallback):
     """With every Gaussian present from the first step, per-row bias correction is torch's Adam."""
     if device_fallback:  # the torch formula that non-CPU maps use
-        monkeypatch.setattr("eligsir_o3d._update_kernels.adam_rows_step",
+        monkeypatch.setattr("eligsir_o3d.optim.update_kernels.adam_rows_step",
                             lambda items: pytest.fail("kernel used"), raising=True)
     rows, ref = GaussianMap(1, adam=AdamConfig(row_bias_correction=True)), GaussianMap(1)
     for gm in (rows, ref):
@@ -139,7 +139,7 @@ def test_row_counters_follow_the_population_and_checkpoints():
 
 def test_config_reaches_the_map_and_bad_values_are_named():
     from eligsir_o3d.reconstructor import Reconstructor
-    from eligsir_o3d.camera import Camera
+    from eligsir_o3d.core.camera import Camera
 
     cfg = Config()
     apply_override(cfg, "optim.adam.row_bias_correction=true")

@@ -5,7 +5,7 @@ import json
 import pytest
 
 from eligsir_o3d import Config
-from eligsir_o3d.pipeline import RunOptions, run_mapping
+from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 
 
 def _cfg():
@@ -31,7 +31,7 @@ def test_offline_reference_resumes_from_its_checkpoint(tmp_path):
 def test_rerun_reproduces_a_results_folder(tmp_path):
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     runner = CliRunner()
     a, b = tmp_path / "a", tmp_path / "b"
@@ -53,7 +53,7 @@ def test_rerun_reproduces_a_results_folder(tmp_path):
 def test_rerun_of_a_folder_without_a_run_record_is_a_clear_error(tmp_path):
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     r = CliRunner().invoke(app, ["map", "--rerun", str(tmp_path), "--out", str(tmp_path / "b")])
     assert r.exit_code == 2 and "run.json" in r.output and "Traceback" not in r.output

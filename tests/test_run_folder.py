@@ -14,9 +14,9 @@ import pytest
 
 import eligsir_o3d
 from eligsir_o3d import Config
-from eligsir_o3d.pipeline import MappingPipeline, RunOptions, run_mapping
-from eligsir_o3d.resume_check import ResumeMismatch, config_differences
-from eligsir_o3d.runlock import LOCK_FILE, RunLock, RunLocked, pid_alive
+from eligsir_o3d.run.pipeline import MappingPipeline, RunOptions, run_mapping
+from eligsir_o3d.run.resume import ResumeMismatch, config_differences
+from eligsir_o3d.run.lock import LOCK_FILE, RunLock, RunLocked, pid_alive
 
 
 def _cfg():
@@ -57,7 +57,7 @@ def dead_pid():
 def test_a_second_run_on_the_same_out_is_refused_naming_the_first(tmp_path, live_pid):
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     _lock(tmp_path, live_pid)
     (tmp_path / "map.ply").write_text("the first run's map")
@@ -78,7 +78,7 @@ def test_a_lock_held_right_now_is_refused_and_released_after_the_run(tmp_path):
             RunLock(tmp_path).acquire()
         assert first.owner["pid"] == os.getpid()
     assert not (tmp_path / LOCK_FILE).exists()
-    code = ("import sys, time; from eligsir_o3d.runlock import RunLock\n"
+    code = ("import sys, time; from eligsir_o3d.run.lock import RunLock\n"
             "with RunLock(sys.argv[1]):\n    print('held', flush=True); time.sleep(60)")
     holder = subprocess.Popen([sys.executable, "-c", code, str(tmp_path)], stdout=subprocess.PIPE, text=True,
                               env={**os.environ, "PYTHONPATH": str(Path(eligsir_o3d.__file__).parents[1])})
@@ -142,7 +142,7 @@ def _copy(src, dst):
 def test_resume_with_another_config_is_refused_naming_the_key(tmp_path, checkpointed):
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     out = _copy(checkpointed, tmp_path / "run")
     cfg = _cfg()

@@ -92,7 +92,7 @@ def test_bad_sens_files(tmp_path, src):
 
 def test_bad_pose_frames_are_reported_by_the_pipeline(tmp_path, src):
     from eligsir_o3d import Config
-    from eligsir_o3d.pipeline import RunOptions, run_mapping
+    from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 
     path = write_sens(src, tmp_path / "s.sens", frames=range(7), bad_pose_frames=[3])
     cfg = Config(renderer="cpu")

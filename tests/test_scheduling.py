@@ -5,9 +5,9 @@ import pytest
 import torch
 
 import eligsir_o3d as eo3d
-from eligsir_o3d.camera import Camera
-from eligsir_o3d.frame import Frame
-from eligsir_o3d.gaussians import GaussianMap
+from eligsir_o3d.core.camera import Camera
+from eligsir_o3d.core.frame import Frame
+from eligsir_o3d.core.gaussians import GaussianMap
 from eligsir_o3d.render import get_renderer
 from eligsir_o3d.scheduling import (FidelityConfig, GrowthConfig, LoadAdaptiveFidelity, MapContext, MapGuidedViews,
                                     TargetedGrowth, ViewConfig, get_policies)

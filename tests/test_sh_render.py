@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
-from eligsir_o3d.camera import Camera
-from eligsir_o3d.gaussians import GaussianMap
+from eligsir_o3d.core.camera import Camera
+from eligsir_o3d.core.gaussians import GaussianMap
 from eligsir_o3d.render import get_renderer
 from eligsir_o3d.render.sh import C0, sh_eval
 from test_render_agreement import CAMERAS, assert_grads_close, edge_case_scene, look_at_pose, render_with_grads
@@ -105,7 +105,7 @@ def test_standard_3dgs_ply_with_sh_degree_3_loads_renders_and_exports(tmp_path, 
     import open3d as o3d
 
     from eligsir_o3d.export import export_from_ply
-    from eligsir_o3d.ply import load_ply, save_ply
+    from eligsir_o3d.io.ply import load_ply, save_ply
 
     means, sh, opacity_logit, log_scales, quats = _wall()
     _write_3dgs_ply(tmp_path / "map.ply", means, sh, opacity_logit, log_scales, quats)

@@ -7,8 +7,8 @@ import copy
 import pytest
 import torch
 
-from eligsir_o3d import _update_kernels as uk
-from eligsir_o3d.gaussians import GaussianMap
+from eligsir_o3d.optim import update_kernels as uk
+from eligsir_o3d.core.gaussians import GaussianMap
 from eligsir_o3d.render.projection import quat_to_rotmat
 from eligsir_o3d.scheduling.mcmc import inject_noise
 

@@ -28,7 +28,7 @@ pytestmark = [
 
 def _start_view(map_ply: Path) -> tuple[subprocess.Popen, str]:
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    proc = subprocess.Popen([sys.executable, "-c", "from eligsir_o3d.cli import main; main()", "view", str(map_ply),
+    proc = subprocess.Popen([sys.executable, "-c", "from eligsir_o3d.cli.app import main; main()", "view", str(map_ply),
                              "--port", "0"], cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True)
     lines: queue.Queue = queue.Queue()

@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from eligsir_o3d import Config
-from eligsir_o3d.camera import Camera
-from eligsir_o3d.gaussians import SH_C0
-from eligsir_o3d.pipeline import RunOptions, run_mapping
+from eligsir_o3d.core.camera import Camera
+from eligsir_o3d.core.gaussians import SH_C0
+from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 from eligsir_o3d.visual.pictures import comparison_picture, spread, write_heldout_pictures
 from eligsir_o3d.visual.splats import read_splats
 from eligsir_o3d.visual.video import smooth_path
@@ -100,7 +100,7 @@ def test_render_command_writes_frames_and_a_video(tmp_path):
     import cv2
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
 
     # SH degree 0: rendering view-dependent colour is gaussians.colors()'s business, tested with the renderers
     map_ply, traj = write_wall_map(tmp_path / "run", sh_degree=0)
@@ -184,7 +184,7 @@ def test_viewer_layers_cameras_and_bad_input(tmp_path):
     import open3d as o3d
     from typer.testing import CliRunner
 
-    from eligsir_o3d.cli import app
+    from eligsir_o3d.cli.app import app
     from eligsir_o3d.visual.viewer import open_map_viewer
 
     map_ply, traj = write_wall_map(tmp_path / "run")

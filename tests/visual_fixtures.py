@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from eligsir_o3d.gaussians import SH_C0
+from eligsir_o3d.core.gaussians import SH_C0
 from eligsir_o3d.pose.trajectory import write_tum_trajectory
 
 

@@ -107,7 +107,7 @@ def make_config(args, variant: str, seed: int | None = None):
 
 
 def run_variant(args, variant: str, seed: int | None = None) -> dict:
-    from eligsir_o3d.pipeline import run_mapping
+    from eligsir_o3d.run.pipeline import run_mapping
 
     cfg = make_config(args, variant, seed)
     out = run_dir(Path(args.out), variant, seed)
@@ -310,7 +310,7 @@ def main(argv=None) -> int:
     (out / "table.json").write_text(json.dumps({"command": cmd, "rows": rows, "criteria": checks,
                                                 "runs": {f"{v}" + ("" if s is None else f"-s{s}"): r
                                                          for (v, s), r in per_run.items()}}, indent=1))
-    from eligsir_o3d.results import read_fidelity_trace
+    from eligsir_o3d.run.results import read_fidelity_trace
 
     first = ("full", seeds[0] if seeds else None)
     trace = read_fidelity_trace(run_dir(out, *first)) if first in results else []

@@ -4,7 +4,7 @@
 
 import sys
 
-from eligsir_o3d.cli import main
+from eligsir_o3d.cli.app import main
 
 if __name__ == "__main__":
     sys.argv = [sys.argv[0], "export", *sys.argv[1:]]

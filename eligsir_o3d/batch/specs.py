@@ -22,7 +22,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from ..atomic_io import atomic_write_text
+from ..io.atomic import atomic_write_text
 
 MANIFEST_SUFFIXES = (".txt", ".list", ".manifest")
 STATE_FILE = "batch.json"

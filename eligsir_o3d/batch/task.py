@@ -1,5 +1,5 @@
 """The worker side of a batch: one call maps one sequence with the same entry point as ``eligsir map``
-(:func:`eligsir_o3d.pipeline.run_mapping`), resuming from the folder's checkpoint when an earlier attempt died.
+(:func:`eligsir_o3d.run.pipeline.run_mapping`), resuming from the folder's checkpoint when an earlier attempt died.
 
 Runs inside a Ray worker (or any process): nothing here imports Ray. Progress goes to ``report(name, info)``,
 a callable the driver hands in (a Ray actor's method on a cluster).
@@ -111,7 +111,7 @@ def map_sequence(request: dict, out_root: str, cpus: float = 1, device: str | No
 
 def _run(request: dict, folder: Path, device: str | None, resume: bool) -> dict:
     from ..config import Config
-    from ..pipeline import RunOptions, run_mapping
+    from ..run.pipeline import RunOptions, run_mapping
 
     cfg = Config.from_dict(request["config"])
     if device is not None:
@@ -123,7 +123,7 @@ def _run(request: dict, folder: Path, device: str | None, resume: bool) -> dict:
 
 def _checkpoint_frame(folder: Path) -> int | None:
     """The source frame the folder's checkpoint continues at (None: no usable checkpoint, start at frame 0)."""
-    from ..checkpoint import CheckpointError, read_checkpoint
+    from ..io.checkpoint import CheckpointError, read_checkpoint
 
     ck = folder / "checkpoint.pt"
     if not ck.is_file():

@@ -11,7 +11,7 @@
 from __future__ import annotations
 
 from .clocks import BudgetClock, ClockReport, RealtimeClock
-from .config import CLOCK_MODES, DEFAULT_FRAME_PERIOD_S, ClockConfig, check_clock_config, offline_updates
+from .clock import CLOCK_MODES, DEFAULT_FRAME_PERIOD_S, ClockConfig, check_clock_config, offline_updates
 from .cost import CostModel
 
 __all__ = ["BudgetClock", "CLOCK_MODES", "ClockConfig", "ClockReport", "CostModel", "DEFAULT_FRAME_PERIOD_S",

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..atomic_io import atomic_write_text
+from ..io.atomic import atomic_write_text
 from .cost import CostModel
 
 SCALES = (0.125, 0.25, 0.5, 1.0)

@@ -26,8 +26,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Iterator
 
-from ..frame import Frame, FrameError
-from .config import DEFAULT_FRAME_PERIOD_S
+from ..core.frame import Frame, FrameError
+from .clock import DEFAULT_FRAME_PERIOD_S
 from .cost import CostModel
 
 

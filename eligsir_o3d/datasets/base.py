@@ -15,8 +15,8 @@ from typing import Iterator, Sequence
 import numpy as np
 import open3d as o3d
 
-from ..camera import Camera, check_pose, pose_from_tum
-from ..frame import DEPTH_MAX, Frame
+from ..core.camera import Camera, check_pose, pose_from_tum
+from ..core.frame import DEPTH_MAX, Frame
 
 
 class DatasetError(ValueError):

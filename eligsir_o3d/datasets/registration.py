@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from ..atomic_io import atomic_write_text
-from ..camera import Camera, check_pose, invert_pose
+from ..io.atomic import atomic_write_text
+from ..core.camera import Camera, check_pose, invert_pose
 
 POSES_OF = ("depth", "color")
 

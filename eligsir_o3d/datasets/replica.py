@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera
+from ..core.camera import Camera
 from .base import DatasetError, RGBDSequence, read_intrinsics_json, read_matrix_rows
 
 REPLICA_CAMERA = Camera(1200, 680, 600.0, 600.0, 599.5, 339.5)

@@ -13,7 +13,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from ..camera import Camera, pose_from_tum
+from ..core.camera import Camera, pose_from_tum
 from .base import DatasetError
 
 COLOR_ENCODINGS = {"rgb8": (3, False), "bgr8": (3, True), "rgba8": (4, False), "bgra8": (4, True),

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 
-from ..camera import Camera
+from ..core.camera import Camera
 from .base import DatasetError, RGBDSequence
 from .twocam import TwoCameras, combine
 

@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 import open3d as o3d
 
-from ..camera import Camera
+from ..core.camera import Camera
 from . import textures as tx
 from .base import DatasetError, RGBDSequence
 

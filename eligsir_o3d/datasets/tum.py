@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera
+from ..core.camera import Camera
 from .base import DatasetError, RGBDSequence, check_increasing, read_color_sidecar, read_intrinsics_json, \
     read_table, read_tum_trajectory
 

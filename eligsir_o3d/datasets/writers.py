@@ -20,8 +20,8 @@ from typing import Sequence
 
 import numpy as np
 
-from ..camera import Camera
-from ..camera import pose_to_tum
+from ..core.camera import Camera
+from ..core.camera import pose_to_tum
 from .rosmsg import import_rosbags
 
 DEFAULT_TOPICS = {"rgb": "/camera/color/image_raw", "depth": "/camera/depth/image_raw",

@@ -22,7 +22,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..frame import Frame
+from ..core.frame import Frame
 from .metrics import MISSING, depth_errors, lpips_available, lpips_or_none, psnr, ssim
 from .regional import RegionalQuality, cvq_auc
 

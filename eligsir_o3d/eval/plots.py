@@ -21,7 +21,7 @@ def _figure(width: float = 6.4, height: float = 4.0):
 
 
 def _save(fig, path: Path) -> Path:
-    from ..atomic_io import atomic_write
+    from ..io.atomic import atomic_write
 
     # a bare Figure renders through the Agg canvas for PNG; atomic: a full disk leaves the old plot intact
     return atomic_write(path, lambda f: fig.savefig(f, format="png"))

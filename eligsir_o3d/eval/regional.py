@@ -24,8 +24,8 @@ import numpy as np
 import open3d.core as o3c
 import torch
 
-from ..frame import Frame
-from ..voxels import unique_keys
+from ..core.frame import Frame
+from ..core.voxels import unique_keys
 from .metrics import EPS, squared_errors
 
 

@@ -187,7 +187,7 @@ def plot_trajectories(path: str | Path, trajectories: Mapping[str, Trajectory], 
     ax.grid(True, alpha=0.3)
     ax.legend()
     path = Path(path)
-    from ..atomic_io import atomic_write
+    from ..io.atomic import atomic_write
 
     try:
         return atomic_write(path, lambda f: fig.savefig(f, format="png", dpi=110, bbox_inches="tight"))

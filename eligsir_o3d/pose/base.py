@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..camera import Camera, check_pose
+from ..core.camera import Camera, check_pose
 
 
 class TrackingLost(RuntimeError):

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera, check_pose, invert_pose
+from ..core.camera import Camera, check_pose, invert_pose
 from .base import PoseSource, TrackingLost, first_pose
 
 _MODEL_FILES = ("cameras", "images", "points3D")

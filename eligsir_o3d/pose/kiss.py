@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..voxels import pack
+from ..core.voxels import pack
 from .base import PoseSource, TrackingLost, as_float_tensor, check_jump, first_pose
 
 

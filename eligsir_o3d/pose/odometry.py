@@ -47,7 +47,7 @@ import open3d.core as o3c
 import torch
 import torch.nn.functional as F
 
-from ..camera import Camera, invert_pose
+from ..core.camera import Camera, invert_pose
 from .base import PoseSource, TrackingLost, as_float_tensor, check_jump, first_pose, orthonormalize
 
 _METHODS = {"point_to_plane": "PointToPlane", "hybrid": "Hybrid", "intensity": "Intensity"}

@@ -13,7 +13,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..camera import check_pose, pose_to_tum
+from ..core.camera import check_pose, pose_to_tum
 from .base import PoseSource, TrackingLost
 
 
@@ -50,7 +50,7 @@ def write_tum_trajectory(path: str | Path, timestamps: Sequence[float], poses: S
     for t, T in zip(timestamps, poses):
         p, q = pose_to_tum(check_pose(T, f"pose at t={float(t):.6f}"))
         lines.append(f"{float(t):.6f} " + " ".join(f"{x:.9f}" for x in (*p, *q)))
-    from ..atomic_io import atomic_write_text
+    from ..io.atomic import atomic_write_text
 
     return atomic_write_text(path, "\n".join(lines) + "\n")
 

@@ -9,7 +9,8 @@ from __future__ import annotations
 import numpy as np
 from numba import prange
 
-from ._cpu_kernels import (ALPHA_MAX, ALPHA_MIN, HALF, ONE, SOURCE_CRC, TILE, ZERO, _compile, conic_alpha, gather_tile,
+from ..core.jit import compile_kernel as _compile
+from ._cpu_kernels import (ALPHA_MAX, ALPHA_MIN, HALF, ONE, SOURCE_CRC, TILE, ZERO, conic_alpha, gather_tile,
                            reaches)
 
 

@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 from numba import prange
 
-from ._cpu_kernels import ALPHA_MIN, ONE, SOURCE_CRC, T_MIN, TILE, ZERO, _compile, conic_alpha, gather_tile
+from ..core.jit import compile_kernel as _compile
+from ._cpu_kernels import ALPHA_MIN, ONE, SOURCE_CRC, T_MIN, TILE, ZERO, conic_alpha, gather_tile
 
 
 def make(bw: int, bh: int):

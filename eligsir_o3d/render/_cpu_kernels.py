@@ -31,7 +31,6 @@ kernels still work, compiled once per process.
 from __future__ import annotations
 
 import math
-import warnings
 import zlib
 
 import numba
@@ -39,6 +38,9 @@ import numpy as np
 from llvmlite import ir
 from numba import prange, types
 from numba.extending import intrinsic
+
+from ..core.jit import jit as _jit
+from ..core.jit import jit_serial as _jit_serial
 
 TILE = 16
 ALPHA_MAX = np.float32(0.999)
@@ -48,44 +50,11 @@ HALF = np.float32(0.5)
 ONE = np.float32(1.0)
 ZERO = np.float32(0.0)
 
-
-def _select_threading_layer() -> None:
-    """Prefer OpenMP over an old system TBB (numba warns and skips TBB < 2021.6 anyway); the user's choice wins."""
-    import os
-    if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
-        numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
-
-
-_select_threading_layer()
-
-
-_uncached: list[str] = []
-
 # numba's disk cache checks only the source file of the cached function itself; the compositing kernels (in
 # _cpu_forward.py / _cpu_backward.py) inline the helpers of this file, so they carry this file's checksum as a
 # closure constant, which numba hashes into their cache key: an edit here recompiles them.
 with open(__file__, "rb") as _f:
     SOURCE_CRC = zlib.crc32(_f.read())
-
-
-def _compile(parallel: bool):
-    """``njit(cache=True)`` decorator; without a writable cache location, fall back to an uncached kernel."""
-    def deco(fn):
-        opts = dict(parallel=parallel, fastmath=False, nogil=True)
-        try:
-            return numba.njit(cache=True, **opts)(fn)
-        except RuntimeError as err:  # numba: "cannot cache function ...: no locator available for file ..."
-            if not _uncached:
-                warnings.warn(f"numba cannot cache the cpu renderer's kernels ({err}); they compile in every new "
-                              "process. Set NUMBA_CACHE_DIR to a writable folder to keep them.", RuntimeWarning,
-                              stacklevel=2)
-            _uncached.append(fn.__name__)
-            return numba.njit(cache=False, **opts)(fn)
-    return deco
-
-
-_jit = _compile(parallel=True)
-_jit_serial = _compile(parallel=False)
 
 
 # exp(-s), float32, branch-free so that loops over a block's pixels vectorise: s = n ln2 + r with n the nearest

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..camera import Camera
+from ..core.camera import Camera
 from .projection import TILE, Projection, TileBins, bin_tiles, project
 from .sh import sh_eval, view_dirs
 

@@ -21,7 +21,7 @@ import time
 import numpy as np
 import torch
 
-from ..camera import Camera
+from ..core.camera import Camera
 from .base import RenderOutput, TileRenderer, finish, mask_culled, view_colors
 from .projection import EPS2D, NEAR, TILE, Projection, TileBins, world_to_cam
 

@@ -26,7 +26,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from ..camera import Camera
+from ..core.camera import Camera
 from .availability import gsplat_status, load_gsplat_extension
 from .base import RenderOutput, finish, mask_culled
 from .projection import EPS2D, NEAR, TILE, world_to_cam

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..camera import Camera
+from ..core.camera import Camera
 
 TILE = 16
 NEAR = 0.01

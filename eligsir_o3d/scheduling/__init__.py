@@ -8,13 +8,16 @@ from .base import FidelityPolicy, GrowthPolicy, MapContext, ViewPolicy
 from .fidelity import FidelityConfig, LoadAdaptiveFidelity
 from .growth import GrowthConfig, TargetedGrowth
 from .mcmc import MCMCConfig
-from .plain import FixedFidelity, NewSpaceSeeding, StrideKeyframes
-from .support import ProbeConfig, SupportProbe
+from .fixed_work import FixedWorkConfig
+from .keyframes import KeyframesConfig, StrideKeyframes
+from .plain import FixedFidelity
+from .seeding import NewSpaceSeeding, SeedingConfig
+from .support import ProbeConfig, SupportConfig, SupportProbe
 from .views import MapGuidedViews, ViewConfig
 
-__all__ = ["ABLATIONS", "FidelityConfig", "FidelityPolicy", "GrowthConfig", "GrowthPolicy", "LoadAdaptiveFidelity",
-           "MCMCConfig", "MapContext", "MapGuidedViews", "ProbeConfig", "TargetedGrowth", "ViewConfig", "ViewPolicy",
-           "get_policies"]
+__all__ = ["ABLATIONS", "FidelityConfig", "FidelityPolicy", "FixedWorkConfig", "GrowthConfig", "GrowthPolicy",
+           "KeyframesConfig", "LoadAdaptiveFidelity", "MCMCConfig", "MapContext", "MapGuidedViews", "ProbeConfig",
+           "SeedingConfig", "SupportConfig", "TargetedGrowth", "ViewConfig", "ViewPolicy", "get_policies"]
 
 ABLATIONS = ("views", "fidelity", "growth")
 

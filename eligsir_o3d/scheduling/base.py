@@ -13,11 +13,11 @@ from typing import Callable
 
 import torch
 
-from ..camera import Camera
-from ..frame import Frame
-from ..gaussians import GaussianMap
+from ..core.camera import Camera
+from ..core.frame import Frame
+from ..core.gaussians import GaussianMap
 from ..render import RenderOutput
-from .load import FULL
+from .fixed_work import FULL
 
 
 class MapContext:

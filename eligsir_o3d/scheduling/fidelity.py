@@ -22,7 +22,7 @@ import math
 from dataclasses import dataclass
 from typing import Callable
 
-from ..budget.config import DEFAULT_FRAME_PERIOD_S
+from ..budget.clock import DEFAULT_FRAME_PERIOD_S
 from .base import FidelityPolicy
 
 

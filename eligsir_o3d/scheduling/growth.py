@@ -19,8 +19,8 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ..camera import Camera
-from ..frame import Frame
+from ..core.camera import Camera
+from ..core.frame import Frame
 from ..render import RenderOutput
 from .base import GrowthPolicy, MapContext
 from .capacity import BudgetCap
@@ -204,7 +204,7 @@ def _world(depth: torch.Tensor, camera: Camera, T_world_cam, vs: torch.Tensor, u
 
 def _raw_params(gmap, means, rgbs, scales, opacity: float) -> dict[str, torch.Tensor]:
     """Raw parameters of new Gaussians (as :meth:`GaussianMap.add` would store them), for in-place replacement."""
-    from ..gaussians import rgb_to_sh0
+    from ..core.gaussians import rgb_to_sh0
 
     m, dev = means.shape[0], gmap.device
     quats = torch.zeros(m, 4, device=dev)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import torch
 
-from ..gaussians import GaussianMap, sh0_to_rgb
+from ..core.gaussians import GaussianMap, sh0_to_rgb
 from ..render.projection import quat_to_rotmat
 
 
@@ -108,7 +108,7 @@ def inject_noise(gmap: GaussianMap, scaler: float, generator: torch.Generator | 
     if len(gmap) == 0:
         return
     if gmap.device.type == "cpu" and gmap.means.dtype == torch.float32:
-        from .._update_kernels import mcmc_noise
+        from ..optim.update_kernels import mcmc_noise
 
         z = torch.randn(len(gmap), 3, generator=generator)
         mcmc_noise(gmap.params["means"], gmap.quats, gmap.scales, gmap.opacities, z, scaler)

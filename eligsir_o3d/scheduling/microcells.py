@@ -15,8 +15,8 @@ import numpy as np
 import open3d.core as o3c
 import torch
 
-from ..camera import Camera
-from ..voxels import unique_keys
+from ..core.camera import Camera
+from ..core.voxels import unique_keys
 
 
 

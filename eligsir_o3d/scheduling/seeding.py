@@ -1,10 +1,18 @@
-"""Depth-derived Gaussian seeds: back-project a strided subset of depth pixels into world-space Gaussians."""
+"""Depth-derived Gaussian seeds (config key ``seeding``): back-project a strided subset of depth pixels into
+world-space Gaussians (:func:`seeds_from_depth`, shared with Targeted Geometry Growth), and the plain growth policy
+that the ``growth`` ablation swaps in (:class:`NewSpaceSeeding`: seeds where the map renders nothing, or with
+``dense`` every frame's depth)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
-from ..camera import Camera
+from ..core.camera import Camera
+from ..core.frame import Frame
+from .base import GrowthPolicy, MapContext
+from .support import SupportConfig
 
 
 def seeds_from_depth(color: torch.Tensor, depth: torch.Tensor, camera: Camera, T_world_cam, mask: torch.Tensor,
@@ -28,3 +36,63 @@ def seeds_from_depth(color: torch.Tensor, depth: torch.Tensor, camera: Camera, T
     means = camera.unproject(us, vs, z, T_world_cam)
     scales = z * stride / (0.5 * (camera.fx + camera.fy)) * footprint
     return means, color[vs, us], scales
+
+
+@dataclass
+class SeedingConfig:
+    pixel_stride: int = 8  # seed one Gaussian per stride x stride block of unsupported depth pixels
+    max_per_frame: int = 3000
+    init_opacity: float = 0.5
+    dense: bool = False  # ablation: insert at every frame whether or not the map already supports it
+
+
+class NewSpaceSeeding(GrowthPolicy):
+    """Seeds sparse depth-derived support where the map renders (almost) nothing; with ``dense`` it converts every
+    released frame's depth into Gaussians (the "dense per-frame depth insertion" ablation)."""
+
+    name = "seeding"
+
+    def __init__(self, cfg: SeedingConfig | None = None, seed: int = 0, probe: SupportConfig | None = None):
+        self.cfg = cfg or SeedingConfig()
+        self.probe = probe or SupportConfig()  # the support render's scale and opacity threshold (config.support)
+        self.rng = torch.Generator().manual_seed(seed)
+        self.seeded = 0
+
+    def on_frame(self, frame: Frame, admitted: bool, ctx: MapContext) -> int:
+        if not admitted and not self.cfg.dense:
+            return 0
+        color, depth, cam = frame.at_scale(1.0, ctx.device)
+        if self.cfg.dense or len(ctx.gmap) == 0:
+            mask = depth > 0
+        else:
+            mask = unsupported_mask(frame, ctx, self.probe.scale, self.probe.alpha_min)
+        room = ctx.max_gaussians - len(ctx.gmap)
+        if room <= 0:
+            return 0
+        means, rgbs, scales = seeds_from_depth(color, depth, cam, frame.T_world_cam, mask, self.cfg.pixel_stride,
+                                               min(self.cfg.max_per_frame, room), self.rng)
+        if means.shape[0]:
+            ctx.gmap.add(means, rgbs, scales, self.cfg.init_opacity)
+        self.seeded += int(means.shape[0])
+        return int(means.shape[0])
+
+    def counters(self) -> dict:
+        return {"seeded": self.seeded}
+
+    def state_dict(self) -> dict:
+        return {"rng": self.rng.get_state(), "seeded": self.seeded}
+
+    def load_state_dict(self, state: dict) -> None:
+        if "rng" in state:
+            self.rng.set_state(state["rng"])
+        self.seeded = int(state.get("seeded", 0))
+
+
+@torch.no_grad()
+def unsupported_mask(frame: Frame, ctx: MapContext, render_scale: float, alpha_threshold: float) -> torch.Tensor:
+    """[H, W] bool at source resolution: pixels where the current map renders opacity below the threshold."""
+    _, _, cam_s = frame.at_scale(render_scale, ctx.device)
+    out = ctx.render(cam_s, frame.T_world_cam)
+    low = (out.alpha < alpha_threshold).float()[None, None]
+    up = torch.nn.functional.interpolate(low, size=(frame.camera.height, frame.camera.width), mode="nearest")
+    return up[0, 0] > 0.5

@@ -7,17 +7,20 @@ from dataclasses import dataclass
 
 import torch
 
-from ..camera import Camera
-from ..frame import Frame
+from ..core.camera import Camera
+from ..core.frame import Frame
 from .base import MapContext
 
 
 @dataclass
-class ProbeConfig:
+class SupportConfig:
     scale: float = 0.25  # render scale of the support check (160x120 for a 640x480 stream)
     alpha_min: float = 0.5  # rendered opacity below this: the map does not support the pixel
     depth_tol_m: float = 0.05  # rendered depth further than tol_m + tol_rel * z from the observation: misplaced
     depth_tol_rel: float = 0.03  # (Kinect-class depth noise is ~1-3 cm at 2 m)
+
+
+ProbeConfig = SupportConfig  # the class's name before the config vocabulary matched the key (issue 27)
 
 
 @dataclass
@@ -44,8 +47,8 @@ class Support:
 class SupportProbe:
     """Renders a frame's view of the map at a low scale; the result is cached until the map changes."""
 
-    def __init__(self, cfg: ProbeConfig | None = None):
-        self.cfg = cfg or ProbeConfig()
+    def __init__(self, cfg: SupportConfig | None = None):
+        self.cfg = cfg or SupportConfig()
         self._key = None
         self._value: Support | None = None
 

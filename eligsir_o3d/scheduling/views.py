@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..camera import Camera
-from ..frame import Frame
+from ..core.camera import Camera
+from ..core.frame import Frame
 from ..render import RenderOutput
 from .base import MapContext, ViewPolicy
 from .microcells import MicrocellConfig, Microcells

@@ -102,7 +102,7 @@ class LiveView:
 
     def show_results(self, out_dir: str | Path) -> None:
         """Replace the live scene with the saved map of a finished run (splats, cameras, go-to buttons)."""
-        from ..export import DEFAULT_CAMERA, _camera_next_to
+        from ..export import DEFAULT_CAMERA, camera_next_to
         from ..pose.trajectory import read_tum_trajectory
         from .splats import read_splats
 
@@ -114,7 +114,7 @@ class LiveView:
         v.set_splats(splats)
         if (out / "trajectory.txt").is_file():
             _, poses = read_tum_trajectory(out / "trajectory.txt")
-            v.set_trajectory(poses, _camera_next_to(out / "map.ply") or DEFAULT_CAMERA)
+            v.set_trajectory(poses, camera_next_to(out / "map.ply") or DEFAULT_CAMERA)
         self._status.content = f"done: {len(splats)} Gaussians in {out / 'map.ply'}"
 
     def close(self) -> None:

@@ -109,7 +109,7 @@ def comparison_picture(ref_color, ref_depth, color, depth, alpha, title: str,
 def write_png(path: Path, rgb: np.ndarray) -> Path:
     import cv2
 
-    from ..atomic_io import atomic_write
+    from ..io.atomic import atomic_write
 
     ok, png = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
     if not ok:
@@ -119,7 +119,7 @@ def write_png(path: Path, rgb: np.ndarray) -> Path:
 
 @torch.no_grad()
 def write_heldout_pictures(out_dir: str | Path, frames: Sequence, render_fn: Callable, count: int = 6) -> list[Path]:
-    """``out_dir/NNNNNN.png`` for ``count`` held-out ``frames`` (:class:`eligsir_o3d.frame.Frame`) spread over
+    """``out_dir/NNNNNN.png`` for ``count`` held-out ``frames`` (:class:`eligsir_o3d.core.frame.Frame`) spread over
     the sequence; ``render_fn(frame)`` -> RenderOutput at the frame's pose and camera. Returns the paths."""
     paths = []
     for k in spread(len(frames), count):

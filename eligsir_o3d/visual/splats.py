@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ..gaussians import GaussianMap, sh0_to_rgb
+from ..core.gaussians import GaussianMap, sh0_to_rgb
 from ..render.projection import quat_to_rotmat
 
 
@@ -49,8 +49,8 @@ def splats_from_map(gmap: GaussianMap, min_opacity: float = 0.0) -> Splats:
 
 
 def read_splats(path: str | Path, min_opacity: float = 0.0) -> Splats:
-    """Viewer arrays of a 3DGS PLY file; raises :class:`eligsir_o3d.ply.PlyError` naming the file on bad input."""
-    from ..ply import PlyError, load_ply
+    """Viewer arrays of a 3DGS PLY file; raises :class:`eligsir_o3d.io.ply.PlyError` naming the file on bad input."""
+    from ..io.ply import PlyError, load_ply
 
     gmap = load_ply(path, "cpu")
     if len(gmap) == 0:

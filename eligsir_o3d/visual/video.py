@@ -17,18 +17,18 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from ..camera import Camera, check_pose
+from ..core.camera import Camera, check_pose
 
 
 def _quat_wxyz(R: np.ndarray) -> np.ndarray:
-    from ..camera import rotmat_to_quat
+    from ..core.camera import rotmat_to_quat
 
     x, y, z, w = rotmat_to_quat(R)
     return np.array([w, x, y, z])
 
 
 def _rot(q: np.ndarray) -> np.ndarray:
-    from ..camera import quat_to_rotmat
+    from ..core.camera import quat_to_rotmat
 
     w, x, y, z = q
     return quat_to_rotmat(np.array([x, y, z, w]))
@@ -97,12 +97,12 @@ class VideoWriter:
 def _commit_video(tmp: Path, path: Path, frames: int) -> None:
     """Rename the finished temporary video over ``path`` once it is on disk whole: OpenCV ignores write errors (a
     full disk gives a truncated file), so it is fsynced and read back (its frame count) first; otherwise ``path``
-    keeps its previous content and :class:`~eligsir_o3d.atomic_io.WriteFailed` names it."""
+    keeps its previous content and :class:`~eligsir_o3d.io.atomic.WriteFailed` names it."""
     import os
 
     import cv2
 
-    from ..atomic_io import WriteFailed, write_failed
+    from ..io.atomic import WriteFailed, write_failed
 
     try:
         fd = os.open(tmp, os.O_RDONLY)
@@ -164,8 +164,8 @@ def render_map_file(map_ply: str | Path, poses_file: str | Path, out_dir: str | 
     """What ``eligsir render`` runs: a PLY rendered at every pose of a TUM trajectory (camera from the
     ``config.json`` beside the map, else 640x480 fx = fy = 525), scaled by ``scale``; ``smooth`` > 0 smooths the
     path with a Gaussian of that many poses first."""
-    from ..export import DEFAULT_CAMERA, _camera_next_to
-    from ..ply import load_ply
+    from ..export import DEFAULT_CAMERA, camera_next_to
+    from ..io.ply import load_ply
     from ..pose.trajectory import read_tum_trajectory
 
     if not scale > 0:
@@ -176,6 +176,6 @@ def render_map_file(map_ply: str | Path, poses_file: str | Path, out_dir: str | 
     _, poses = read_tum_trajectory(poses_file)
     if smooth > 0:
         poses = smooth_path(poses, sigma=smooth)
-    camera = (_camera_next_to(Path(map_ply)) or DEFAULT_CAMERA).scaled(scale)
+    camera = (camera_next_to(Path(map_ply)) or DEFAULT_CAMERA).scaled(scale)
     summary = render_path(map_render_fn(gmap, renderer, device), poses, camera, out_dir, video, fps)
     return {"map": str(map_ply), "gaussians": len(gmap), **summary}

@@ -19,7 +19,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..camera import Camera, rotmat_to_quat
+from ..core.camera import Camera, rotmat_to_quat
 from .splats import Splats
 
 log = logging.getLogger("eligsir_o3d")
@@ -245,7 +245,7 @@ def open_map_viewer(map_ply: str | Path, host: str = "127.0.0.1", port: int = 80
                     trajectory: str | Path | None = None, mesh: str | Path | None = None,
                     point_cloud: str | Path | None = None, max_cameras: int = 40) -> MapViewer:
     """Serve ``map_ply`` (any 3DGS PLY) with the trajectory, mesh and point cloud found beside it or given."""
-    from ..export import DEFAULT_CAMERA, _camera_next_to
+    from ..export import DEFAULT_CAMERA, camera_next_to
     from ..pose.trajectory import read_tum_trajectory
     from .splats import read_splats
 
@@ -261,7 +261,7 @@ def open_map_viewer(map_ply: str | Path, host: str = "127.0.0.1", port: int = 80
     if point_cloud is not None:
         layers["Point cloud"] = Path(point_cloud)
     geometry = {label: read_geometry(p) for label, p in layers.items()}  # fail before the server starts
-    camera = _camera_next_to(map_ply) or DEFAULT_CAMERA
+    camera = camera_next_to(map_ply) or DEFAULT_CAMERA
     viewer = MapViewer(host, port, title=f"{map_ply.parent.name}/{map_ply.name}")
     viewer.set_splats(splats)
     for label, g in geometry.items():

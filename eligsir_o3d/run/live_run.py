@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera
+from ..core.camera import Camera
 
 log = logging.getLogger("eligsir_o3d")
 
@@ -151,10 +151,10 @@ class SequenceReplay(FrameSource):
 def run_live(source: FrameSource, out: str | Path, config=None, *, pose: str = "odometry", max_frames: int | None = None,
              seconds: float | None = None, queue_size: int = 4, drain_s: float = 2.0) -> dict:
     """Map ``source`` in real time into ``out`` (see the module docstring). Returns the summary in live.json."""
-    from .config import Config
-    from .frame import Frame, FrameError
-    from .pose import TrackingLost, get_pose_source, write_tum_trajectory
-    from .reconstructor import Reconstructor
+    from ..config import Config
+    from ..core.frame import Frame, FrameError
+    from ..pose import TrackingLost, get_pose_source, write_tum_trajectory
+    from ..reconstructor import Reconstructor
 
     config = config or Config()
     out = Path(out)

@@ -168,7 +168,7 @@ class PoseRefiner:
     def alignment(self) -> np.ndarray:
         """T_refined_given: the one rigid motion that best takes the refined views' given poses onto their refined
         poses (rotation from all orientations, then the mean translation; ``pose.accuracy.pose_alignment``)."""
-        from .pose.accuracy import pose_alignment
+        from .accuracy import pose_alignment
 
         views = [s for s in self.state.values() if s["t"] > 0 and "T" in s]
         if not views:

@@ -26,13 +26,16 @@ from dataclasses import dataclass
 
 
 @dataclass
-class LoadConfig:
+class FixedWorkConfig:
     enabled: bool = True
     busy_backlog: int = 1  # frames waiting at which full checks thin out
     max_check_every: int = 4  # under the heaviest load, one frame in this many gets the full check
     low_res_backlog: int = 2  # frames waiting at which the support render drops to low_res_factor of its scale
     low_res_factor: float = 0.5  # 1/4 -> 1/8 of the source resolution (80x60 for 640x480)
     shed_backlog: int = 3  # frames waiting at which frames without the full check get no update while behind
+
+
+LoadConfig = FixedWorkConfig  # the class's name (in scheduling/load.py) before the vocabulary matched the key
 
 
 @dataclass(frozen=True)
@@ -53,8 +56,8 @@ class LoadScaledChecks:
 
     name = "load_scaled"
 
-    def __init__(self, cfg: LoadConfig | None = None):
-        self.cfg = cfg or LoadConfig()
+    def __init__(self, cfg: FixedWorkConfig | None = None):
+        self.cfg = cfg or FixedWorkConfig()
         if self.cfg.max_check_every < 1 or not 0 < self.cfg.low_res_factor <= 1:
             raise ValueError(f"load: max_check_every must be >= 1 and low_res_factor in (0, 1], got "
                              f"{self.cfg.max_check_every} and {self.cfg.low_res_factor}")

@@ -34,7 +34,7 @@ def _row_factors(gmap, name: str, state: dict, lr: float, b1: float, b2: float, 
 
 def row_adam_step(gmap) -> None:
     """One Adam step over every parameter of ``gmap`` that received a gradient, with the rows' schedule."""
-    from . import _update_kernels as uk
+    from . import update_kernels as uk
 
     n = len(gmap)
     seen = None

@@ -31,9 +31,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from .atomic_io import atomic_write
-from .camera import Camera
-from .frame import DEPTH_MAX, Frame
+from .atomic import atomic_write
+from ..core.camera import Camera
+from ..core.frame import DEPTH_MAX, Frame
 
 FORMAT = "eligsir-checkpoint"
 VERSION = 1

@@ -10,8 +10,8 @@ from typing import List, Optional
 
 import typer
 
-from .cli_commands import COMMANDS, Renderer, _serve_until_interrupted
-from .cli_commands import fail as _fail
+from .commands import COMMANDS, Renderer, _serve_until_interrupted
+from .commands import fail as _fail
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False)
 
@@ -37,7 +37,7 @@ class ClockMode(str, Enum):
 
 def _version(value: bool) -> None:
     if value:
-        from ._version import __version__
+        from .._version import __version__
 
         typer.echo(f"eligsir_o3d {__version__}")
         raise typer.Exit()
@@ -134,9 +134,9 @@ def map_cmd(
     view_host: str = typer.Option("127.0.0.1", help="--view: address to listen on.", rich_help_panel=OUTPUT),
 ) -> None:
     """Map a recorded RGB-D sequence into a 3D Gaussian map and evaluate it on held-out views."""
-    from .budget import CostModel
-    from .config import Config, apply_override
-    from .pipeline import RunOptions, read_run, run_mapping
+    from ..budget import CostModel
+    from ..config import Config, apply_override
+    from ..run.pipeline import RunOptions, read_run, run_mapping
 
     logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(levelname)s %(message)s")
     opts = None
@@ -208,7 +208,7 @@ def map_cmd(
 
 
 def _live_view(host: str, port: int):
-    from .visual.live import LiveView
+    from ..visual.live import LiveView
 
     try:
         live = LiveView(host, port)
@@ -236,7 +236,7 @@ def config_cmd(
     """Print the default config (or a config file's, with overrides) as JSON: every key --set and --config take."""
     import json
 
-    from .config import Config, apply_override
+    from ..config import Config, apply_override
 
     try:
         cfg = Config.load(config) if config else Config()
@@ -280,8 +280,8 @@ def demo(
     device: str = typer.Option("cpu"),
 ) -> None:
     """Map the embedded synthetic room (no download) and print where the outputs are."""
-    from .config import Config
-    from .pipeline import RunOptions, run_mapping
+    from ..config import Config
+    from ..run.pipeline import RunOptions, run_mapping
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     cfg = Config(device=device)
@@ -303,7 +303,7 @@ def export(
     device: str = typer.Option("cpu"),
 ) -> None:
     """Export a saved map as an Open3D triangle mesh and/or point cloud."""
-    from .export import export_from_ply
+    from ..export import export_from_ply
 
     if mesh is None and point_cloud is None:
         _fail("nothing to do: give --mesh and/or --point-cloud")
@@ -321,7 +321,7 @@ def eval_cmd(
     results: List[Path] = typer.Argument(..., help="Results folders to compare (each with metrics.json)."),
 ) -> None:
     """Compare results folders side by side (PSNR, SSIM, CVQ-AUC, CUC@20, MPix, Gaussians, time)."""
-    from .eval import compare_results
+    from ..eval import compare_results
 
     missing = [str(r) for r in results if not (r / "metrics.json").is_file()]
     if missing:

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .atomic_io import atomic_write
-from .gaussians import GaussianMap
+from .atomic import atomic_write
+from ..core.gaussians import GaussianMap
 
 
 class PlyError(ValueError):

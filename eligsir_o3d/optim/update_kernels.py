@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from .render._cpu_kernels import _jit_serial
+from ..core.jit import jit_serial as _jit_serial
 
 
 def adam_state(opt, p) -> dict:

@@ -1,7 +1,7 @@
 """Frames that cannot be used: one rule for source and held-out frames of a recorded sequence.
 
 A frame whose colour or depth file is missing, truncated or corrupt, or whose pose is invalid, raises while it is
-read (:class:`~eligsir_o3d.datasets.DatasetError`, :class:`~eligsir_o3d.frame.FrameError`, an ``OSError``; a pose
+read (:class:`~eligsir_o3d.datasets.DatasetError`, :class:`~eligsir_o3d.core.frame.FrameError`, an ``OSError``; a pose
 source's ``TrackingLost``). With ``clock.on_bad_frame = "skip"`` (the default) the frame is left out with a warning
 naming it, the file and the reason, and the run goes on; with ``"stop"`` the first such error ends the run.
 

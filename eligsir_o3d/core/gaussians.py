@@ -129,7 +129,7 @@ class GaussianMap:
         """[N, 3] RGB seen from ``cam_center`` [3] (world metres); without one, or at sh_degree 0, the DC colour."""
         if self.sh_degree == 0 or cam_center is None:
             return torch.clamp_min(sh0_to_rgb(self.params["sh0"][:, 0]), 0.0)
-        from .render.sh import sh_eval
+        from ..render.sh import sh_eval
 
         dirs = self.means - torch.as_tensor(cam_center, dtype=self.means.dtype, device=self.device)[None]
         return sh_eval(self.sh, dirs, self.sh_degree)
@@ -201,10 +201,10 @@ class GaussianMap:
     def step(self) -> None:
         """One Adam step on every parameter that received a gradient (on the CPU all in one compiled
         pass, :func:`._update_kernels.adam_step`: torch's per-optimizer overhead was most of the cost)."""
-        from . import _update_kernels as uk
+        from ..optim import update_kernels as uk
 
         if self.adam.rows():
-            from .row_adam import row_adam_step
+            from ..optim.row_adam import row_adam_step
 
             row_adam_step(self)
             return

@@ -19,13 +19,13 @@ from typing import Iterator
 
 import numpy as np
 
-from .config import Config
-from .frame import Frame
+from ..config import Config
+from ..core.frame import Frame
 from .frame_faults import BAD_FRAME_ERRORS, frame_fault
-from .pose_refine import HELDOUT_POSE_RULES
-from .resume_check import apply_new_settings, check_resume, run_record
-from .runlock import RunLock
-from .safe_outputs import Outputs, PeriodicCheckpoints
+from ..pose.refine import HELDOUT_POSE_RULES
+from .resume import apply_new_settings, check_resume, run_record
+from .lock import RunLock
+from .outputs import Outputs, PeriodicCheckpoints
 
 log = logging.getLogger("eligsir_o3d")
 
@@ -51,7 +51,7 @@ class RunOptions:
     resume: bool = False
     force_unlock: bool = False  # take over another host's lock on the results folder (eligsir map --force-unlock)
     plots: bool = True
-    pictures: bool = True  # heldout/*.png comparisons and flythrough.mp4 (eligsir_o3d.visual.results)
+    pictures: bool = True  # heldout/*.png comparisons and flythrough.mp4 (eligsir_o3d.visual.run_pictures)
     view: object | None = None  # a live viewer (eligsir_o3d.visual.live.LiveView) fed while mapping; not recorded
     progress: bool = True
 
@@ -137,8 +137,8 @@ class MappingPipeline:
 
     # ---- open ----------------------------------------------------------------------------------------------
     def open(self) -> None:
-        from .datasets import open_sequence
-        from .eval import HeldoutEvaluator
+        from ..datasets import open_sequence
+        from ..eval import HeldoutEvaluator
         from .frame_faults import read_heldout
 
         self.out.mkdir(parents=True, exist_ok=True)
@@ -165,8 +165,8 @@ class MappingPipeline:
 
     # ---- build ---------------------------------------------------------------------------------------------
     def build(self) -> None:
-        from .budget import get_clock
-        from .reconstructor import Reconstructor
+        from ..budget import get_clock
+        from ..reconstructor import Reconstructor
 
         setup = _offline_setup(len(self.source)) if self.opts.offline_reference else None
         ck_path = self.out / "checkpoint.pt"
@@ -186,7 +186,7 @@ class MappingPipeline:
     def _cost_model(self) -> dict:
         """Calibrate the cost model here when the config asks for it (then the config records the fitted terms, so
         the results folder reruns with the same budget); which model the budget used, for metrics.json."""
-        from .budget import CostModel
+        from ..budget import CostModel
 
         c = self.config.clock
         if c.mode != "cost" or self.opts.offline_reference:
@@ -202,8 +202,8 @@ class MappingPipeline:
         return {"source": "shipped" if c.cost == CostModel() else "config"}
 
     def _resume(self, ck_path: Path, setup):
-        from .checkpoint import read_checkpoint
-        from .reconstructor import Reconstructor
+        from ..io.checkpoint import read_checkpoint
+        from ..reconstructor import Reconstructor
 
         ck = read_checkpoint(ck_path, sequence=self.seq)
         check_resume(self.out, ck, self.config, self._run_record())  # another config or split: refused
@@ -300,7 +300,7 @@ class MappingPipeline:
 
     # ---- drain ---------------------------------------------------------------------------------------------
     def drain(self) -> None:
-        from .budget import offline_updates
+        from ..budget import offline_updates
 
         rec, opts = self.rec, self.opts
         if opts.offline_reference:
@@ -317,9 +317,9 @@ class MappingPipeline:
         rec.callbacks.remove(self._maybe_checkpoint)
 
     def seq_acquisition_s(self) -> float:
-        from .results import _acquisition_time
+        from .results import acquisition_time
 
-        return _acquisition_time(self.seq, self.n)
+        return acquisition_time(self.seq, self.n)
 
     # ---- evaluate ------------------------------------------------------------------------------------------
     def evaluate(self) -> None:
@@ -328,7 +328,7 @@ class MappingPipeline:
         self.accuracy = _trajectory_accuracy(self.seq, self.trajectory, self.out, self.opts, self.outputs) \
             if self.pose_source is not None else {}
         if self.accuracy:
-            from .pose.accuracy import pose_alignment
+            from ..pose.accuracy import pose_alignment
 
             # Evaluation poses stay the ground truth's; they are expressed in the map's frame through the
             # alignment of the tracked source poses to the ground truth (the paper's "training-pose alignment").
@@ -370,7 +370,7 @@ def _pose_source(spec: str, seq, frames: list[int]):
         if seq.poses is None:
             raise ValueError(f"{seq.path}: the sequence has no ground-truth poses; choose --pose odometry|kiss-icp|colmap")
         return None
-    from .pose import get_pose_source
+    from ..pose import get_pose_source
 
     src = get_pose_source(spec, sequence=seq)
     src.prepare(seq)
@@ -382,12 +382,13 @@ def _offline_setup(n_source: int):
     """Offline reference: every source frame is retained and seeded, then one long coarse-to-fine schedule. The
     policies are replaced after construction, so a resumed run does the same again (``setup=``)."""
     def setup(rec) -> None:
-        from .budget import offline_updates
-        from .scheduling.coarse_to_fine import offline_schedule
-        from .scheduling.plain import NewSpaceSeeding, StrideConfig, StrideKeyframes
+        from ..budget import offline_updates
+        from ..scheduling.coarse_to_fine import offline_schedule
+        from ..scheduling.keyframes import KeyframesConfig, StrideKeyframes
+        from ..scheduling.seeding import NewSpaceSeeding
 
         c = rec.config.clock
-        rec.views = StrideKeyframes(StrideConfig(every=1, newest_fraction=0.0, max_views=max(n_source, 1)))
+        rec.views = StrideKeyframes(KeyframesConfig(every=1, newest_fraction=0.0, max_views=max(n_source, 1)))
         # coarse updates first, full resolution last; the means' step size decays over the schedule
         offline_schedule(rec, offline_updates(c, n_source), c.offline_stages, c.offline_means_lr_final)
         rec.growth = NewSpaceSeeding(rec.config.seeding, seed=rec.config.seed, probe=rec.config.support)
@@ -399,7 +400,7 @@ def _trajectory_accuracy(seq, trajectory: dict, out: Path, opts: RunOptions, out
     """ATE/RPE of the tracked source trajectory against the sequence's ground truth, and a top-view plot."""
     if seq.poses is None or len(trajectory) < 3:
         return {}
-    from .pose import plot_trajectories, trajectory_accuracy
+    from ..pose import plot_trajectories, trajectory_accuracy
 
     est = {ts: T for ts, T in trajectory.values()}
     gt = {float(seq.timestamps[i]): seq.poses[i] for i in trajectory}

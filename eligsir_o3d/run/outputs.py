@@ -15,7 +15,7 @@ import logging
 from pathlib import Path
 from typing import Callable
 
-from .atomic_io import WriteFailed, write_failed
+from ..io.atomic import WriteFailed, write_failed
 
 log = logging.getLogger("eligsir_o3d")
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .camera import Camera, invert_pose
+from ..core.camera import Camera, invert_pose
 
 
 @dataclass
@@ -278,7 +278,7 @@ def write_estimate(seq, result: ColorCalibration):
     """
     import json
 
-    from .datasets.registration import write_color_block
+    from .registration import write_color_block
 
     if seq.path is None:
         raise ValueError(f"sequence {seq.name!r} has no folder to write an intrinsics.json into")

@@ -8,7 +8,7 @@ from functools import lru_cache
 import numpy as np
 import torch
 
-from .render import RenderOutput
+from ..render import RenderOutput
 
 
 @dataclass
@@ -43,7 +43,7 @@ class _DssimCPU(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, pred, ref, win: int, sigma: float):
-        from ._dssim_kernels import dssim_value_and_grad
+        from .dssim_kernels import dssim_value_and_grad
 
         x = np.ascontiguousarray(pred.detach().permute(2, 0, 1).numpy())
         y = np.ascontiguousarray(ref.detach().permute(2, 0, 1).to(torch.float32).numpy())

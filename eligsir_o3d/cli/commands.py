@@ -39,8 +39,8 @@ def calibrate_color_cmd(
     write: bool = typer.Option(False, "--write", help="Store the estimate as the \"color\" block of PATH/intrinsics.json."),
 ) -> None:
     """Estimate the colour camera's intrinsics by the photometric consistency of depth-warped colour across frames."""
-    from .color_calibration import calibrate_color, write_estimate
-    from .datasets import open_sequence
+    from ..datasets.color_calibration import calibrate_color, write_estimate
+    from ..datasets import open_sequence
 
     try:
         seq = open_sequence(path)
@@ -63,8 +63,8 @@ def live(
     config: Optional[Path] = typer.Option(None, help="config.json to start from."),
 ) -> None:
     """Map a connected RealSense camera live (wall clock; frames drop when the mapper falls behind)."""
-    from .config import Config
-    from .live import RSBagReplay, RealSenseCamera, SequenceReplay, run_live
+    from ..config import Config
+    from ..run.live_run import RSBagReplay, RealSenseCamera, SequenceReplay, run_live
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     cfg = Config.load(config) if config else Config()
@@ -75,7 +75,7 @@ def live(
         elif replay.endswith(".bag") and _is_realsense(replay):
             source = RSBagReplay(replay)
         else:
-            from .datasets import open_sequence
+            from ..datasets import open_sequence
 
             source = SequenceReplay(open_sequence(replay), max_frames=frames)
         s = run_live(source, out, cfg, pose=pose, max_frames=frames, seconds=seconds)
@@ -87,7 +87,7 @@ def live(
 
 
 def _is_realsense(path: str) -> bool:
-    from .datasets import rsbag
+    from ..datasets import rsbag
 
     return rsbag.detect(Path(path))
 
@@ -102,7 +102,7 @@ def view(
     max_cameras: int = typer.Option(40, help="Camera frustums (and go-to buttons) spread along the trajectory."),
 ) -> None:
     """Look at a map in the browser: the splats, the trajectory's cameras, the mesh / point cloud."""
-    from .visual.viewer import open_map_viewer
+    from ..visual.viewer import open_map_viewer
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
     try:
@@ -137,7 +137,7 @@ def render(
     device: str = typer.Option("cpu"),
 ) -> None:
     """Render a map along a camera path into PNG frames and/or a video."""
-    from .visual.video import render_map_file
+    from ..visual.video import render_map_file
 
     if out is None and video is None:
         _fail("nothing to do: give --out and/or --video")
@@ -170,7 +170,7 @@ def batch_cmd(
     plots: bool = typer.Option(True, "--plots/--no-plots", help="Write each sequence's plots."),
 ) -> None:
     """Map many recorded sequences, one Ray task each; re-running skips finished ones and resumes the others."""
-    from .batch import BatchError, format_report, map_many
+    from ..batch import BatchError, format_report, map_many
 
     try:
         results = map_many(inputs, out, address=address, cpus_per_task=cpus_per_task, gpus_per_task=gpus_per_task,

@@ -26,12 +26,12 @@ REFINED_TRAJECTORY_FILE = "trajectory_refined.txt"  # pose refinement: the mappe
 
 
 def collect_metrics(p) -> dict:
-    """metrics.json of a finished :class:`~eligsir_o3d.pipeline.MappingPipeline` ``p``."""
-    from .memory import peak_rss_mb
+    """metrics.json of a finished :class:`~eligsir_o3d.run.pipeline.MappingPipeline` ``p``."""
+    from ..budget.memory import peak_rss_mb
 
     rec, final, acc, report = p.rec, p.final, p.accuracy, p.report
     realtime = p.clock.name == "realtime"
-    acq = _acquisition_time(p.seq, p.n)
+    acq = acquisition_time(p.seq, p.n)
     if realtime:
         mapping_s = p.wall_s  # the mapper's elapsed wall-clock time: tracking included; decoding, evaluation excluded
     else:
@@ -92,9 +92,9 @@ def write_results(p, metrics: dict) -> None:
     """Write the results folder of pipeline ``p`` (see the module docstring). Every file is written atomically; a
     file that cannot be written (full disk, I/O error) does not stop the others (:mod:`.safe_outputs`): metrics.json
     lists it, and a :class:`~.atomic_io.WriteFailed` naming it is raised at the end."""
-    from .atomic_io import atomic_write_text
-    from .eval import write_plots
-    from .pose.trajectory import write_tum_trajectory
+    from ..io.atomic import atomic_write_text
+    from ..eval import write_plots
+    from ..pose.trajectory import write_tum_trajectory
 
     out, rec, outputs = p.out, p.rec, p.outputs
     outputs.stage(out / "map.ply", rec.save_ply, out / "map.ply")
@@ -107,7 +107,7 @@ def write_results(p, metrics: dict) -> None:
                       [ts for _, (ts, _) in items], moved)
     outputs.stage(out / "config.json", rec.config.save, out / "config.json")
     if p.opts.pictures:
-        from .visual.results import write_result_pictures
+        from ..visual.run_pictures import write_result_pictures
 
         metrics["pictures"] = outputs.stage(out / "heldout", write_result_pictures, out, rec, p.heldout_frames,
                                             p.trajectory, render_heldout=p._render)
@@ -131,7 +131,7 @@ def write_side_files(out: Path, cells: dict | None, trace: list[dict] | None) ->
     """cells.json (the final cell table, as :meth:`HeldoutEvaluator.final` returns it) and fidelity_trace.csv
     (one row per recorded fidelity decision, a column per field), each only when there is data for it; both written
     atomically (a failed write leaves the previous file)."""
-    from .atomic_io import atomic_write_text
+    from ..io.atomic import atomic_write_text
 
     if cells is not None:
         atomic_write_text(out / CELLS_FILE, json.dumps(jsonable(cells), separators=(",", ":")))
@@ -186,7 +186,7 @@ def _number(text: str | None):
         return float(text)
 
 
-def _acquisition_time(seq, n: int) -> float:
+def acquisition_time(seq, n: int) -> float:
     ts = np.asarray(seq.timestamps[:n], dtype=np.float64)
     if len(ts) < 2:
         return 0.0

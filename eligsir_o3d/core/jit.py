@@ -1,0 +1,44 @@
+"""The numba decorators every compiled CPU kernel uses (the renderer's, the optimiser's update and D-SSIM kernels).
+
+``jit`` compiles a parallel kernel (``prange``), ``jit_serial`` a serial one; both are ``njit(cache=True)`` without
+fast-math (every target computes the same bits). Where numba finds no writable cache location the kernel still
+works, compiled once per process, after one warning. Importing this module imports numba and picks the threading
+layer, so only kernel modules import it (``import eligsir_o3d`` stays free of numba)."""
+
+from __future__ import annotations
+
+import os
+import warnings
+
+import numba
+
+uncached: list[str] = []  # names of the kernels that compile in every process (no writable cache)
+
+
+def _select_threading_layer() -> None:
+    """Prefer OpenMP over an old system TBB (numba warns and skips TBB < 2021.6 anyway); the user's choice wins."""
+    if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
+        numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+
+
+_select_threading_layer()
+
+
+def compile_kernel(parallel: bool):
+    """``njit(cache=True)`` decorator; without a writable cache location, fall back to an uncached kernel."""
+    def deco(fn):
+        opts = dict(parallel=parallel, fastmath=False, nogil=True)
+        try:
+            return numba.njit(cache=True, **opts)(fn)
+        except RuntimeError as err:  # numba: "cannot cache function ...: no locator available for file ..."
+            if not uncached:
+                warnings.warn(f"numba cannot cache the cpu renderer's kernels ({err}); they compile in every new "
+                              "process. Set NUMBA_CACHE_DIR to a writable folder to keep them.", RuntimeWarning,
+                              stacklevel=2)
+            uncached.append(fn.__name__)
+            return numba.njit(cache=False, **opts)(fn)
+    return deco
+
+
+jit = compile_kernel(parallel=True)
+jit_serial = compile_kernel(parallel=False)

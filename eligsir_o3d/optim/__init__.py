@@ -1,0 +1,15 @@
+"""Optimisation: the photometric/depth losses (:mod:`.losses`), per-Gaussian Adam (:mod:`.row_adam`) and the compiled
+CPU update and D-SSIM kernels (:mod:`.update_kernels`, :mod:`.dssim_kernels`).
+
+``from eligsir_o3d.optim import LossConfig`` (the path of the first release, when this package was one module) keeps
+working: the losses' names resolve lazily, so importing a kernel module does not import the losses."""
+
+_LOSSES = ("LossConfig", "dssim", "dssim_torch", "supervision_loss")
+
+
+def __getattr__(name: str):
+    if name in _LOSSES:
+        from . import losses
+
+        return getattr(losses, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
