@@ -30,14 +30,15 @@ def map_many(inputs: Iterable, out: str | Path = "runs/batch", *, address: str |
              cpus_per_task: float = 1, gpus_per_task: float | None = None, max_retries: int = 3,
              checkpoint_every: int = 50, max_frames: int | None = None, pose: str = "gt", speed: float | None = None,
              config: str | None = None, updates_per_frame: int | None = None, eval_every: int = 100,
-             holdout_every: int = 8, seed: int | None = None, device: str | None = None, plots: bool = True,
+             holdout_every: int = 8, seed: int | None = None, cost_model: str | None = None,
+             device: str | None = None, plots: bool = True,
              run_options: dict | None = None, echo: Callable[[str], None] | None = print,
              live: bool | None = None) -> list[SequenceResult]:
     """Map many sequences, one Ray task each, into ``out/<name>/`` (the results folder of ``eligsir map``).
 
     inputs: sequence paths, manifest files (see :mod:`eligsir_o3d.batch.specs`) or SequenceSpec objects. The
     keyword options are the batch's defaults (a manifest line's own options win); ``run_options`` sets any other
-    RunOptions field. Finished sequences (``out/<name>/batch.json`` says done for the same request) are not mapped
+    RunOptions field; ``cost_model`` None uses the config's (``eligsir_o3d.run.options.COST_MODEL_RULE``). Finished sequences (``out/<name>/batch.json`` says done for the same request) are not mapped
     again; unfinished ones resume from their last checkpoint. address: None starts Ray in this process with this
     machine's CPUs and GPUs (or joins the cluster of ``ray job submit``); "auto" or "ray://host:port" joins one.
     gpus_per_task None: 1 when the cluster has GPUs, else 0 (CPU renderer, ``cpus_per_task`` threads).
@@ -46,7 +47,7 @@ def map_many(inputs: Iterable, out: str | Path = "runs/batch", *, address: str |
     echo = echo or (lambda line: None)
     specs = expand_inputs(inputs)
     d = Defaults(max_frames=max_frames, pose=pose, speed=speed, config=config, updates_per_frame=updates_per_frame,
-                 eval_every=eval_every, holdout_every=holdout_every, seed=seed, device=device,
+                 eval_every=eval_every, holdout_every=holdout_every, seed=seed, cost_model=cost_model, device=device,
                  checkpoint_every=checkpoint_every, plots=plots, extra_options=dict(run_options or {}))
     requests = [build_request(s, d) for s in specs]
     out = Path(out).resolve()

@@ -46,6 +46,7 @@ class SequenceSpec:
     eval_every: int | None = None
     holdout_every: int | None = None
     seed: int | None = None
+    cost_model: str | None = None  # calibrate | shipped | FILE (eligsir_o3d.run.options.COST_MODEL_RULE)
     where: str = ""  # "manifest.txt:3" for error messages
 
 
@@ -53,6 +54,7 @@ _OPTIONS = {  # manifest option -> (field, type)
     "--name": ("name", str), "--max-frames": ("max_frames", int), "--pose": ("pose", str),
     "--speed": ("speed", float), "--config": ("config", str), "--updates-per-frame": ("updates_per_frame", int),
     "--eval-every": ("eval_every", int), "--holdout-every": ("holdout_every", int), "--seed": ("seed", int),
+    "--cost-model": ("cost_model", str),
 }
 
 
@@ -133,6 +135,7 @@ class Defaults:
     eval_every: int = 100
     holdout_every: int = 8
     seed: int | None = None
+    cost_model: str | None = None  # None: the config's (shipped by default), see COST_MODEL_RULE
     device: str | None = None
     checkpoint_every: int = 50
     plots: bool = True  # also the pictures (heldout/*.png, flythrough.mp4)
@@ -145,22 +148,16 @@ def build_request(spec: SequenceSpec, d: Defaults) -> dict:
     Two runs with equal requests (device and renderer aside) give the same map; a results folder is only reused
     (skipped when finished, resumed otherwise) for an equal request.
     """
-    from ..config import Config
+    from ..run.options import MapOptions, to_config
 
     pick = lambda name: getattr(spec, name) if getattr(spec, name) is not None else getattr(d, name)  # noqa: E731
     cfg_path = pick("config")
+    asked = MapOptions(config=cfg_path, seed=pick("seed"), updates_per_frame=pick("updates_per_frame"),
+                       speed=pick("speed"), device=d.device, cost_model=pick("cost_model"))
     try:
-        cfg = Config.load(cfg_path) if cfg_path else Config()
+        cfg = to_config(asked)  # the one options -> Config path of eligsir map
     except (OSError, ValueError, TypeError) as e:
         raise BatchError(f"{spec.where}: cannot read config {cfg_path}: {e}") from None
-    if pick("seed") is not None:
-        cfg.seed = pick("seed")
-    if pick("updates_per_frame") is not None:  # as on `eligsir map`: selects the updates clock
-        cfg.clock.mode, cfg.clock.updates_per_frame = "updates", pick("updates_per_frame")
-    if pick("speed") is not None:
-        cfg.clock.speed = pick("speed")
-    if d.device is not None:
-        cfg.device = d.device
     path = spec.path if spec.path == "synthetic" else str(Path(spec.path).resolve())
     opts = dict(max_frames=pick("max_frames"), pose=pick("pose"), eval_every=pick("eval_every"),
                 holdout_every=pick("holdout_every"), checkpoint_every=d.checkpoint_every, plots=d.plots,

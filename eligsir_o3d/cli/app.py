@@ -4,35 +4,16 @@ Thin: heavy modules are imported inside commands."""
 from __future__ import annotations
 
 import logging
-from enum import Enum
 from pathlib import Path
 from typing import List, Optional
 
 import typer
 
-from .commands import COMMANDS, Renderer, _serve_until_interrupted
+from .commands import COMMANDS, _serve_until_interrupted
 from .commands import fail as _fail
+from .map_options import map_options, with_options
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False)
-
-
-class Mechanism(str, Enum):
-    views = "views"
-    fidelity = "fidelity"
-    growth = "growth"
-
-
-class BadFrame(str, Enum):
-    skip = "skip"
-    stop = "stop"
-
-
-
-
-class ClockMode(str, Enum):
-    cost = "cost"
-    updates = "updates"
-    realtime = "realtime"
 
 
 def _version(value: bool) -> None:
@@ -49,152 +30,32 @@ def _main(version: bool = typer.Option(False, "--version", callback=_version, is
     """EliGSiR: budget-aware online RGB-D Gaussian-splatting mapping on Open3D."""
 
 
-INPUT, POSE, BUDGET, EVAL, OUTPUT, MAPPER = "Input", "Pose", "Budget", "Evaluation", "Output", "Mapper"
-
-
 @app.command("map")
-def map_cmd(
-    path: Optional[str] = typer.Argument(None, help="Sequence folder (TUM, Replica, plain folder layout), "
-                                         "a ROS 1/2 or RealSense bag, a ScanNet .sens, or 'synthetic'.", show_default=False),
-    max_frames: Optional[int] = typer.Option(None, help="Use only the first N frames.", rich_help_panel=INPUT),
-    depth_max: Optional[float] = typer.Option(None, help="Depth beyond this (metres) counts as no measurement "
-                                              "(default: the config's, 8).", rich_help_panel=INPUT),
-    on_bad_frame: Optional[BadFrame] = typer.Option(None, help="What to do with a frame that cannot be read or "
-                                                    "used (default: the config's, skip).", rich_help_panel=INPUT),
-    config: Optional[Path] = typer.Option(None, help="config.json to start from (e.g. one written by an earlier "
-                                          "run); options given here override it.", rich_help_panel=INPUT),
-    set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="Override one config key, e.g. --set "
-                                   "views.active_size=16 (repeatable; see 'eligsir config').", rich_help_panel=INPUT),
-    rerun: Optional[Path] = typer.Option(None, help="Run again what a results folder recorded (its run.json and "
-                                         "config.json); only --out and --quiet apply.", rich_help_panel=INPUT),
-    pose: str = typer.Option("gt", help="gt | odometry (Open3D frame-to-model) | kiss-icp | colmap (runs SfM over "
-                             "the whole recording BEFORE mapping) | PATH to a TUM trajectory file or a COLMAP model "
-                             "folder.", rich_help_panel=POSE),
-    clock: Optional[ClockMode] = typer.Option(None, help="cost: deterministic, modelled time; updates: "
-                                              "deterministic, N updates per frame; realtime: the wall clock "
-                                              "(default: the config's, cost).", rich_help_panel=BUDGET),
-    realtime: bool = typer.Option(False, "--realtime", help="Same as --clock realtime.", rich_help_panel=BUDGET),
-    speed: Optional[float] = typer.Option(None, help="Replay speed: 0.1 gives the mapper 10x the recording's "
-                                          "duration (default: the config's, 1).", rich_help_panel=BUDGET),
-    updates_per_frame: Optional[int] = typer.Option(None, help="N updates per source frame: selects --clock "
-                                                    "updates.", rich_help_panel=BUDGET),
-    cost_model: Optional[str] = typer.Option(None, help="--clock cost prices updates with: calibrate (fit this "
-                                             "machine, device and renderer once, cached), shipped (the reference "
-                                             "machine's fit: reproducible anywhere) or a JSON FILE of terms "
-                                             "(default: calibrate; with --config, the file's).",
-                                             rich_help_panel=BUDGET),
-    refine: int = typer.Option(0, help="Extra post-mapping updates (+N PM map state).", rich_help_panel=BUDGET),
-    offline_reference: bool = typer.Option(False, "--offline-reference", help="Offline reference: all frames at "
-                                           "once, a long coarse-to-fine schedule (1/4, 1/2, then full "
-                                           "resolution).", rich_help_panel=BUDGET),
-    offline_updates: int = typer.Option(0, help="Offline reference: length of its schedule (0: 40 updates per "
-                                        "source frame).", rich_help_panel=BUDGET),
-    holdout_every: int = typer.Option(8, help="Hold out every N-th frame for evaluation (never mapped).",
-                                      rich_help_panel=EVAL),
-    holdout_list: Optional[Path] = typer.Option(None, help="File of frame indices to hold out instead.",
-                                                rich_help_panel=EVAL),
-    eval_every: int = typer.Option(100, help="Held-out checkpoint every N updates (0: only at the end).",
-                                   rich_help_panel=EVAL),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Results folder (default: runs/map; with "
-                                       "--rerun DIR: DIR-rerun).", rich_help_panel=OUTPUT),
-    checkpoint_every: int = typer.Option(0, help="Write OUT/checkpoint.pt every N source frames (atomic).",
-                                         rich_help_panel=OUTPUT),
-    resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoint.pt of an interrupted run.",
-                                rich_help_panel=OUTPUT),
-    force_unlock: bool = typer.Option(False, "--force-unlock", help="Take over OUT/eligsir.lock although another "
-                                      "host's run holds it (make sure that run has ended).", rich_help_panel=OUTPUT),
-    quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.", rich_help_panel=OUTPUT),
-    device: Optional[str] = typer.Option(None, help="'cpu', 'cuda:0' or 'CUDA:0' (default: the config's, cpu).",
-                                         rich_help_panel=MAPPER),
-    renderer: Optional[Renderer] = typer.Option(None, help="auto: gsplat on CUDA, else the compiled cpu "
-                                                "rasteriser (default: the config's, auto).", rich_help_panel=MAPPER),
-    ablate: List[Mechanism] = typer.Option([], help="Swap a mechanism for its plain policy (repeatable; default: "
-                                           "the config's, none).", rich_help_panel=MAPPER),
-    seed: Optional[int] = typer.Option(None, help="Random seed (default: the config's, 0).", rich_help_panel=MAPPER),
-    no_register: bool = typer.Option(False, "--no-register", help="Ignore a separate colour camera (the sidecar's "
-                                     "\"color\" block, a recording's two CameraInfos): the depth camera serves both "
-                                     "images, depth is not registered.", rich_help_panel=INPUT),
-    rgb_topic: Optional[str] = typer.Option(None, help="ROS bag: colour topic (when the bag has several).",
-                                            rich_help_panel=INPUT),
-    depth_topic: Optional[str] = typer.Option(None, help="ROS bag: depth topic (when the bag has several).",
-                                              rich_help_panel=INPUT),
-    rgb_info_topic: Optional[str] = typer.Option(None, help="ROS bag: CameraInfo topic of the colour camera.",
-                                                 rich_help_panel=INPUT),
-    depth_info_topic: Optional[str] = typer.Option(None, help="ROS bag: CameraInfo topic of the depth camera.",
-                                                   rich_help_panel=INPUT),
-    pose_topic: Optional[str] = typer.Option(None, help="ROS bag: PoseStamped/Odometry topic of the camera's optical "
-                                             "frame.", rich_help_panel=POSE),
-    pose_frames: Optional[str] = typer.Option(None, help="ROS bag: poses from tf, "
-                                              "'world_frame:camera_optical_frame'.", rich_help_panel=POSE),
-    pictures: bool = typer.Option(True, "--pictures/--no-pictures", help="Write heldout/*.png comparisons and "
-                                  "flythrough.mp4.", rich_help_panel=OUTPUT),
-    view: bool = typer.Option(False, "--view", help="Serve a live browser view of the map while mapping (needs "
-                              "viser); it stays up afterwards until Ctrl-C.", rich_help_panel=OUTPUT),
-    view_port: int = typer.Option(8080, help="--view: port (the next free one if taken).", rich_help_panel=OUTPUT),
-    view_host: str = typer.Option("127.0.0.1", help="--view: address to listen on.", rich_help_panel=OUTPUT),
-) -> None:
+@with_options
+def map_cmd(**kw) -> None:
     """Map a recorded RGB-D sequence into a 3D Gaussian map and evaluate it on held-out views."""
-    from ..budget import CostModel
-    from ..config import Config, apply_override
-    from ..run.pipeline import RunOptions, read_run, run_mapping
+    # the options are the table of .map_options; run.options.resolve turns them into a Config and RunOptions,
+    # as for eligsir batch
+    from ..run.options import resolve
+    from ..run.pipeline import read_run, run_mapping
 
-    logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(levelname)s %(message)s")
-    opts = None
+    logging.basicConfig(level=logging.WARNING if kw["quiet"] else logging.INFO, format="%(levelname)s %(message)s")
+    path, out, opts = kw["path"], kw["out"], None
     try:
-        if rerun is not None:
+        if kw["rerun"] is not None:
             if path is not None:
                 _fail("give either a sequence PATH or --rerun DIR, not both")
-            path, cfg, opts = read_run(rerun)
-            opts.progress = not quiet
-            out = out or Path(str(rerun).rstrip("/") + "-rerun")
+            path, cfg, opts = read_run(kw["rerun"])
+            opts.progress = not kw["quiet"]
+            out = out or Path(str(kw["rerun"]).rstrip("/") + "-rerun")
         else:
             if path is None:
                 _fail("missing the sequence PATH (or --rerun DIR)")
-            cfg = Config.load(config) if config else Config()
-            for item in set_:
-                apply_override(cfg, item)
-            if device is not None:
-                cfg.device = device
-            if renderer is not None:
-                cfg.renderer = renderer.value
-            if seed is not None:
-                cfg.seed = seed
-            if ablate:
-                cfg.ablate = tuple(sorted({a.value for a in ablate}))
-            if depth_max is not None:
-                cfg.depth_max = depth_max
-            mode = _clock_mode(clock, realtime, updates_per_frame)
-            if mode is not None:
-                cfg.clock.mode = mode
-            if updates_per_frame is not None:
-                cfg.clock.updates_per_frame = updates_per_frame
-            if speed is not None:
-                cfg.clock.speed = speed
-            if on_bad_frame is not None:
-                cfg.clock.on_bad_frame = on_bad_frame.value
-            if offline_updates:
-                cfg.clock.offline_updates = offline_updates
-            if cost_model == "calibrate" or (cost_model is None and config is None):
-                cfg.clock.cost_source = "calibrate"
-            elif cost_model == "shipped":
-                cfg.clock.cost, cfg.clock.cost_source = CostModel(), "config"
-            elif cost_model is not None:
-                cfg.clock.cost, cfg.clock.cost_source = CostModel.load(cost_model), "config"
-            opts = RunOptions(max_frames=max_frames, holdout_every=holdout_every,
-                              holdout_list=str(holdout_list) if holdout_list else None, pose=pose,
-                              eval_every=eval_every, refine=refine, offline_reference=offline_reference,
-                              checkpoint_every=checkpoint_every, resume=resume, progress=not quiet,
-                              pictures=pictures)
-            seq_opts = dict(rgb_topic=rgb_topic, depth_topic=depth_topic, rgb_info_topic=rgb_info_topic,
-                            depth_info_topic=depth_info_topic, pose_topic=pose_topic, pose_frames=pose_frames)
-            seq_opts = {k: v for k, v in seq_opts.items() if v is not None}
-            if no_register:
-                seq_opts["register"] = False
-            opts.sequence_options = seq_opts or None
+            cfg, opts = resolve(map_options(kw))
             out = out or Path("runs/map")
-        opts.force_unlock = force_unlock
-        if view:
-            opts.view = _live_view(view_host, view_port)
+        opts.force_unlock = kw["force_unlock"]
+        if kw["view"]:
+            opts.view = _live_view(kw["view_host"], kw["view_port"])
         m = run_mapping(path, out, cfg, opts)
     except (ValueError, OSError, RuntimeError) as e:
         if opts is not None and opts.view is not None:
@@ -216,16 +77,6 @@ def _live_view(host: str, port: int):
         _fail(str(e))
     typer.echo(f"live view at {live.url}")
     return live
-
-
-def _clock_mode(clock, realtime: bool, updates_per_frame: Optional[int]) -> Optional[str]:
-    """The clock mode the options ask for (None: the config's); contradicting options are an error."""
-    asked = {c for c in (clock.value if clock else None, "realtime" if realtime else None,
-                         "updates" if updates_per_frame is not None else None) if c}
-    if len(asked) > 1:
-        _fail(f"conflicting clock options: {', '.join(sorted(asked))} (--updates-per-frame selects --clock "
-              f"updates, --realtime is --clock realtime)")
-    return asked.pop() if asked else None
 
 
 @app.command("config")
@@ -280,14 +131,14 @@ def demo(
     device: str = typer.Option("cpu"),
 ) -> None:
     """Map the embedded synthetic room (no download) and print where the outputs are."""
-    from ..config import Config
-    from ..run.pipeline import RunOptions, run_mapping
+    from ..run.options import MapOptions, resolve
+    from ..run.pipeline import run_mapping
 
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    cfg = Config(device=device)
-    cfg.clock.speed = speed  # 0.1: the mapper gets 10x the recording's duration (modelled, deterministic)
-    m = run_mapping("synthetic", out, cfg, RunOptions(max_frames=frames, eval_every=200,
-                                                      sequence_options={"n_frames": frames}))
+    # speed 0.1: the mapper gets 10x the recording's duration (modelled, deterministic); the config's cost model
+    cfg, opts = resolve(MapOptions(device=device, speed=speed, max_frames=frames, eval_every=200,
+                                   sequence_options={"n_frames": frames}))
+    m = run_mapping("synthetic", out, cfg, opts)
     _summary(m, out)
 
 

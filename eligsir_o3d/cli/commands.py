@@ -12,6 +12,8 @@ from typing import List, Optional
 
 import typer
 
+from ..run.options import COST_MODEL_RULE
+
 
 def fail(msg: str, code: int = 2) -> None:
     """One red line on stderr and exit status 2: how every command reports bad input (README: exit codes)."""
@@ -151,7 +153,7 @@ def render(
 
 
 def batch_cmd(
-    inputs: List[str] = typer.Argument(..., help="Sequence paths and/or manifest files (.txt/.list/.manifest: one sequence a line, optionally with its own --name --max-frames --pose --speed --config --updates-per-frame --eval-every --holdout-every --seed)."),
+    inputs: List[str] = typer.Argument(..., help="Sequence paths and/or manifest files (.txt/.list/.manifest: one sequence a line, optionally with its own --name --max-frames --pose --speed --config --updates-per-frame --eval-every --holdout-every --seed --cost-model)."),
     out: Path = typer.Option(Path("runs/batch"), "--out", "-o", help="Batch folder: one results folder per sequence, summary.csv."),
     address: Optional[str] = typer.Option(None, help="Ray cluster to join: 'auto' or ray://host:port [default: a local Ray in this process, or the cluster of `ray job submit`]."),
     cpus_per_task: float = typer.Option(1, help="CPUs per sequence (also its torch/numba thread count)."),
@@ -166,6 +168,7 @@ def batch_cmd(
     holdout_every: int = typer.Option(8, help="Hold out every N-th frame for evaluation."),
     config: Optional[Path] = typer.Option(None, help="config.json to start every sequence from."),
     seed: Optional[int] = typer.Option(None, help="Random seed [default: the config's, else 0]."),
+    cost_model: Optional[str] = typer.Option(None, help="calibrate | shipped | FILE (default: the config's, shipped). " + COST_MODEL_RULE),
     device: Optional[str] = typer.Option(None, help="Device inside each task [default: cuda:0 with a GPU per task, else the config's]."),
     plots: bool = typer.Option(True, "--plots/--no-plots", help="Write each sequence's plots."),
 ) -> None:
@@ -177,7 +180,7 @@ def batch_cmd(
                            max_retries=max_retries, checkpoint_every=checkpoint_every, max_frames=max_frames,
                            pose=pose, speed=speed, config=str(config) if config else None,
                            updates_per_frame=updates_per_frame, eval_every=eval_every, holdout_every=holdout_every,
-                           seed=seed, device=device, plots=plots, echo=typer.echo)
+                           seed=seed, cost_model=cost_model, device=device, plots=plots, echo=typer.echo)
     except (BatchError, ValueError, OSError) as e:
         _fail(str(e))
     for line in format_report(results, out):
