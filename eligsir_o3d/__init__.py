@@ -7,6 +7,10 @@ import os
 # idle. It only takes effect if set before torch is first imported; a user's own setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+from ._open3d_check import import_open3d  # noqa: E402
+
+import_open3d()  # a missing system library (libusb, libGL, ...) fails here with one line naming the package
+
 from .core.camera import Camera  # noqa: E402
 from .config import Config
 from .core.frame import Frame, FrameError
