@@ -254,6 +254,10 @@ def _summary(m: dict, out: Path) -> None:
         return "n/a" if x is None else format(x, fmt)
 
     typer.echo(f"held-out PSNR {f(h['psnr'], '.2f')} dB  SSIM {f(h['ssim'], '.3f')}  depth RMSE {f(h['depth_rmse_m'], '.3f')} m")
+    posed = m.get("heldout_pose_origin") or "ground truth"
+    if posed != "ground truth":  # a recording without poses: say so next to the figure
+        lost = len(m.get("heldout_untracked") or [])
+        typer.echo(f"  held-out views at poses {posed}" + (f"; {lost} untrackable view(s) left out" if lost else ""))
     rules = m.get("heldout_by_pose_rule")
     if rules:  # pose refinement: the held-out views' poses moved into the refined frame by each rule
         typer.echo("held-out PSNR by pose rule: " + "  ".join(f"{r} {f(v['psnr'], '.2f')} dB" for r, v in rules.items())

@@ -49,6 +49,10 @@ def collect_metrics(p) -> dict:
         "cost_model": {**p.cost_model_source, "terms": rec.config.clock.cost.to_dict()}
         if p.cost_model_source.get("source") else None,
         "heldout": {k: final.get(k) for k in ("psnr", "ssim", "lpips", "depth_rmse_m", "depth_rmse_2m_m")},
+        # where the held-out views' poses came from: the ground truth, or (a recording without poses) the run's pose
+        # source, which tracked them without admitting them into the map; views it could not track are left out
+        "heldout_pose_origin": _heldout_pose_origin(p),
+        "heldout_untracked": list(p.heldout_tracking.untracked) if getattr(p, "heldout_tracking", None) else [],
         # with pose refinement: the same views at their given poses as they are (the strict figure), and under
         # each rule of pose_refine.heldout_poses ("heldout" is the configured one's)
         "heldout_given_poses": (getattr(p, "pose_rule_scores", None) or {}).get("given"),
@@ -86,6 +90,12 @@ def collect_metrics(p) -> dict:
                                               bool(getattr(rec.fidelity, "trace", None)))) if present},
     }
     return metrics
+
+
+def _heldout_pose_origin(p) -> str:
+    from .eval.tracked_heldout import heldout_pose_label
+
+    return heldout_pose_label(p.pose_name, getattr(p, "heldout_tracking", None) is not None)
 
 
 def write_results(p, metrics: dict) -> None:
