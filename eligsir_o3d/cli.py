@@ -55,7 +55,8 @@ INPUT, POSE, BUDGET, EVAL, OUTPUT, MAPPER = "Input", "Pose", "Budget", "Evaluati
 @app.command("map")
 def map_cmd(
     path: Optional[str] = typer.Argument(None, help="Sequence folder (TUM, Replica, plain folder layout), "
-                                         "a ROS 1/2 or RealSense bag, a ScanNet .sens, or 'synthetic'.", show_default=False),
+                                         "a ROS 1/2 or RealSense bag, a ScanNet .sens, a phone capture (Record3D "
+                                         ".r3d, Stray Scanner folder, Polycam raw-data export), or 'synthetic'.", show_default=False),
     max_frames: Optional[int] = typer.Option(None, help="Use only the first N frames.", rich_help_panel=INPUT),
     depth_max: Optional[float] = typer.Option(None, help="Depth beyond this (metres) counts as no measurement "
                                               "(default: the config's, 8).", rich_help_panel=INPUT),
@@ -126,6 +127,11 @@ def map_cmd(
                                              "frame.", rich_help_panel=POSE),
     pose_frames: Optional[str] = typer.Option(None, help="ROS bag: poses from tf, "
                                               "'world_frame:camera_optical_frame'.", rich_help_panel=POSE),
+    format_: str = typer.Option("ply", "--format", help="Map files to write: ply, spz, splat, comma-separated "
+                                "(map.ply is always written; map.spz / map.splat beside it).", rich_help_panel=OUTPUT),
+    min_confidence: Optional[int] = typer.Option(None, help="Phone captures (Record3D, Stray Scanner, Polycam): "
+                                                 "drop depth below this ARKit confidence, 0-2 (default 1).",
+                                                 rich_help_panel=INPUT),
     pictures: bool = typer.Option(True, "--pictures/--no-pictures", help="Write heldout/*.png comparisons and "
                                   "flythrough.mp4.", rich_help_panel=OUTPUT),
     view: bool = typer.Option(False, "--view", help="Serve a live browser view of the map while mapping (needs "
@@ -136,6 +142,7 @@ def map_cmd(
     """Map a recorded RGB-D sequence into a 3D Gaussian map and evaluate it on held-out views."""
     from .budget import CostModel
     from .config import Config, apply_override
+    from .export_splats import parse_formats
     from .pipeline import RunOptions, read_run, run_mapping
 
     logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(levelname)s %(message)s")
@@ -184,9 +191,10 @@ def map_cmd(
                               holdout_list=str(holdout_list) if holdout_list else None, pose=pose,
                               eval_every=eval_every, refine=refine, offline_reference=offline_reference,
                               checkpoint_every=checkpoint_every, resume=resume, progress=not quiet,
-                              pictures=pictures)
+                              pictures=pictures, formats=",".join(parse_formats(format_)))
             seq_opts = dict(rgb_topic=rgb_topic, depth_topic=depth_topic, rgb_info_topic=rgb_info_topic,
-                            depth_info_topic=depth_info_topic, pose_topic=pose_topic, pose_frames=pose_frames)
+                            depth_info_topic=depth_info_topic, pose_topic=pose_topic, pose_frames=pose_frames,
+                            min_confidence=min_confidence)
             seq_opts = {k: v for k, v in seq_opts.items() if v is not None}
             if no_register:
                 seq_opts["register"] = False
@@ -305,15 +313,23 @@ def export(
     depth_max: float = typer.Option(5.0, help="Ignore rendered depth beyond this (metres)."),
     min_opacity: float = typer.Option(0.1, help="Point cloud: drop Gaussians below this opacity."),
     device: str = typer.Option("cpu"),
+    spz: Optional[Path] = typer.Option(None, help="Write the map as SPZ here (compressed splats for web viewers; "
+                                       "RUB axes, as the SPZ spec says)."),
+    splat: Optional[Path] = typer.Option(None, help="Write the map as .splat here (antimatter15's format)."),
 ) -> None:
-    """Export a saved map as an Open3D triangle mesh and/or point cloud."""
+    """Export a saved map as an Open3D triangle mesh and/or point cloud, and/or as SPZ / .splat for the web."""
     from .export import export_from_ply
+    from .export_splats import write_web_formats
 
-    if mesh is None and point_cloud is None:
-        _fail("nothing to do: give --mesh and/or --point-cloud")
+    if mesh is None and point_cloud is None and spz is None and splat is None:
+        _fail("nothing to do: give --mesh, --point-cloud, --spz and/or --splat")
     try:
-        summary = export_from_ply(map_ply, mesh, point_cloud, poses=poses, voxel_size=voxel_size,
-                                  depth_max=depth_max, min_opacity=min_opacity, device=device)
+        summary = {}
+        if spz is not None or splat is not None:
+            summary.update(write_web_formats(map_ply, spz, splat))
+        if mesh is not None or point_cloud is not None:
+            summary.update(export_from_ply(map_ply, mesh, point_cloud, poses=poses, voxel_size=voxel_size,
+                                           depth_max=depth_max, min_opacity=min_opacity, device=device))
     except (ValueError, OSError) as e:
         _fail(str(e))
     for k, v in summary.items():

@@ -52,6 +52,7 @@ class RunOptions:
     force_unlock: bool = False  # take over another host's lock on the results folder (eligsir map --force-unlock)
     plots: bool = True
     pictures: bool = True  # heldout/*.png comparisons and flythrough.mp4 (eligsir_o3d.visual.results)
+    formats: str = "ply"  # map files: "ply", "spz", "splat", comma-separated (map.ply always; eligsir map --format)
     view: object | None = None  # a live viewer (eligsir_o3d.visual.live.LiveView) fed while mapping; not recorded
     progress: bool = True
 

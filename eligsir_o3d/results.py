@@ -104,10 +104,13 @@ def write_results(p, metrics: dict) -> None:
     lists it, and a :class:`~.atomic_io.WriteFailed` naming it is raised at the end."""
     from .atomic_io import atomic_write_text
     from .eval import write_plots
+    from .export_splats import parse_formats, write_web_formats
     from .pose.trajectory import write_tum_trajectory
 
     out, rec, outputs = p.out, p.rec, p.outputs
     outputs.stage(out / "map.ply", rec.save_ply, out / "map.ply")
+    for fmt in parse_formats(getattr(p.opts, "formats", "ply"))[1:]:  # map.spz / map.splat beside map.ply
+        outputs.stage(out / f"map.{fmt}", write_web_formats, out / "map.ply", **{fmt: out / f"map.{fmt}"})
     items = sorted(p.trajectory.items())
     outputs.stage(out / "trajectory.txt", write_tum_trajectory, out / "trajectory.txt",
                   [ts for _, (ts, _) in items], [T for _, (_, T) in items])
