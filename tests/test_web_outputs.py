@@ -102,3 +102,23 @@ def test_formats_and_bad_paths():
         parse_formats("ply,gltf")
     with pytest.raises(ValueError, match="no such map"):
         write_web_formats("/nonexistent/map.ply", spz="x.spz")
+
+
+def test_heldout_picture_of_real_frames_is_at_most_300_kB():
+    import io
+
+    import torch
+    from PIL import Image
+
+    from eligsir_o3d.datasets import open_sequence
+    from eligsir_o3d.visual.pictures import MAX_PICTURE_BYTES, comparison_picture, small_png
+
+    seq = open_sequence(SEVEN)
+    f, g = seq.frame(10), seq.frame(14)  # a neighbouring frame stands in for a render: real texture, real errors
+    pic = comparison_picture(f.color, f.depth, g.color, g.depth, torch.ones_like(g.depth), "held-out frame 10")
+    data = small_png(pic)
+    assert len(data) <= MAX_PICTURE_BYTES == 300_000
+    back = np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+    assert back.shape == pic.shape  # still full size: legible
+    mse = np.mean((back.astype(float) - pic.astype(float)) ** 2)
+    assert 10 * np.log10(255.0 ** 2 / mse) > 30.0  # 256 colours, no dithering: text and colour maps intact
