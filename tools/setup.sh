@@ -34,6 +34,11 @@ case " $* " in
     if ! command -v chromium >/dev/null 2>&1; then  # tests/test_viewer_browser.py skips, saying so, without it
       { $SUDO apt-get update -q && $SUDO apt-get install -y -q chromium; } ||
         echo "chromium could not be installed: the viewer's browser test will be skipped"
+    fi
+    # the SPZ test reads map.spz back with PlayCanvas' splat-transform (an independent reader); skipped without it
+    if command -v npm >/dev/null 2>&1 && [ ! -x .npm/node_modules/.bin/splat-transform ]; then
+      npm install -q --prefix .npm @playcanvas/splat-transform@3.7.0 >/dev/null 2>&1 ||
+        echo "splat-transform could not be installed: the SPZ read-back test will be skipped"
     fi ;;
 esac
 if [ -n "$extras" ]; then .venv/bin/python -m pip install -q -e ".[$extras]"; else .venv/bin/python -m pip install -q -e .; fi

@@ -105,6 +105,10 @@ def _summary(m: dict, out: Path) -> None:
         return "n/a" if x is None else format(x, fmt)
 
     typer.echo(f"held-out PSNR {f(h['psnr'], '.2f')} dB  SSIM {f(h['ssim'], '.3f')}  depth RMSE {f(h['depth_rmse_m'], '.3f')} m")
+    posed = m.get("heldout_pose_origin") or "ground truth"
+    if posed != "ground truth":  # a recording without poses: say so next to the figure
+        lost = len(m.get("heldout_untracked") or [])
+        typer.echo(f"  held-out views at poses {posed}" + (f"; {lost} untrackable view(s) left out" if lost else ""))
     rules = m.get("heldout_by_pose_rule")
     if rules:  # pose refinement: the held-out views' poses moved into the refined frame by each rule
         typer.echo("held-out PSNR by pose rule: " + "  ".join(f"{r} {f(v['psnr'], '.2f')} dB" for r, v in rules.items())
@@ -152,15 +156,23 @@ def export(
     depth_max: float = typer.Option(5.0, help="Ignore rendered depth beyond this (metres)."),
     min_opacity: float = typer.Option(0.1, help="Point cloud: drop Gaussians below this opacity."),
     device: str = typer.Option("cpu"),
+    spz: Optional[Path] = typer.Option(None, help="Write the map as SPZ here (compressed splats for web viewers; "
+                                       "RUB axes, as the SPZ spec says)."),
+    splat: Optional[Path] = typer.Option(None, help="Write the map as .splat here (antimatter15's format)."),
 ) -> None:
-    """Export a saved map as an Open3D triangle mesh and/or point cloud."""
+    """Export a saved map as an Open3D triangle mesh and/or point cloud, and/or as SPZ / .splat for the web."""
     from ..export import export_from_ply
+    from ..export_splats import write_web_formats
 
-    if mesh is None and point_cloud is None:
-        _fail("nothing to do: give --mesh and/or --point-cloud")
+    if mesh is None and point_cloud is None and spz is None and splat is None:
+        _fail("nothing to do: give --mesh, --point-cloud, --spz and/or --splat")
     try:
-        summary = export_from_ply(map_ply, mesh, point_cloud, poses=poses, voxel_size=voxel_size,
-                                  depth_max=depth_max, min_opacity=min_opacity, device=device)
+        summary = {}
+        if spz is not None or splat is not None:
+            summary.update(write_web_formats(map_ply, spz, splat))
+        if mesh is not None or point_cloud is not None:
+            summary.update(export_from_ply(map_ply, mesh, point_cloud, poses=poses, voxel_size=voxel_size,
+                                           depth_max=depth_max, min_opacity=min_opacity, device=device))
     except (ValueError, OSError) as e:
         _fail(str(e))
     for k, v in summary.items():

@@ -39,7 +39,9 @@ def _opt(default, help: str, panel: str, *decls, **kw):
 
 
 PATH = ("path", Optional[str], typer.Argument(None, help="Sequence folder (TUM, Replica, plain folder layout), a ROS "
-                                              "1/2 or RealSense bag, a ScanNet .sens, or 'synthetic'.",
+                                              "1/2 or RealSense bag, a ScanNet .sens, a phone capture (Record3D "
+                                              ".r3d, Stray Scanner folder, Polycam raw-data export), or "
+                                              "'synthetic'.",
                                               show_default=False))
 INPUT_OPTIONS = [
     ("max_frames", Optional[int], _opt(None, "Use only the first N frames.", INPUT)),
@@ -60,6 +62,8 @@ INPUT_OPTIONS = [
     ("depth_topic", Optional[str], _opt(None, "ROS bag: depth topic (when the bag has several).", INPUT)),
     ("rgb_info_topic", Optional[str], _opt(None, "ROS bag: CameraInfo topic of the colour camera.", INPUT)),
     ("depth_info_topic", Optional[str], _opt(None, "ROS bag: CameraInfo topic of the depth camera.", INPUT)),
+    ("min_confidence", Optional[int], _opt(None, "Phone captures (Record3D, Stray Scanner, Polycam): drop depth "
+                                           "below this ARKit confidence, 0-2 (default 1).", INPUT)),
 ]
 POSE_OPTIONS = [
     ("pose", str, _opt("gt", "gt | odometry (Open3D frame-to-model) | kiss-icp | colmap (runs SfM over the whole "
@@ -97,6 +101,8 @@ OUTPUT_OPTIONS = [
     ("force_unlock", bool, _opt(False, "Take over OUT/eligsir.lock although another host's run holds it (make sure "
                                 "that run has ended).", OUTPUT, "--force-unlock")),
     ("quiet", bool, _opt(False, "No progress bar.", OUTPUT, "--quiet", "-q")),
+    ("formats", str, _opt("ply", "Map files to write: ply, spz, splat, comma-separated (map.ply is always "
+                          "written; map.spz / map.splat beside it).", OUTPUT, "--format")),
     ("pictures", bool, _opt(True, "Write heldout/*.png comparisons and flythrough.mp4.", OUTPUT,
                             "--pictures/--no-pictures")),
     ("view", bool, _opt(False, "Serve a live browser view of the map while mapping (needs viser); it stays up "
@@ -113,7 +119,8 @@ MAPPER_OPTIONS = [
     ("seed", Optional[int], _opt(None, "Random seed (default: the config's, 0).", MAPPER)),
 ]
 PANELS = [INPUT_OPTIONS, POSE_OPTIONS, BUDGET_OPTIONS, EVAL_OPTIONS, OUTPUT_OPTIONS, MAPPER_OPTIONS]
-SEQUENCE_OPTIONS = ("rgb_topic", "depth_topic", "rgb_info_topic", "depth_info_topic", "pose_topic", "pose_frames")
+SEQUENCE_OPTIONS = ("rgb_topic", "depth_topic", "rgb_info_topic", "depth_info_topic", "pose_topic", "pose_frames",
+                    "min_confidence")
 CLI_ONLY = ("path", "set_", "rerun", "no_register", "out", "quiet", "view", "view_port", "view_host",
             *SEQUENCE_OPTIONS)
 
@@ -128,6 +135,7 @@ def with_options(fn):
 
 def map_options(kw: dict):
     """The :class:`~eligsir_o3d.run.options.MapOptions` of the command's arguments (enums as their values)."""
+    from ..export_splats import parse_formats
     from ..run.options import MapOptions
 
     value = lambda v: v.value if isinstance(v, Enum) else v  # noqa: E731
@@ -136,6 +144,7 @@ def map_options(kw: dict):
     o.config = str(kw["config"]) if kw["config"] else None
     o.overrides = list(kw["set_"])
     o.progress = not kw["quiet"]
+    o.formats = ",".join(parse_formats(kw["formats"]))  # ValueError naming an unknown format
     if kw["cost_model"] is None and kw["config"] is None:
         o.cost_model = "calibrate"  # eligsir map's default (COST_MODEL_RULE)
     seq = {k: kw[k] for k in SEQUENCE_OPTIONS if kw[k] is not None}

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from . import folder, replica, rosbag, rsbag, scannet, tum
+from . import folder, polycam, record3d, replica, rosbag, rsbag, scannet, stray, tum
 from .base import DatasetError, RGBDSequence
 from .synthetic import SyntheticRoom, open_synthetic
 
@@ -57,7 +57,8 @@ def open_sequence(path_or_name: str | Path, kind: str = "auto", *, register: boo
     kind: "auto" (detect from the folder's files) or one of :func:`list_formats`. Options go to the reader,
     for example ``max_dt=0.02`` (tum, rosbag, realsense), ``fps=30`` (replica, folder, scannet), ``depth_scale=``,
     ``rgb_topic, depth_topic, rgb_info_topic, depth_info_topic, pose_topic, pose_frames, intrinsics`` (rosbag),
-    ``n_frames, width, height, seed`` (synthetic). register=False ignores a separate colour camera
+    ``n_frames, width, height, seed`` (synthetic),
+    ``min_confidence, max_depth, color_width`` (record3d, stray, polycam: see :mod:`.phone`). register=False ignores a separate colour camera
     (the sidecar's ``color`` block or a recording's two CameraInfos): depth is not registered and the depth camera
     serves both images.
     """
@@ -88,7 +89,7 @@ def _open(path_or_name: str | Path, kind: str, **options) -> RGBDSequence:
         if fmt.detect(path):
             return _call(fmt.name, fmt.open, path, **options)
     looked = "\n".join(f"  - {f.name}: {f.looks_for}" for f in _FORMATS.values())
-    what = "sequence layout" if path.is_dir() else "file type (a sequence is a folder, a bag or a .sens file)"
+    what = "sequence layout" if path.is_dir() else "file type (a sequence is a folder, a bag, a .sens or a .r3d file)"
     raise DatasetError(f"{path}: unrecognised {what}; known layouts:\n{looked}")
 
 
@@ -101,3 +102,9 @@ register_format("realsense", rsbag.detect, rsbag.open_realsense,
 register_format("rosbag", rosbag.detect, rosbag.open_rosbag,
                 "ROS 1 .bag, or ROS 2 bag folder (metadata.yaml + .db3/.mcap): Image/CompressedImage + depth Image")
 register_format("scannet", scannet.detect, scannet.open_sens, "a ScanNet .sens file")
+register_format("record3d", record3d.detect, record3d.open_record3d,
+                "Record3D .r3d export (ZIP: metadata + rgbd/N.jpg, N.depth, N.conf), or its unzipped folder")
+register_format("stray", stray.detect, stray.open_stray,
+                "Stray Scanner folder: rgb.mp4 + depth/*.png + camera_matrix.csv + odometry.csv")
+register_format("polycam", polycam.detect, polycam.open_polycam,
+                "Polycam raw-data export: keyframes/{images,cameras,depth}/ (corrected_* preferred)")

@@ -58,6 +58,7 @@ class MapOptions:
     progress: bool = True
     plots: bool = True
     pictures: bool = True
+    formats: str = "ply"  # map files: "ply", "spz", "splat", comma-separated (map.ply always)
 
 
 def clock_mode(clock: str | None, realtime: bool, updates_per_frame: int | None) -> str | None:

@@ -52,6 +52,7 @@ class RunOptions:
     force_unlock: bool = False  # take over another host's lock on the results folder (eligsir map --force-unlock)
     plots: bool = True
     pictures: bool = True  # heldout/*.png comparisons and flythrough.mp4 (eligsir_o3d.visual.run_pictures)
+    formats: str = "ply"  # map files: "ply", "spz", "splat", comma-separated (map.ply always; eligsir map --format)
     view: object | None = None  # a live viewer (eligsir_o3d.visual.live.LiveView) fed while mapping; not recorded
     progress: bool = True
 
@@ -160,6 +161,12 @@ class MappingPipeline:
         log.info("loading %d held-out views", len(self.held))
         self.heldout_frames, self.heldout_skipped = read_heldout(seq, self.held, self.config.depth_max,
                                                                  self.config.clock.on_bad_frame)  # unreadable: dropped
+        self.heldout_tracking = None  # a recording without poses: held-out views posed by the run's pose source
+        if seq.poses is None and self.pose_source is not None and self.heldout_frames:
+            from .eval.tracked_heldout import TrackedHeldout
+
+            self.heldout_tracking = TrackedHeldout(self.pose_name, self.pose_source, seq, self.config.depth_max)
+            self.heldout_frames = self.heldout_tracking.track(self.heldout_frames, self.source)
         self.evaluator = HeldoutEvaluator(self.heldout_frames, sample_stride=self.opts.eval_sample_stride,
                                           checkpoint_ssim=self.opts.eval_ssim_at_checkpoints)
 
@@ -338,6 +345,10 @@ class MappingPipeline:
                                                     [self.seq.poses[i] for i in self.trajectory]))
             for f in self.heldout_frames:
                 f.T_world_cam = T_est_gt @ f.T_world_cam
+        elif self.heldout_tracking is not None:  # tracked held-out views: into the (refined) map's frame
+            ref = self.rec.pose_refine
+            self.heldout_tracking.into_map_frame({i: ref.carried_pose(i, T, always=True)
+                                                  for i, (_, T) in self.trajectory.items()})
         self.final = self.evaluator.final(self._render)
         self.pose_rule_scores = None  # a pose-refined map: the held-out figure under each rule (given: the strict one)
         if self.rec.pose_refine.moved and self.pose_source is None:

@@ -49,6 +49,10 @@ def collect_metrics(p) -> dict:
         "cost_model": {**p.cost_model_source, "terms": rec.config.clock.cost.to_dict()}
         if p.cost_model_source.get("source") else None,
         "heldout": {k: final.get(k) for k in ("psnr", "ssim", "lpips", "depth_rmse_m", "depth_rmse_2m_m")},
+        # where the held-out views' poses came from: the ground truth, or (a recording without poses) the run's pose
+        # source, which tracked them without admitting them into the map; views it could not track are left out
+        "heldout_pose_origin": _heldout_pose_origin(p),
+        "heldout_untracked": list(p.heldout_tracking.untracked) if getattr(p, "heldout_tracking", None) else [],
         # with pose refinement: the same views at their given poses as they are (the strict figure), and under
         # each rule of pose_refine.heldout_poses ("heldout" is the configured one's)
         "heldout_given_poses": (getattr(p, "pose_rule_scores", None) or {}).get("given"),
@@ -88,6 +92,12 @@ def collect_metrics(p) -> dict:
     return metrics
 
 
+def _heldout_pose_origin(p) -> str:
+    from .eval.tracked_heldout import heldout_pose_label
+
+    return heldout_pose_label(p.pose_name, getattr(p, "heldout_tracking", None) is not None)
+
+
 def write_results(p, metrics: dict) -> None:
     """Write the results folder of pipeline ``p`` (see the module docstring). Every file is written atomically; a
     file that cannot be written (full disk, I/O error) does not stop the others (:mod:`.safe_outputs`): metrics.json
@@ -95,9 +105,12 @@ def write_results(p, metrics: dict) -> None:
     from ..io.atomic import atomic_write_text
     from ..eval import write_plots
     from ..pose.trajectory import write_tum_trajectory
+    from ..export_splats import parse_formats, write_web_formats
 
     out, rec, outputs = p.out, p.rec, p.outputs
     outputs.stage(out / "map.ply", rec.save_ply, out / "map.ply")
+    for fmt in parse_formats(getattr(p.opts, "formats", "ply"))[1:]:  # map.spz / map.splat beside map.ply
+        outputs.stage(out / f"map.{fmt}", write_web_formats, out / "map.ply", **{fmt: out / f"map.{fmt}"})
     items = sorted(p.trajectory.items())
     outputs.stage(out / "trajectory.txt", write_tum_trajectory, out / "trajectory.txt",
                   [ts for _, (ts, _) in items], [T for _, (_, T) in items])

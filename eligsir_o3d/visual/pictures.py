@@ -1,7 +1,7 @@
 """Held-out comparison pictures: what a person looks at to judge a map.
 
 One PNG per chosen held-out view, ``heldout/<frame index, 6 digits>.png``, a 3 x 2 grid (panels at most
-480 pixels wide):
+480 pixels wide; a palette PNG of at most 300 kB, so that six of them do not outweigh the map):
 
     reference image   | render                 | |colour error| (inferno, 0 .. 0.25)
     sensor depth      | rendered depth         | |depth error| (inferno, 0 .. 0.25 m)
@@ -23,7 +23,8 @@ import torch
 COLOR_ERROR_MAX = 0.25  # mean absolute RGB error shown at full scale
 DEPTH_ERROR_MAX_M = 0.25
 TITLE_PX = 34
-PANEL_WIDTH = 480  # 640x480 views become 480x360 panels: ~1.4 MB a picture instead of ~2.4 MB
+PANEL_WIDTH = 480  # 640x480 views become 480x360 panels
+MAX_PICTURE_BYTES = 300_000  # a held-out picture is a palette PNG of at most this (full colour: ~1.4 MB)
 
 
 def spread(n: int, count: int) -> list[int]:
@@ -106,11 +107,40 @@ def comparison_picture(ref_color, ref_depth, color, depth, alpha, title: str,
     return np.concatenate([bar, grid], 0)
 
 
-def write_png(path: Path, rgb: np.ndarray) -> Path:
+def small_png(rgb: np.ndarray, max_bytes: int = MAX_PICTURE_BYTES) -> bytes:
+    """``rgb`` [H, W, 3] uint8 as a palette PNG of at most ``max_bytes``: 256 colours (octree, no dithering: the
+    colour maps and text stay crisp), then 128, then the picture scaled down by 0.8 steps (down to 1/2 at most,
+    which stays legible). A full-colour PNG of a 1440 x 754 comparison grid is ~1.5 MB; this ~0.3 MB."""
+    import io
+
+    import cv2
+    from PIL import Image
+
+    img = np.ascontiguousarray(rgb)
+    data = b""
+    for step in range(4):
+        for colors in (256, 128):
+            buf = io.BytesIO()
+            Image.fromarray(img).quantize(colors, method=Image.Quantize.FASTOCTREE,
+                                          dither=Image.Dither.NONE).save(buf, "PNG", optimize=True)
+            data = buf.getvalue()
+            if len(data) <= max_bytes:
+                return data
+        size = (max(1, round(rgb.shape[1] * 0.8 ** (step + 1))), max(1, round(rgb.shape[0] * 0.8 ** (step + 1))))
+        img = cv2.resize(np.ascontiguousarray(rgb), size, interpolation=cv2.INTER_AREA)
+    return data
+
+
+def write_png(path: Path, rgb: np.ndarray, max_bytes: int | None = None) -> Path:
+    """``rgb`` [H, W, 3] uint8 as a PNG, atomically; with ``max_bytes``, a palette PNG of at most that size
+    (:func:`small_png`)."""
     import cv2
 
     from ..io.atomic import atomic_write
 
+    if max_bytes is not None:
+        data = small_png(rgb, max_bytes)
+        return atomic_write(path, lambda f: f.write(data))
     ok, png = cv2.imencode(".png", np.ascontiguousarray(rgb[..., ::-1]))
     if not ok:
         raise OSError(f"could not encode {path} as PNG")
@@ -127,5 +157,5 @@ def write_heldout_pictures(out_dir: str | Path, frames: Sequence, render_fn: Cal
         out = render_fn(f)
         pic = comparison_picture(f.color, f.depth, out.color, out.depth, out.alpha,
                                  f"held-out frame {f.index}  t={f.timestamp:.2f} s")
-        paths.append(write_png(Path(out_dir) / f"{f.index:06d}.png", pic))
+        paths.append(write_png(Path(out_dir) / f"{f.index:06d}.png", pic, max_bytes=MAX_PICTURE_BYTES))
     return paths

@@ -5,8 +5,10 @@
 
 The path is the mapping trajectory smoothed (Gaussian weights over positions and sign-aligned quaternions), then
 resampled to ``n_out`` poses by arc index; a hand-held recording's shake would otherwise shake the video.
-Videos are MPEG-4 Part 2 (``mp4v``) through OpenCV: every desktop player and QuickTime plays them (browsers
-want H.264, which OpenCV's wheels do not encode).
+Videos are H.264 (yuv420p, ``+faststart``) through the FFmpeg that ``imageio-ffmpeg`` ships (the ``phone`` and
+``test`` extras): browsers play those in a ``<video>`` element. Without it they are MPEG-4 Part 2 (``mp4v``)
+through OpenCV, which desktop players and QuickTime play but browsers do not (OpenCV's wheels do not encode
+H.264).
 """
 
 from __future__ import annotations
@@ -65,33 +67,72 @@ def smooth_path(poses: Sequence[np.ndarray], n_out: int | None = None, sigma: fl
 
 
 class VideoWriter:
-    """Frames ([H, W, 3] uint8 RGB, all one size) -> an MP4 file (OpenCV, ``mp4v``), written atomically."""
+    """Frames ([H, W, 3] uint8 RGB, all one size) -> an MP4 file, written atomically: H.264 through imageio-ffmpeg
+    when it is installed (``codec`` says which was used), else ``mp4v`` through OpenCV. H.264 in yuv420p needs
+    even sizes: an odd last row or column is dropped."""
 
-    def __init__(self, path: str | Path, fps: float):
+    def __init__(self, path: str | Path, fps: float, codec: str = "auto"):
+        if codec not in ("auto", "h264", "mp4v"):
+            raise ValueError(f"codec must be 'auto', 'h264' or 'mp4v', got {codec!r}")
         self.path = Path(path)
         self.fps = float(fps)
         self._tmp = self.path.with_name(f".{self.path.stem}.tmp{self.path.suffix or '.mp4'}")
         self._writer = None
         self.frames = 0
+        self.codec = codec if codec != "auto" else ("h264" if _have_ffmpeg() else "mp4v")
 
-    def write(self, rgb: np.ndarray) -> None:
+    def _open(self, w: int, h: int) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.codec == "h264":
+            import imageio_ffmpeg
+
+            self._writer = imageio_ffmpeg.write_frames(
+                str(self._tmp), (w - w % 2, h - h % 2), fps=self.fps, codec="libx264", pix_fmt_in="rgb24",
+                pix_fmt_out="yuv420p", quality=None, macro_block_size=1,
+                output_params=["-crf", "20", "-preset", "veryfast", "-movflags", "+faststart"])
+            self._writer.send(None)
+            return
         import cv2
 
+        self._writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h))
+        if not self._writer.isOpened():
+            raise OSError(f"could not open a video writer for {self.path} (OpenCV without FFmpeg?)")
+
+    def write(self, rgb: np.ndarray) -> None:
         if self._writer is None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._open(rgb.shape[1], rgb.shape[0])
+        if self.codec == "h264":
             h, w = rgb.shape[:2]
-            self._writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, (w, h))
-            if not self._writer.isOpened():
-                raise OSError(f"could not open a video writer for {self.path} (OpenCV without FFmpeg?)")
-        self._writer.write(np.ascontiguousarray(rgb[..., ::-1]))
+            self._writer.send(np.ascontiguousarray(rgb[: h - h % 2, : w - w % 2, :3]))
+        else:
+            self._writer.write(np.ascontiguousarray(rgb[..., ::-1]))
         self.frames += 1
 
     def close(self) -> Path:
         if self._writer is None:
             raise ValueError(f"{self.path}: no frames to write")
-        self._writer.release()
+        if self.codec == "h264":
+            try:
+                self._writer.close()
+            except (RuntimeError, OSError) as e:  # ffmpeg failed (e.g. a full disk)
+                self._tmp.unlink(missing_ok=True)
+                from ..io.atomic import write_failed
+
+                raise write_failed(self.path, OSError(str(e))) from None
+        else:
+            self._writer.release()
         _commit_video(self._tmp, self.path, self.frames)
         return self.path
+
+
+def _have_ffmpeg() -> bool:
+    try:
+        import imageio_ffmpeg
+
+        imageio_ffmpeg.get_ffmpeg_exe()
+    except (ImportError, RuntimeError, OSError):
+        return False
+    return True
 
 
 def _commit_video(tmp: Path, path: Path, frames: int) -> None:

@@ -1,0 +1,140 @@
+"""Polycam raw-data export (iPhone / iPad LiDAR, "Export -> Raw data" with developer mode on): a folder.
+
+Layout::
+
+    keyframes/images/<stamp>.jpg        colour (corrected_images/ when present: preferred)
+    keyframes/cameras/<stamp>.json      per frame: fx, fy, cx, cy, width, height (of the image), blur_score,
+                                        t_00 .. t_23: row-major 3 x 4 camera-to-world, ARKit world, OpenGL
+                                        camera axes (corrected_cameras/: Polycam's globally optimised poses,
+                                        preferred when present)
+    keyframes/depth/<stamp>.png         uint16 millimetres, 256 x 192 on current devices
+    keyframes/confidence/<stamp>.png    optional, 0/1/2 (or 8-bit levels)
+
+Frames are the camera files, in the numeric order of their names; a camera file with missing or malformed pose
+fields is left out (``skipped_frames``). Timestamps: the camera files' ``timestamp`` fields, read in the unit
+(s, ms, us or ns) that spaces the keyframes 5 ms to 5 s apart; without them, or with ``fps=`` given, frames are
+spaced at ``fps`` (default 10 per second). All frames share the first camera's intrinsics (a frame whose image size differs is an error). Options:
+``min_confidence``, ``max_depth``, ``color_width``, ``fps`` (see :mod:`.phone`).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..core.camera import Camera
+from .base import DatasetError
+from .phone import PhoneOptions, PhoneSequence, confidence_levels, gl_to_cv, scaled_to
+
+T_KEYS = [f"t_{r}{c}" for r in range(3) for c in range(4)]
+
+
+def detect(path: Path) -> bool:
+    k = path / "keyframes"
+    return path.is_dir() and k.is_dir() and ((k / "cameras").is_dir() or (k / "corrected_cameras").is_dir())
+
+
+def _stem_key(p: Path):
+    try:
+        return (0, float(p.stem), p.stem)
+    except ValueError:
+        return (1, 0.0, p.stem)
+
+
+def _timestamps(stamps: list, n: int, fps: float | None) -> list[float]:
+    if fps is None and len(stamps) == n and n > 1 and all(isinstance(t, (int, float)) for t in stamps):
+        t = np.asarray(stamps, dtype=np.float64)
+        step = float(np.median(np.diff(t)))
+        for unit in (1.0, 1e-3, 1e-6, 1e-9):
+            if np.all(np.diff(t) > 0) and 0.005 <= step * unit <= 5.0:
+                return list((t - t[0]) * unit)
+    return [k / (fps or 10.0) for k in range(n)]
+
+
+def _read_camera(path: Path) -> tuple[Camera, np.ndarray | None, object]:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DatasetError(f"{path}: cannot read the camera JSON ({e})") from None
+    missing = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if k not in data]
+    if missing:
+        raise DatasetError(f"{path}: missing field(s) {', '.join(missing)}")
+    cam = Camera(int(data["width"]), int(data["height"]), float(data["fx"]), float(data["fy"]), float(data["cx"]),
+                 float(data["cy"]))
+    try:
+        M = np.array([float(data[k]) for k in T_KEYS]).reshape(3, 4)
+    except (KeyError, TypeError, ValueError):
+        return cam, None, None
+    if not np.all(np.isfinite(M)):
+        return cam, None, None
+    T = np.eye(4)
+    T[:3] = M
+    return cam, gl_to_cv(T), data.get("timestamp")
+
+
+def open_polycam(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0, color_width: int = 640,
+                 fps: float | None = None) -> PhoneSequence:
+    """Open a Polycam raw-data export folder; see the module docstring."""
+    import cv2
+
+    if fps is not None and not fps > 0:
+        raise DatasetError(f"fps must be positive, got {fps}")
+    opts = PhoneOptions(min_confidence, max_depth, color_width)
+    k = path / "keyframes"
+    cam_dir = k / "corrected_cameras" if (k / "corrected_cameras").is_dir() else k / "cameras"
+    img_dir = k / "corrected_images" if (k / "corrected_images").is_dir() else k / "images"
+    files = sorted(cam_dir.glob("*.json"), key=_stem_key)
+    if not files:
+        raise DatasetError(f"{cam_dir}: no camera JSON files (empty export)")
+    color_cam, names, poses, skipped, stamps = None, [], [], [], []
+    for f in files:
+        cam, T, stamp = _read_camera(f)
+        if color_cam is None:
+            color_cam = cam
+        elif (cam.width, cam.height) != (color_cam.width, color_cam.height):
+            raise DatasetError(f"{f}: image size {cam.width}x{cam.height} differs from the first frame's "
+                               f"{color_cam.width}x{color_cam.height}")
+        if T is None:
+            skipped.append(f"{f}: no valid pose (t_00..t_23), left out")
+            continue
+        names.append(f.stem)
+        poses.append(T)
+        stamps.append(stamp)
+    if not names:
+        raise DatasetError(f"{cam_dir}: none of the {len(files)} camera files has a valid pose")
+    first_depth = k / "depth" / f"{names[0]}.png"
+    d0 = cv2.imread(str(first_depth), cv2.IMREAD_UNCHANGED)
+    if d0 is None or d0.dtype != np.uint16 or d0.ndim != 2:
+        raise DatasetError(f"frame 0: depth file {first_depth} is missing or not a 16-bit single-channel PNG")
+    depth_cam = scaled_to(color_cam, d0.shape[1], d0.shape[0])
+
+    def image(i: int) -> Path:
+        p = img_dir / f"{names[i]}.jpg"
+        return p if p.is_file() else img_dir / f"{names[i]}.png"
+
+    def native(i: int):
+        ip, dp, cp = image(i), k / "depth" / f"{names[i]}.png", k / "confidence" / f"{names[i]}.png"
+        bgr = cv2.imread(str(ip), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise DatasetError(f"frame {i}: colour file {ip} is missing or corrupt")
+        if ip.suffix == ".jpg" and b"\xff\xd9" not in ip.read_bytes()[-64:]:
+            raise DatasetError(f"frame {i}: colour file {ip} is truncated (no JPEG end-of-image marker)")
+        d = cv2.imread(str(dp), cv2.IMREAD_UNCHANGED)
+        if d is None or d.dtype != np.uint16 or d.ndim != 2:
+            raise DatasetError(f"frame {i}: depth file {dp} is missing, corrupt or not a 16-bit PNG")
+        conf = None
+        if cp.is_file():
+            c = cv2.imread(str(cp), cv2.IMREAD_UNCHANGED)
+            if c is None:
+                raise DatasetError(f"frame {i}: confidence file {cp} is corrupt")
+            conf = confidence_levels(c if c.ndim == 2 else c[..., 0])
+        return bgr[..., ::-1].copy(), d.astype(np.float32) / 1000.0, conf
+
+    seq = PhoneSequence(native=native, color_native=color_cam, depth_native=depth_cam, opts=opts,
+                        where=lambda i: str(image(i)), name=path.name, path=path,
+                        timestamps=_timestamps(stamps, len(names), fps), poses=poses, format="polycam")
+    seq.skipped_frames = skipped
+    seq.frame_names = names
+    return seq

@@ -1,0 +1,167 @@
+"""Record3D captures (iPhone / iPad LiDAR app): the ``.r3d`` export, a ZIP, or the same files unzipped into a folder.
+
+Layout (checked against Record3D's own samples and the public parsers)::
+
+    metadata        JSON: "w", "h" (colour size), "K" (9 numbers, COLUMN-major, for the colour size: K[6], K[7]
+                    are cx, cy), "dw", "dh" (depth size; older captures lack them: inferred from the first depth
+                    blob and the colour aspect), "fps", "poses" (one [qx, qy, qz, qw, tx, ty, tz] per frame:
+                    camera-to-world, ARKit world, OpenGL camera axes), optional "frameTimestamps" (s)
+    rgbd/N.jpg      colour of frame N (N = 0, 1, ...)
+    rgbd/N.depth    LZFSE-compressed float32 metres, dh x dw, row-major
+    rgbd/N.conf     optional, LZFSE-compressed uint8 confidence 0/1/2, dh x dw
+
+Frames are read from the archive one at a time (nothing is extracted). A frame with no pose (``poses`` shorter
+than the frames) is left out and listed in ``skipped_frames``. LZFSE comes from ``pyliblzfse`` (optional extra
+``phone``). Options: ``min_confidence``, ``max_depth``, ``color_width`` (see :mod:`.phone`).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from ..core.camera import Camera, pose_from_tum
+from .base import DatasetError
+from .phone import PhoneOptions, PhoneSequence, gl_to_cv, import_lzfse, scaled_to
+
+_FRAME = re.compile(r"^rgbd/(\d+)\.jpg$")
+
+
+def detect(path: Path) -> bool:
+    if path.is_file():
+        return path.suffix.lower() == ".r3d"
+    return path.is_dir() and (path / "metadata").is_file() and (path / "rgbd").is_dir()
+
+
+class _Archive:
+    """The capture's files by name, from the ZIP or from an unzipped folder."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.zip = None
+        if path.is_file():
+            try:
+                self.zip = zipfile.ZipFile(path)
+            except (zipfile.BadZipFile, OSError) as e:
+                raise DatasetError(f"{path}: not a readable Record3D capture ({e}; truncated, or not a ZIP)") \
+                    from None
+            self.names = set(self.zip.namelist())
+        else:
+            self.names = {p.relative_to(path).as_posix() for p in path.rglob("*") if p.is_file()}
+
+    def where(self, name: str) -> str:
+        return f"{self.path}:{name}" if self.zip is not None else str(self.path / name)
+
+    def read(self, name: str) -> bytes:
+        if name not in self.names:
+            raise DatasetError(f"{self.where(name)}: missing from the capture")
+        try:
+            return self.zip.read(name) if self.zip is not None else (self.path / name).read_bytes()
+        except (zipfile.BadZipFile, OSError, EOFError, zipfile.LargeZipFile) as e:
+            raise DatasetError(f"{self.where(name)}: cannot read ({e}; truncated capture?)") from None
+
+
+def _metadata(ar: _Archive) -> dict:
+    if "metadata" not in ar.names:
+        raise DatasetError(f"{ar.where('metadata')}: no metadata in the capture (is it a Record3D .r3d export?)")
+    try:
+        meta = json.loads(ar.read("metadata"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DatasetError(f"{ar.where('metadata')}: not valid JSON ({e})") from None
+    missing = [k for k in ("w", "h", "K", "poses") if not isinstance(meta, dict) or k not in meta]
+    if missing:
+        raise DatasetError(f"{ar.where('metadata')}: missing field(s) {', '.join(missing)}")
+    return meta
+
+
+def intrinsics_from_K(K: list, w: int, h: int, where: str) -> Camera:
+    """Record3D's K (9 numbers, column-major: [fx, 0, 0, 0, fy, 0, cx, cy, 1]) -> Camera of the colour size."""
+    try:
+        M = np.asarray(K, dtype=np.float64).reshape(3, 3).T  # column-major -> the usual row-major matrix
+    except (TypeError, ValueError):
+        raise DatasetError(f"{where}: K must be 9 numbers, got {K!r:.80}") from None
+    if abs(M[2, 2] - 1.0) > 1e-6 or abs(M[0, 2]) < 1 or abs(M[1, 2]) < 1 or abs(M[2, 0]) + abs(M[2, 1]) > 1e-6:
+        raise DatasetError(f"{where}: K is not a column-major pinhole matrix [fx 0 0 0 fy 0 cx cy 1]: {K}")
+    return Camera(int(w), int(h), float(M[0, 0]), float(M[1, 1]), float(M[0, 2]), float(M[1, 2]))
+
+
+def _poses(meta: dict, where: str) -> list[np.ndarray]:
+    poses = []
+    for k, p in enumerate(meta["poses"]):
+        v = np.asarray(p, dtype=np.float64).reshape(-1)
+        if v.shape != (7,) or not np.all(np.isfinite(v)) or np.linalg.norm(v[:4]) < 1e-6:
+            poses.append(None)  # a lost-tracking / malformed entry: the frame is skipped
+            continue
+        poses.append(gl_to_cv(pose_from_tum(v[4:], v[:4] / np.linalg.norm(v[:4]))))
+    return poses
+
+
+def open_record3d(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0, color_width: int = 640,
+                  fps: float | None = None) -> PhoneSequence:
+    """Open a Record3D ``.r3d`` capture (or its unzipped folder); see the module docstring."""
+    opts = PhoneOptions(min_confidence, max_depth, color_width)
+    ar = _Archive(Path(path))
+    meta = _metadata(ar)
+    mwhere = ar.where("metadata")
+    color_cam = intrinsics_from_K(meta["K"], meta["w"], meta["h"], mwhere)
+    frames = sorted(int(m.group(1)) for m in (_FRAME.match(n) for n in ar.names) if m)
+    if not frames:
+        raise DatasetError(f"{ar.path}: no rgbd/N.jpg frames in the capture (empty recording)")
+    lz = import_lzfse()
+    if "dw" in meta and "dh" in meta:
+        dw, dh = int(meta["dw"]), int(meta["dh"])
+    else:  # older captures: the first blob's size and the colour aspect say it
+        n = len(lz.decompress(ar.read(f"rgbd/{frames[0]}.depth"))) // 4
+        dw = int(round(np.sqrt(n * color_cam.width / color_cam.height)))
+        dh = n // max(dw, 1)
+    depth_cam = scaled_to(color_cam, dw, dh)
+    poses = _poses(meta, mwhere)
+    keep = [n for n in frames if n < len(poses) and poses[n] is not None]
+    skipped = [f"{ar.where(f'rgbd/{n}.jpg')}: no pose in metadata (lost tracking), left out"
+               for n in frames if n not in set(keep)]
+    if not keep:
+        raise DatasetError(f"{mwhere}: none of the {len(frames)} frames has a pose")
+    rate = float(fps or meta.get("fps") or 30.0)
+    stamps = meta.get("frameTimestamps")
+    if isinstance(stamps, list) and len(stamps) >= len(frames) and all(isinstance(t, (int, float)) for t in stamps):
+        timestamps = [float(stamps[n]) for n in keep]
+    else:
+        timestamps = [n / rate for n in keep]
+
+    def blob(n: int, ext: str, dtype, required: bool):
+        name = f"rgbd/{n}.{ext}"
+        if name not in ar.names:
+            if required:
+                raise DatasetError(f"{ar.where(name)}: missing from the capture")
+            return None
+        try:
+            raw = lz.decompress(ar.read(name))
+        except DatasetError:
+            raise
+        except Exception as e:  # liblzfse raises its own error type for corrupt data
+            raise DatasetError(f"{ar.where(name)}: not LZFSE data ({e})") from None
+        a = np.frombuffer(raw, dtype=dtype)
+        if a.size != dw * dh:
+            raise DatasetError(f"{ar.where(name)}: {a.size} values, expected dw x dh = {dw}x{dh} = {dw * dh}")
+        return a.reshape(dh, dw)
+
+    def native(i: int):
+        import cv2
+
+        n = keep[i]
+        data = np.frombuffer(ar.read(f"rgbd/{n}.jpg"), dtype=np.uint8)
+        bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
+        if bgr is None or not data[-64:].tobytes().__contains__(b"\xff\xd9"):
+            raise DatasetError(f"frame {i}: colour {ar.where(f'rgbd/{n}.jpg')} is corrupt or truncated")
+        return bgr[..., ::-1].copy(), blob(n, "depth", np.float32, True), blob(n, "conf", np.uint8, False)
+
+    seq = PhoneSequence(native=native, color_native=color_cam, depth_native=depth_cam, opts=opts,
+                        where=lambda i: ar.where(f"rgbd/{keep[i]}.jpg"), name=ar.path.stem, path=ar.path,
+                        timestamps=timestamps, poses=[poses[n] for n in keep], format="record3d")
+    seq.skipped_frames = skipped
+    seq.frame_numbers = keep  # rgbd/N of each frame
+    return seq

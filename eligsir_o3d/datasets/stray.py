@@ -1,0 +1,160 @@
+"""Stray Scanner captures (iPhone / iPad LiDAR app): one folder per recording.
+
+Layout (the app's own format description)::
+
+    rgb.mp4               colour video (HEVC on the phone), one frame per depth frame
+    depth/000000.png      uint16 millimetres, 256 x 192 on current devices
+    confidence/000000.png optional, uint8 0/1/2
+    camera_matrix.csv     3 x 3 K for the full colour video size
+    odometry.csv          one row per frame: header ``timestamp, frame, x, y, z, qx, qy, qz, qw`` (older captures:
+                          ``x, y, z, qx, qy, qz, qw`` only, or no header at all), camera-to-world; the app already
+                          turned ARKit's camera axes into OpenCV's (it multiplies by a 180-degree turn about x)
+
+Columns are found by their header names. The video is decoded in order (a request behind the decoder reopens
+it), so a stream reads each frame once. Options: ``min_confidence``, ``max_depth``, ``color_width``, ``fps``
+(only used without a timestamp column; the app records at 60 Hz) -- see :mod:`.phone`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..core.camera import Camera, pose_from_tum
+from .base import DatasetError
+from .phone import PhoneOptions, PhoneSequence, check_frame_count, confidence_levels, scaled_to
+
+POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
+
+
+def detect(path: Path) -> bool:
+    return path.is_dir() and (path / "odometry.csv").is_file() and (path / "depth").is_dir() and \
+        ((path / "rgb.mp4").is_file() or (path / "camera_matrix.csv").is_file())
+
+
+def read_odometry(path: Path) -> list[dict]:
+    """Rows of ``odometry.csv`` as dicts of floats (keys from the header, or :data:`POSE_COLUMNS`)."""
+    try:
+        lines = [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
+    except (OSError, UnicodeDecodeError) as e:
+        raise DatasetError(f"cannot read {path}: {e}") from None
+    if not lines:
+        raise DatasetError(f"{path}: empty file (no poses)")
+    first = [f.strip() for f in lines[0].split(",")]
+    try:
+        [float(f) for f in first]
+        header, body = list(POSE_COLUMNS) if len(first) == 7 else None, list(enumerate(lines, 1))
+    except ValueError:
+        header, body = [f.lower() for f in first], list(enumerate(lines[1:], 2))
+    if header is None or any(c not in header for c in POSE_COLUMNS):
+        raise DatasetError(f"{path}: header must name the columns {', '.join(POSE_COLUMNS)} (got "
+                           f"{', '.join(first) if header is None else ', '.join(header)})")
+    rows = []
+    for lineno, line in body:
+        fields = [f.strip() for f in line.split(",")]
+        if len(fields) != len(header):
+            raise DatasetError(f"{path}:{lineno}: expected {len(header)} fields, got {len(fields)}")
+        try:
+            rows.append({k: float(v) for k, v in zip(header, fields)})
+        except ValueError:
+            raise DatasetError(f"{path}:{lineno}: not a number in {line[:80]!r}") from None
+    return rows
+
+
+class _Video:
+    """Frames of ``rgb.mp4`` in order, with a reopen when asked for an earlier one."""
+
+    def __init__(self, path: Path) -> None:
+        self.path, self.cap, self.next = path, None, 0
+
+    def _open(self) -> None:
+        import cv2
+
+        if self.cap is not None:
+            self.cap.release()
+        self.cap, self.next = cv2.VideoCapture(str(self.path)), 0
+        if not self.cap.isOpened():
+            raise DatasetError(f"{self.path}: cannot open the video")
+
+    def size(self) -> tuple[int, int]:
+        import cv2
+
+        self._open()
+        return int(self.cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(self.cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+
+    def frame(self, k: int) -> np.ndarray:
+        if self.cap is None or k < self.next:
+            self._open()
+        while self.next < k:
+            if not self.cap.grab():
+                raise DatasetError(f"frame {k}: {self.path} ends after {self.next} frames")
+            self.next += 1
+        ok, bgr = self.cap.read()
+        if not ok:
+            raise DatasetError(f"frame {k}: {self.path} ends after {self.next} frames")
+        self.next += 1
+        return bgr[..., ::-1].copy()
+
+
+def _camera_matrix(path: Path, size: tuple[int, int]) -> Camera:
+    try:
+        K = np.loadtxt(path, delimiter=",", dtype=np.float64).reshape(3, 3)
+    except (OSError, ValueError) as e:
+        raise DatasetError(f"{path}: expected a 3x3 comma-separated camera matrix ({e})") from None
+    if abs(K[2, 2] - 1.0) > 1e-6 or not K[0, 0] > 0 or not K[1, 1] > 0:
+        raise DatasetError(f"{path}: not a pinhole camera matrix [[fx 0 cx] [0 fy cy] [0 0 1]]: {K.tolist()}")
+    return Camera(size[0], size[1], float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+
+
+def open_stray(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0, color_width: int = 640,
+               fps: float = 60.0) -> PhoneSequence:
+    """Open a Stray Scanner folder; see the module docstring."""
+    import cv2
+
+    opts = PhoneOptions(min_confidence, max_depth, color_width)
+    depths = sorted((path / "depth").glob("*.png"))
+    if not depths:
+        raise DatasetError(f"{path / 'depth'}: no depth PNGs (empty recording)")
+    video = _Video(path / "rgb.mp4")
+    if not video.path.is_file():
+        raise DatasetError(f"{video.path}: missing (the capture's colour video)")
+    color_cam = _camera_matrix(path / "camera_matrix.csv", video.size())
+    first = cv2.imread(str(depths[0]), cv2.IMREAD_UNCHANGED)
+    if first is None or first.dtype != np.uint16 or first.ndim != 2:
+        raise DatasetError(f"frame 0: depth file {depths[0]} is not a 16-bit single-channel PNG")
+    depth_cam = scaled_to(color_cam, first.shape[1], first.shape[0])
+    rows = read_odometry(path / "odometry.csv")
+    check_frame_count(path / "odometry.csv", "poses", len(rows), len(depths))
+    keep, poses, skipped = [], [], []
+    for k, r in enumerate(rows[:len(depths)]):
+        q = np.array([r["qx"], r["qy"], r["qz"], r["qw"]])
+        if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6:
+            skipped.append(f"{path / 'odometry.csv'}: frame {k} has no valid pose (lost tracking), left out")
+            continue
+        keep.append(k)
+        poses.append(pose_from_tum(np.array([r["x"], r["y"], r["z"]]), q / np.linalg.norm(q)))
+    if not keep:
+        raise DatasetError(f"{path / 'odometry.csv'}: none of the {len(depths)} frames has a valid pose")
+    timestamps = [rows[k]["timestamp"] if "timestamp" in rows[k] else k / fps for k in keep]
+    confs = path / "confidence"
+
+    def native(i: int):
+        k = keep[i]
+        d = cv2.imread(str(depths[k]), cv2.IMREAD_UNCHANGED)
+        if d is None or d.dtype != np.uint16 or d.ndim != 2:
+            raise DatasetError(f"frame {i}: depth file {depths[k]} is corrupt or not a 16-bit single-channel PNG")
+        cf = confs / depths[k].name
+        conf = None
+        if cf.is_file():
+            c = cv2.imread(str(cf), cv2.IMREAD_UNCHANGED)
+            if c is None:
+                raise DatasetError(f"frame {i}: confidence file {cf} is corrupt")
+            conf = confidence_levels(c if c.ndim == 2 else c[..., 0])
+        return video.frame(k), d.astype(np.float32) / 1000.0, conf
+
+    seq = PhoneSequence(native=native, color_native=color_cam, depth_native=depth_cam, opts=opts,
+                        where=lambda i: f"{video.path} / {depths[keep[i]]}", name=path.name, path=path,
+                        timestamps=timestamps, poses=poses, format="stray")
+    seq.skipped_frames = skipped
+    return seq

@@ -1,0 +1,124 @@
+"""Maps for the web: map.spz read back by an independent reader (PlayCanvas' splat-transform, run with node)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from eligsir_o3d import Config
+from eligsir_o3d.export_splats import parse_formats, rdf_to_rub, read_splats, write_web_formats
+from eligsir_o3d.run.pipeline import RunOptions, run_mapping
+
+ROOT = Path(__file__).resolve().parents[1]
+SEVEN = ROOT / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
+pytestmark = pytest.mark.skipif(not SEVEN.is_dir(), reason="../shared/data is not available")
+
+
+def _splat_transform() -> list[str] | None:
+    exe = Path(os.environ.get("ELIGSIR_SPLAT_TRANSFORM", ROOT / ".npm" / "node_modules" / ".bin" / "splat-transform"))
+    if not exe.exists() or shutil.which("node") is None:
+        return None
+    return ["node", str(exe)]
+
+
+def _run(tmp_path, sh_degree: int, frames: int = 16) -> Path:
+    cfg = Config(renderer="cpu", sh_degree=sh_degree)
+    cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 3, 30
+    out = tmp_path / f"run_sh{sh_degree}"
+    run_mapping(str(SEVEN), out, cfg, RunOptions(max_frames=frames, eval_every=0, progress=False, plots=False,
+                                                  pictures=False, formats="ply,spz,splat"))
+    return out
+
+
+@pytest.fixture(scope="module")
+def run_sh0(tmp_path_factory):
+    return _run(tmp_path_factory.mktemp("web"), 0)
+
+
+def _sigmoid(x):
+    return 1.0 / (1.0 + np.exp(-x))
+
+
+def test_map_writes_spz_and_splat_beside_the_ply(run_sh0):
+    for name in ("map.ply", "map.spz", "map.splat"):
+        assert (run_sh0 / name).stat().st_size > 0
+    ply, spz = (run_sh0 / "map.ply").stat().st_size, (run_sh0 / "map.spz").stat().st_size
+    assert ply / spz > 3.5  # SH degree 0: 68 bytes per Gaussian in the PLY (normals included), ~17 in SPZ
+
+
+def test_spz_read_back_by_splat_transform_matches_the_map(run_sh0, tmp_path):
+    """splat-transform decodes SPZ without any axis conversion, so its output must equal our map turned to RUB
+    (the SPZ spec's axes) within SPZ's quantisation."""
+    cmd = _splat_transform()
+    if cmd is None:
+        pytest.skip("splat-transform not installed (tools/setup.sh --test installs it into .npm/)")
+    back = tmp_path / "back.ply"
+    subprocess.run([*cmd, "-w", str(run_sh0 / "map.spz"), str(back)], check=True, capture_output=True, timeout=120)
+    from plyfile import PlyData
+
+    b = PlyData.read(str(back), mmap=False)["vertex"]
+    m = PlyData.read(str(run_sh0 / "map.ply"), mmap=False)["vertex"]  # the map as written: RDF, log scales, logits
+    flip = np.array([1.0, -1.0, -1.0])
+    a = {"positions": np.stack([m["x"], m["y"], m["z"]], 1) * flip,
+         "rot": np.stack([m[f"rot_{i}"] for i in range(4)], 1) * np.array([1.0, 1.0, -1.0, -1.0]),
+         "scale": np.stack([m[f"scale_{i}"] for i in range(3)], 1), "opacity": np.asarray(m["opacity"])[:, None],
+         "f_dc": np.stack([m[f"f_dc_{i}"] for i in range(3)], 1)}
+    assert len(b["x"]) == len(a["positions"]) > 100
+    pos = np.stack([b["x"], b["y"], b["z"]], 1)
+    np.testing.assert_allclose(pos, a["positions"], atol=2.0 ** -12 + 1e-6)  # 12 fractional bits
+    np.testing.assert_allclose(np.stack([b[f"scale_{i}"] for i in range(3)], 1), a["scale"], atol=1 / 32 + 1e-4)
+    np.testing.assert_allclose(_sigmoid(b["opacity"]), _sigmoid(a["opacity"][:, 0]), atol=1 / 255 + 1e-4)
+    np.testing.assert_allclose(np.stack([b[f"f_dc_{i}"] for i in range(3)], 1), a["f_dc"], atol=0.02)
+    q_ref = a["rot"] / np.linalg.norm(a["rot"], axis=1, keepdims=True)
+    q = np.stack([b[f"rot_{i}"] for i in range(4)], 1)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    assert np.abs(np.sum(q * q_ref, axis=1)).min() > 0.995  # same rotation (q and -q alike), ~10-bit components
+    # the axis turn is there: y and z of the SPZ are the map's, negated
+    raw = read_splats(run_sh0 / "map.ply").point.positions.numpy()
+    np.testing.assert_allclose(pos[:, 1:], -raw[:, 1:], atol=2.0 ** -12 + 1e-6)
+
+
+def test_spz_is_six_times_smaller_at_sh_degree_3(tmp_path):
+    out = _run(tmp_path, 3, frames=8)
+    ratio = (out / "map.ply").stat().st_size / (out / "map.spz").stat().st_size
+    assert ratio >= 6.0, ratio
+
+
+def test_rub_turn_flips_sh_signs_and_is_its_own_inverse(run_sh0):
+    pcd = read_splats(run_sh0 / "map.ply")
+    twice = rdf_to_rub(rdf_to_rub(pcd))
+    for k in ("positions", "rot", "scale", "opacity", "f_dc"):
+        np.testing.assert_array_equal(twice.point[k].numpy(), pcd.point[k].numpy().astype(np.float32))
+
+
+def test_formats_and_bad_paths():
+    assert parse_formats("spz, ply,splat") == ["ply", "spz", "splat"]
+    with pytest.raises(ValueError, match="unknown map format"):
+        parse_formats("ply,gltf")
+    with pytest.raises(ValueError, match="no such map"):
+        write_web_formats("/nonexistent/map.ply", spz="x.spz")
+
+
+def test_heldout_picture_of_real_frames_is_at_most_300_kB():
+    import io
+
+    import torch
+    from PIL import Image
+
+    from eligsir_o3d.datasets import open_sequence
+    from eligsir_o3d.visual.pictures import MAX_PICTURE_BYTES, comparison_picture, small_png
+
+    seq = open_sequence(SEVEN)
+    f, g = seq.frame(10), seq.frame(14)  # a neighbouring frame stands in for a render: real texture, real errors
+    pic = comparison_picture(f.color, f.depth, g.color, g.depth, torch.ones_like(g.depth), "held-out frame 10")
+    data = small_png(pic)
+    assert len(data) <= MAX_PICTURE_BYTES == 300_000
+    back = np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+    assert back.shape == pic.shape  # still full size: legible
+    mse = np.mean((back.astype(float) - pic.astype(float)) ** 2)
+    assert 10 * np.log10(255.0 ** 2 / mse) > 30.0  # 256 colours, no dithering: text and colour maps intact
