@@ -163,7 +163,7 @@ class MappingPipeline:
                                                                  self.config.clock.on_bad_frame)  # unreadable: dropped
         self.heldout_tracking = None  # a recording without poses: held-out views posed by the run's pose source
         if seq.poses is None and self.pose_source is not None and self.heldout_frames:
-            from .eval.tracked_heldout import TrackedHeldout
+            from ..eval.tracked_heldout import TrackedHeldout
 
             self.heldout_tracking = TrackedHeldout(self.pose_name, self.pose_source, seq, self.config.depth_max)
             self.heldout_frames = self.heldout_tracking.track(self.heldout_frames, self.source)

@@ -93,7 +93,7 @@ def collect_metrics(p) -> dict:
 
 
 def _heldout_pose_origin(p) -> str:
-    from .eval.tracked_heldout import heldout_pose_label
+    from ..eval.tracked_heldout import heldout_pose_label
 
     return heldout_pose_label(p.pose_name, getattr(p, "heldout_tracking", None) is not None)
 
