@@ -183,6 +183,13 @@ def test_retained_view_returns_to_active_set_when_its_cells_error_rises():
     rng = torch.Generator().manual_seed(0)
     picks = [views.select(rng).index for _ in range(200)]
     assert picks.count(0) > picks.count(1)
+    # the trace shows it: view 0 demoted, then promoted again (a return); replays per view in the final rows
+    events = [(r["event"], r["view"]) for r in views.trace.rows if r["event"] in ("promote", "demote")]
+    assert ("promote", 0) in events[events.index(("demote", 0)):]
+    assert views.counters()["returns"] >= 1
+    final = {r["view"]: r for r in views.trace_rows() if r["event"] == "final"}
+    assert [final[i]["replays"] for i in range(3)] == [4, 3, 3] and final[0]["active"] == 1
+    assert final[0]["cell_error"] == pytest.approx(0.7 * 0.01 + 0.3 * 0.30, abs=1e-4)  # the EMA of its cells
 
 
 def test_get_policies_swaps_each_ablated_mechanism():
