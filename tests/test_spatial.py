@@ -83,3 +83,31 @@ def test_cli_eval_of_two_folders_writes_the_delta_map(tmp_path):
     assert res.exit_code == 0, res.output
     assert "> 10 dB: 1" in res.output
     assert (tmp_path / "fig" / "spatial_delta.png").is_file()
+
+
+def test_spread_over_seeds():
+    from eligsir_o3d.eval.spatial import spread
+
+    r1 = cell_deltas(_table(KEYS, Q_A), _table(KEYS, Q_B))
+    r2 = cell_deltas(_table(KEYS, Q_B), _table(KEYS, Q_B))  # identical runs: nothing improved
+    s = spread([r1, r2])
+    assert s["improved_10db"] == (0.5, pytest.approx(0.5 ** 0.5))
+    assert s["n_common"] == (12.0, 0.0)
+    assert spread([r1])["worse"] == (2.0, None)
+
+
+def test_spatial_table_and_criteria(tmp_path):
+    from eligsir_o3d.eval.spatial import format_spatial, spatial_table, view_criteria
+
+    a, b = _folder(tmp_path / "full", Q_A), _folder(tmp_path / "abl", Q_B)
+    table = spatial_table({"scheduling": [(a, b, tmp_path / "sp")], "growth": [(a, tmp_path / "missing", tmp_path)]})
+    assert list(table) == ["scheduling"] and (tmp_path / "sp" / "spatial_delta.png").is_file()
+    text = format_spatial(table, {"scheduling": "w/o view scheduling"})
+    assert "| w/o view scheduling | 12 |" in text and "| 1.0 |" in text  # one cell > +10 dB
+    full = {"psnr": 20.0, "psnr_sd": 0.3, "cuc20": 60.0, "cuc20_sd": 1.0}
+    abl = {"psnr": 20.2, "psnr_sd": 0.1, "cuc20": 62.0, "cuc20_sd": 0.5}
+    lines = view_criteria(full, abl, table["scheduling"]["spread"])
+    assert lines[0].startswith("full's held-out PSNR") and ": yes (margin -0.20, sd 0.30)" in lines[0]
+    assert ": NO (margin -2.00, sd 1.00)" in lines[1]
+    assert "weakest decile of cells higher than w/o view scheduling's: yes (13.50 vs 10.00 dB" in lines[2]
+    assert lines[3].startswith("cells improved by more than 10 dB: 1.0 per seed")

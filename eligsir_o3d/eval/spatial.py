@@ -49,9 +49,9 @@ def cell_deltas(cells_a: dict, cells_b: dict) -> dict:
     Returns a JSON-ready dict: ``keys`` [n, 3], ``q_a``, ``q_b``, ``delta`` [n] (dB, A - B) and the summary figures.
     Raises ValueError when the tables use different cell sizes.
     """
+    qa, qb = evaluable(cells_a), evaluable(cells_b)
     if float(cells_a["cell_size"]) != float(cells_b["cell_size"]):
         raise ValueError(f"cell sizes differ: {cells_a['cell_size']} vs {cells_b['cell_size']} m")
-    qa, qb = evaluable(cells_a), evaluable(cells_b)
     keys = sorted(set(qa) & set(qb))
     a = np.array([qa[k] for k in keys], dtype=np.float64)
     b = np.array([qb[k] for k in keys], dtype=np.float64)
@@ -176,3 +176,82 @@ def format_summary(result: dict) -> str:
         f"(< -5 dB: {s['worse_5db']}); delta range {s['min_delta']:+.2f} .. {s['max_delta']:+.2f} dB",
         f"  figure: {result.get('png')}",
     ])
+
+
+SPREAD_KEYS = ("n_common", "mean_delta", "weak_b_under_b", "weak_b_under_a", "own_decile_a", "own_decile_b",
+               "improved_5db", "improved_10db", "worse", "worse_5db", "max_delta")
+
+
+def spread(results: list[dict]) -> dict:
+    """{figure: (mean, sd)} of :func:`cell_deltas` summaries over several seeds (sd None with one seed; seeds
+    without common cells are skipped)."""
+    summaries = [dict(r["summary"], n_common=r["n_common"]) for r in results if r.get("summary")]
+    out = {}
+    for key in SPREAD_KEYS:
+        vals = np.array([s[key] for s in summaries], dtype=np.float64)
+        if len(vals):
+            out[key] = (float(vals.mean()), float(vals.std(ddof=1)) if len(vals) > 1 else None)
+    return out
+
+
+def spatial_table(pairs: dict[str, list[tuple]]) -> dict[str, dict]:
+    """{variant: [(folder A, folder B, output folder), ...]} (one triple per seed) -> {variant: {"spread":
+    :func:`spread` over the seeds, "png": the figures}}; a pair that cannot be compared is reported and skipped."""
+    table = {}
+    for v, triples in pairs.items():
+        done = []
+        for a, b, folder in triples:
+            try:
+                done.append(compare_spatial(a, b, folder))
+            except (ValueError, FileNotFoundError) as e:
+                print(f"no per-cell comparison of {a} and {b}: {e}")
+        if done:
+            table[v] = {"spread": spread(done), "png": [r["png"] for r in done]}
+    return table
+
+
+def view_criteria(full: dict, abl: dict | None, sp: dict | None) -> list[str]:
+    """Issue 30's checks on Table III rows (means with ``<key>_sd``) and :func:`spread` of full vs w/o view scheduling:
+    PSNR and CUC@20 no lower by more than one seed sd, full's own weakest decile higher, cells > 10 dB."""
+    lines = []
+    for key, name in (("psnr", "held-out PSNR"), ("cuc20", "CUC@20")) if abl else ():
+        if full.get(key) is None or abl.get(key) is None:
+            continue
+        sd = max(full.get(key + "_sd") or 0.0, abl.get(key + "_sd") or 0.0)
+        margin = full[key] - abl[key]
+        lines.append(f"full's {name} no lower than w/o view scheduling by more than one seed sd: "
+                     f"{'yes' if margin >= -sd else 'NO'} (margin {margin:+.2f}, sd {sd:.2f})")
+    sp = sp or {}
+    if "own_decile_a" in sp:
+        a, b = sp["own_decile_a"][0], sp["own_decile_b"][0]
+        lines.append(f"full's weakest decile of cells higher than w/o view scheduling's: {'yes' if a > b else 'NO'} "
+                     f"({a:.2f} vs {b:.2f} dB; the ablation's weakest cells under full: {sp['weak_b_under_a'][0]:.2f} "
+                     f"vs {sp['weak_b_under_b'][0]:.2f} dB)")
+        lines.append(f"cells improved by more than 10 dB: {sp['improved_10db'][0]:.1f} per seed "
+                     f"(> 5 dB: {sp['improved_5db'][0]:.1f}, worse: {sp['worse'][0]:.1f} of {sp['n_common'][0]:.0f})")
+    return lines
+
+
+SPATIAL_COLUMNS = [("cells", "n_common", "{:.0f}"), ("own weakest decile full [dB]", "own_decile_a", "{:.2f}"),
+                   ("own weakest decile abl. [dB]", "own_decile_b", "{:.2f}"),
+                   ("abl. weakest decile: abl. / full [dB]", ("weak_b_under_b", "weak_b_under_a"), "{:.2f}"),
+                   ("cells > +5 dB", "improved_5db", "{:.1f}"), ("cells > +10 dB", "improved_10db", "{:.1f}"),
+                   ("cells worse", "worse", "{:.1f}"), ("max delta [dB]", "max_delta", "{:.1f}")]
+
+
+def plus_minus(value, sd, fmt: str) -> str:
+    """``value`` formatted, with `` ± sd`` when an sd is given."""
+    return fmt.format(value) + ("" if sd is None else " ± " + fmt.format(sd))
+
+
+def format_spatial(table: dict[str, dict], labels: dict | None = None) -> str:
+    """Markdown table, a row per ablation: ``table`` maps a variant to {"spread": :func:`spread`'s result}."""
+    head = "| full vs | " + " | ".join(c[0] for c in SPATIAL_COLUMNS) + " |"
+    lines = [head, "|" + "---|" * (len(SPATIAL_COLUMNS) + 1)]
+    for v, t in table.items():
+        sp, cells = t["spread"], []
+        for _, key, fmt in SPATIAL_COLUMNS:
+            keys = key if isinstance(key, tuple) else (key,)
+            cells.append(" / ".join(plus_minus(*sp[k], fmt) if k in sp else "-" for k in keys))
+        lines.append(f"| {(labels or {}).get(v, v)} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
