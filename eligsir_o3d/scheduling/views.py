@@ -35,6 +35,10 @@ class ViewConfig:
     max_gap_s: float = 1.0  # admit the next non-redundant view when none was admitted for this long
     active_size: int = 16  # views in the active supervision set
     active_share: float = 0.5  # share of updates drawn from the active set (the rest replays retained views)
+    # how the retained (non-active) share picks its view: "stalest" replays the retained view whose last update is
+    # oldest (a round robin: every region is replayed, as with fixed-stride keyframes, and its cells' error stays
+    # measured, so a regression can promote the view again); "priority" draws in proportion to priority
+    retained_replay: str = "stalest"
     refresh_every: int = 10  # updates between priority refreshes
     fresh_updates: int = 15  # a newly admitted view keeps a (linearly decaying) bonus for this many of its updates
     fresh_bonus: float = 0.2  # priority bonus of a brand-new view (a cell at init_error gives need ~0.12)
@@ -55,6 +59,7 @@ class _View:
     updates: int = 0
     priority: float = 0.0
     last_error: float = float("nan")
+    last_update: int = -1  # the policy's update count when this view last supervised one (-1: never)
     pixel_cells: dict = field(default_factory=dict)  # (h, w) -> (flat pixel idx [M], cell ids [M])
 
 
@@ -66,6 +71,8 @@ class MapGuidedViews(ViewPolicy):
     def __init__(self, cfg: ViewConfig | None = None, probe: SupportProbe | None = None,
                  cells: Microcells | None = None):
         self.cfg = cfg or ViewConfig()
+        if self.cfg.retained_replay not in ("stalest", "priority"):
+            raise ValueError(f"views.retained_replay must be 'stalest' or 'priority', got {self.cfg.retained_replay!r}")
         self.probe = probe or SupportProbe()
         self.cells = cells or Microcells(self.cfg.cells)
         self._views: list[_View] = []
@@ -229,6 +236,9 @@ class MapGuidedViews(ViewPolicy):
         retained = [i for i in range(len(self._views)) if i not in active]
         pool = self.active
         if retained and float(torch.rand((), generator=rng)) >= self.cfg.active_share:
+            if self.cfg.retained_replay == "stalest":  # oldest last update first; ties: the higher priority
+                pick = min(retained, key=lambda i: (self._views[i].last_update, -self._views[i].priority))
+                return self._views[pick].frame
             pool = retained
         p = torch.tensor([self._views[i].priority for i in pool], dtype=torch.float64)
         pick = pool[int(torch.multinomial(p / p.sum(), 1, generator=rng))]
@@ -248,6 +258,7 @@ class MapGuidedViews(ViewPolicy):
         self.cells.accumulate(ids, err[pix])
         view.updates += 1
         self.updates += 1
+        view.last_update = self.updates
         view.last_error = float(err.mean())
         self._since_refresh += 1
 
@@ -264,7 +275,7 @@ class MapGuidedViews(ViewPolicy):
         views = [{"color": v.frame.color, "depth": v.frame.depth, "camera": v.frame.camera,
                   "T_world_cam": v.frame.T_world_cam, "timestamp": v.frame.timestamp, "index": v.frame.index,
                   "cells": v.cells, "weights": v.weights, "updates": v.updates, "priority": v.priority,
-                  "last_error": v.last_error} for v in self._views]
+                  "last_error": v.last_error, "last_update": v.last_update} for v in self._views]
         # the active set and priorities of the last refresh decide the next picks: saved, not recomputed
         return {"views": views, "cells": self.cells.state_dict(), "last_admit_ts": self._last_admit_ts,
                 "counts": dict(self.counts), "active": list(self.active), "since_refresh": self._since_refresh,
@@ -276,7 +287,7 @@ class MapGuidedViews(ViewPolicy):
         for d in state["views"]:
             frame = Frame(d["color"], d["depth"], d["camera"], d["T_world_cam"], d["timestamp"], d["index"])
             view = _View(frame, d["cells"], d["weights"], d["updates"], d.get("priority", 0.0),
-                         d.get("last_error", float("nan")))
+                         d.get("last_error", float("nan")), last_update=int(d.get("last_update", -1)))
             self._views.append(view)
             self._by_frame[id(frame)] = view
         self._last_admit_ts = state["last_admit_ts"]
