@@ -43,6 +43,10 @@ class ViewConfig:
     fresh_updates: int = 15  # a newly admitted view keeps a (linearly decaying) bonus for this many of its updates
     fresh_bonus: float = 0.2  # priority bonus of a brand-new view (a cell at init_error gives need ~0.12)
     good_error: float = 0.03  # photometric L1 below which a cell counts as well reconstructed
+    # ... or below this quantile of the measured cells' running errors, whichever is higher (0: the absolute level
+    # alone). Training errors of real scenes cluster well above any absolute level, so need measured against the
+    # map's own median is what tells weak cells from the rest (README, "Map-Guided View Scheduling")
+    good_quantile: float = 0.5
     regress_gain: float = 2.0  # weight of a cell's rise above its best running error
     regress_margin: float = 0.01  # rises smaller than this are noise, not regression
     priority_floor: float = 0.005  # every retained view keeps a chance of replay
@@ -84,6 +88,7 @@ class MapGuidedViews(ViewPolicy):
         self.counts = {"released": 0, "admitted": 0, "pose_filtered": 0, "low_novelty": 0, "max_gap": 0,
                        "unchecked": 0}
         self.updates = 0  # training updates fed back so far (the trace's time axis)
+        self._good = self.cfg.good_error  # the good-error level of the last refresh (``_good_level``)
         self.trace = ViewsTrace(self.cfg.trace_max)
 
     # ---- admission ------------------------------------------------------------------------------------------
@@ -157,7 +162,8 @@ class MapGuidedViews(ViewPolicy):
             return
         cells, weights, owner = self._flat_cells()
         c = self.cfg
-        need = self.cells.need(cells, c.good_error, c.regress_gain, c.regress_margin) * weights
+        self._good = self._good_level(cells)
+        need = self.cells.need(cells, self._good, c.regress_gain, c.regress_margin) * weights
         per_view = torch.zeros(len(self._views)).index_add_(0, owner, need)
         fresh = torch.tensor([max(0.0, 1.0 - v.updates / max(1, c.fresh_updates)) for v in self._views])
         prio = c.priority_floor + per_view + c.fresh_bonus * fresh
@@ -166,6 +172,17 @@ class MapGuidedViews(ViewPolicy):
         k = min(c.active_size, len(self._views))
         self.active = torch.topk(prio, k).indices.sort().values.tolist()
         self._trace_refresh(before, prio, cells, weights, owner)
+
+    def _good_level(self, cells: torch.Tensor) -> float:
+        """The error level below which a cell needs no more supervision: ``good_error``, or the ``good_quantile``
+        of the running errors of the measured cells in the retained views' footprints if higher."""
+        level = self.cfg.good_error
+        if self.cfg.good_quantile > 0:
+            ids = torch.unique(cells)
+            ids = ids[self.cells.visits[ids] > 0]
+            if ids.numel():
+                level = max(level, float(torch.quantile(self.cells.error[ids], self.cfg.good_quantile)))
+        return level
 
     def _flat_cells(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(cells [F], weights [F], owner [F]): every retained view's footprint, concatenated (cached)."""
@@ -181,7 +198,7 @@ class MapGuidedViews(ViewPolicy):
         measured = (self.cells.visits[cells] > 0).float() * weights
         err = torch.zeros(n).index_add_(0, owner, measured * self.cells.error[cells])
         norm = torch.zeros(n).index_add_(0, owner, measured)
-        weak = torch.zeros(n).index_add_(0, owner, (self.cells.error[cells] > self.cfg.good_error).float() * weights)
+        weak = torch.zeros(n).index_add_(0, owner, (self.cells.error[cells] > self._good).float() * weights)
         return torch.where(norm > 0, err / norm.clamp_min(1e-12), torch.full_like(err, float("nan"))), weak
 
     def _trace_refresh(self, before: set, prio: torch.Tensor, cells, weights, owner) -> None:
@@ -202,7 +219,8 @@ class MapGuidedViews(ViewPolicy):
                 self.trace.add(event, self.updates, view=idx, priority=float(prio[i]), rank=int(rank[i]),
                                cell_error=float(err[i]), weak_share=float(weak[i]), replays=v.updates)
         self.trace.add("refresh", self.updates, retained=len(self._views), active=len(self.active),
-                       corr=pearson(prio.tolist(), err.tolist()), moved=len(after ^ before))
+                       corr=pearson(prio.tolist(), err.tolist()), moved=len(after ^ before), good=self._good,
+                       prio_min=float(prio.min()), prio_max=float(prio.max()))
 
     def trace_rows(self) -> list[dict]:
         """The decision trace plus one ``final`` row per retained view (see :mod:`.views_trace`); no state changes."""
