@@ -8,7 +8,7 @@ import pytest
 
 from eligsir_o3d import Config
 from eligsir_o3d.run.pipeline import MappingPipeline, RunOptions, heldout_indices, run_mapping
-from eligsir_o3d.run.results import read_cells, read_fidelity_trace
+from eligsir_o3d.run.results import read_cells, read_fidelity_trace, read_views_trace
 
 
 def _cfg():
@@ -67,7 +67,8 @@ def test_results_folder_contract_and_heldout_never_supervise(tmp_path, monkeypat
     assert len(lines) == 12 and len(lines[0].split()) == 8
     # metrics.json is the summary; the cell table and the fidelity trace are side files it names
     assert "cells" not in saved and "fidelity_trace" not in saved and saved["heldout_skipped"] == []
-    assert saved["files"] == {"cells": "cells.json", "fidelity_trace": "fidelity_trace.csv"} and m == saved
+    assert saved["files"] == {"cells": "cells.json", "fidelity_trace": "fidelity_trace.csv",
+                              "views_trace": "views_trace.csv"} and m == saved
     cells = read_cells(tmp_path)
     assert cells["keys"] and len(cells["q"]) == len(cells["keys"]) and cells["cell_size"] > 0
     assert (tmp_path / "cell_psnr_topdown.png").is_file()  # plotted from the cell table
@@ -75,6 +76,10 @@ def test_results_folder_contract_and_heldout_never_supervise(tmp_path, monkeypat
     assert [r["update"] for r in trace] == list(range(1, saved["updates"] + 1))
     assert trace[-1]["supervised_mpix"] == pytest.approx(saved["supervised_mpix"])
     assert {"backlog", "backlog_ema", "scale", "seconds"} <= set(trace[0])
+    views = read_views_trace(tmp_path)  # every admitted view once, and a final row per retained view
+    assert sum(r["event"] == "admit" for r in views) == saved["frames_admitted"]
+    final = [r for r in views if r["event"] == "final"]
+    assert len(final) == pol["views"]["retained"] and sum(r["replays"] for r in final) == saved["updates"]
 
 
 def test_evaluation_time_is_not_mapping_time(tmp_path, monkeypatch):

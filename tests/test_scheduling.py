@@ -183,6 +183,13 @@ def test_retained_view_returns_to_active_set_when_its_cells_error_rises():
     rng = torch.Generator().manual_seed(0)
     picks = [views.select(rng).index for _ in range(200)]
     assert picks.count(0) > picks.count(1)
+    # the trace shows it: view 0 demoted, then promoted again (a return); replays per view in the final rows
+    events = [(r["event"], r["view"]) for r in views.trace.rows if r["event"] in ("promote", "demote")]
+    assert ("promote", 0) in events[events.index(("demote", 0)):]
+    assert views.counters()["returns"] >= 1
+    final = {r["view"]: r for r in views.trace_rows() if r["event"] == "final"}
+    assert [final[i]["replays"] for i in range(3)] == [4, 3, 3] and final[0]["active"] == 1
+    assert final[0]["cell_error"] == pytest.approx(0.7 * 0.01 + 0.3 * 0.30, abs=1e-4)  # the EMA of its cells
 
 
 def test_get_policies_swaps_each_ablated_mechanism():
@@ -258,3 +265,24 @@ def test_fidelity_default_picks_half_scale_at_a_tenth_of_real_time():
         ctrl.observe(0.0, int(round(NATIVE * s * s)), 0)
         scales.append(ctrl.scale())
     assert set(scales[-20:]) == {0.5}
+
+
+def test_retained_share_replays_every_retained_view_in_turn():
+    """The retained share is a round robin (stalest first): no retained view starves, whatever its priority."""
+    cfg = ViewConfig(min_novelty=0.0, active_size=2, active_share=0.5, refresh_every=1000, fresh_updates=1)
+    views, ctx = MapGuidedViews(cfg), _ctx()
+    frames = [_plane_frame(_pose(3.0 * i), i) for i in range(8)]
+    for f in frames:
+        assert views.admit(f, ctx)
+    _, depth, cam = frames[0].at_scale(1.0)
+    rng = torch.Generator().manual_seed(1)
+    picks = []
+    for _ in range(120):
+        f = views.select(rng)
+        picks.append(f.index)
+        views.feedback(f, None, torch.full((cam.height, cam.width), 0.01), depth, cam)
+    retained = [i for i in range(8) if not views.is_active(frames[i])]
+    counts = [picks.count(i) for i in retained]
+    assert len(retained) == 6 and min(counts) >= 0.8 * max(counts)  # ~60 retained picks spread evenly
+    with pytest.raises(ValueError, match="retained_replay"):
+        MapGuidedViews(ViewConfig(retained_replay="uniform"))

@@ -182,14 +182,24 @@ def export(
 @app.command("eval")
 def eval_cmd(
     results: List[Path] = typer.Argument(..., help="Results folders to compare (each with metrics.json)."),
+    spatial_out: Optional[Path] = typer.Option(None, "--spatial-out", help="Two folders of one sequence (A B): "
+                                               "where the per-cell delta map A - B goes (default: A)."),
 ) -> None:
-    """Compare results folders side by side (PSNR, SSIM, CVQ-AUC, CUC@20, MPix, Gaussians, time)."""
+    """Compare results folders side by side (PSNR, SSIM, CVQ-AUC, CUC@20, MPix, Gaussians, time); for two runs of
+    one sequence also the per-cell delta map (spatial_delta.png/.json: the paper's spatial figure)."""
     from ..eval import compare_results
 
     missing = [str(r) for r in results if not (r / "metrics.json").is_file()]
     if missing:
         _fail(f"no metrics.json in {', '.join(missing)}")
     typer.echo(compare_results(results))
+    if len(results) == 2:
+        from ..eval.spatial import compare_spatial, format_summary
+
+        try:
+            typer.echo(format_summary(compare_spatial(results[0], results[1], spatial_out)))
+        except (ValueError, FileNotFoundError) as e:
+            typer.echo(f"no per-cell comparison: {e}")
 
 
 for _name, _command in COMMANDS.items():  # live, calibrate-color, view, render, batch (cli_commands.py)

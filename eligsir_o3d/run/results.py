@@ -1,7 +1,8 @@
 """The results folder of a run (ARCHITECTURE.md's contract): map.ply, trajectory.txt, config.json (the resolved
 config), run.json (the sequence, the run options and the camera: with config.json, everything a rerun needs),
 metrics.json (the summary a user reads), cells.json (the final per-cell table of the regional evaluation),
-fidelity_trace.csv (Load-Adaptive Fidelity's decisions, one row per update), trajectory_refined.txt (with pose
+fidelity_trace.csv (Load-Adaptive Fidelity's decisions, one row per update), views_trace.csv (the view policy's
+admissions, promotions, demotions and final replays per view), trajectory_refined.txt (with pose
 refinement: the mapped frames' poses in the map's refined frame) and plots. metrics.json names the
 side files it comes with in ``files`` (read them with :func:`read_cells`, :func:`read_fidelity_trace`).
 
@@ -22,6 +23,7 @@ import numpy as np
 RUN_FILE = "run.json"  # read back by pipeline.read_run
 CELLS_FILE = "cells.json"
 FIDELITY_TRACE_FILE = "fidelity_trace.csv"
+VIEWS_TRACE_FILE = "views_trace.csv"  # the view policy's admissions, promotions, demotions (scheduling.views_trace)
 REFINED_TRAJECTORY_FILE = "trajectory_refined.txt"  # pose refinement: the mapped frames in the map's frame
 
 
@@ -87,7 +89,9 @@ def collect_metrics(p) -> dict:
         # the side files written beside metrics.json (write_results): the cell table and the fidelity trace
         "files": {k: f for k, f, present in (("cells", CELLS_FILE, final.get("cells") is not None),
                                              ("fidelity_trace", FIDELITY_TRACE_FILE,
-                                              bool(getattr(rec.fidelity, "trace", None)))) if present},
+                                              bool(getattr(rec.fidelity, "trace", None))),
+                                             ("views_trace", VIEWS_TRACE_FILE, hasattr(rec.views, "trace_rows")))
+                  if present},
     }
     return metrics
 
@@ -130,7 +134,9 @@ def write_results(p, metrics: dict) -> None:
            "camera": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                       "cy": cam.cy}}
     outputs.stage(out / RUN_FILE, atomic_write_text, out / RUN_FILE, json.dumps(jsonable(run), indent=2))
-    outputs.stage(out / CELLS_FILE, write_side_files, out, p.final.get("cells"), getattr(rec.fidelity, "trace", None))
+    views_trace = rec.views.trace_rows() if hasattr(rec.views, "trace_rows") else None
+    outputs.stage(out / CELLS_FILE, write_side_files, out, p.final.get("cells"), getattr(rec.fidelity, "trace", None),
+                  views_trace)
     metrics["checkpoint_failures"] = p.checkpoints.failures
     metrics["write_failures"] = outputs.messages()  # what failed before metrics.json
     outputs.stage(out / "metrics.json", atomic_write_text, out / "metrics.json",
@@ -140,21 +146,23 @@ def write_results(p, metrics: dict) -> None:
     outputs.finish(metrics)
 
 
-def write_side_files(out: Path, cells: dict | None, trace: list[dict] | None) -> None:
-    """cells.json (the final cell table, as :meth:`HeldoutEvaluator.final` returns it) and fidelity_trace.csv
-    (one row per recorded fidelity decision, a column per field), each only when there is data for it; both written
-    atomically (a failed write leaves the previous file)."""
+def write_side_files(out: Path, cells: dict | None, trace: list[dict] | None,
+                     views_trace: list[dict] | None = None) -> None:
+    """cells.json (the final cell table, as :meth:`HeldoutEvaluator.final` returns it), fidelity_trace.csv
+    (one row per recorded fidelity decision, a column per field) and views_trace.csv (the view policy's events),
+    each only when there is data for it; all written atomically (a failed write leaves the previous file)."""
     from ..io.atomic import atomic_write_text
 
     if cells is not None:
         atomic_write_text(out / CELLS_FILE, json.dumps(jsonable(cells), separators=(",", ":")))
-    if trace:
-        fields = list(dict.fromkeys(k for row in trace for k in row))
-        buf = io.StringIO(newline="")
-        w = csv.DictWriter(buf, fieldnames=fields)
-        w.writeheader()
-        w.writerows({k: "" if v is None else v for k, v in jsonable(row).items()} for row in trace)
-        atomic_write_text(out / FIDELITY_TRACE_FILE, buf.getvalue())
+    for rows, name in ((trace, FIDELITY_TRACE_FILE), (views_trace, VIEWS_TRACE_FILE)):
+        if rows:
+            fields = list(dict.fromkeys(k for row in rows for k in row))
+            buf = io.StringIO(newline="")
+            w = csv.DictWriter(buf, fieldnames=fields)
+            w.writeheader()
+            w.writerows({k: "" if v is None else v for k, v in jsonable(row).items()} for row in rows)
+            atomic_write_text(out / name, buf.getvalue())
 
 
 def _side_file(folder, key: str, default: str) -> Path:
@@ -188,6 +196,19 @@ def read_fidelity_trace(folder) -> list[dict]:
             return [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(f)]
         except (ValueError, csv.Error) as e:
             raise ValueError(f"{path}: not a readable fidelity trace ({e})") from None
+
+
+def read_views_trace(folder) -> list[dict]:
+    """The view policy's trace of a results folder (its views_trace.csv) as a list of dicts (numbers where the
+    field is numeric, the ``event`` name as text); [] when the run wrote none."""
+    path = _side_file(folder, "views_trace", VIEWS_TRACE_FILE)
+    if not path.is_file():
+        return []
+    with open(path, newline="") as f:
+        try:
+            return [{k: v if k == "event" else _number(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        except (ValueError, csv.Error) as e:
+            raise ValueError(f"{path}: not a readable views trace ({e})") from None
 
 
 def _number(text: str | None):

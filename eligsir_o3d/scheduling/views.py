@@ -24,6 +24,7 @@ from ..render import RenderOutput
 from .base import MapContext, ViewPolicy
 from .microcells import MicrocellConfig, Microcells
 from .support import SupportProbe
+from .views_trace import ViewsTrace, pearson
 
 
 @dataclass
@@ -34,14 +35,23 @@ class ViewConfig:
     max_gap_s: float = 1.0  # admit the next non-redundant view when none was admitted for this long
     active_size: int = 16  # views in the active supervision set
     active_share: float = 0.5  # share of updates drawn from the active set (the rest replays retained views)
+    # how the retained (non-active) share picks its view: "stalest" replays the retained view whose last update is
+    # oldest (a round robin: every region is replayed, as with fixed-stride keyframes, and its cells' error stays
+    # measured, so a regression can promote the view again); "priority" draws in proportion to priority
+    retained_replay: str = "stalest"
     refresh_every: int = 10  # updates between priority refreshes
     fresh_updates: int = 15  # a newly admitted view keeps a (linearly decaying) bonus for this many of its updates
     fresh_bonus: float = 0.2  # priority bonus of a brand-new view (a cell at init_error gives need ~0.12)
     good_error: float = 0.03  # photometric L1 below which a cell counts as well reconstructed
+    # ... or below this quantile of the measured cells' running errors, whichever is higher (0: the absolute level
+    # alone). Training errors of real scenes cluster well above any absolute level, so need measured against the
+    # map's own median is what tells weak cells from the rest (README, "Map-Guided View Scheduling")
+    good_quantile: float = 0.5
     regress_gain: float = 2.0  # weight of a cell's rise above its best running error
     regress_margin: float = 0.01  # rises smaller than this are noise, not regression
     priority_floor: float = 0.005  # every retained view keeps a chance of replay
     max_views: int = 400  # retained views in memory; beyond it the lowest-priority inactive view is evicted
+    trace_max: int = 50000  # rows of the decision trace (views_trace.csv) kept; later events are only counted
     cells: MicrocellConfig = field(default_factory=MicrocellConfig)
 
 
@@ -53,6 +63,7 @@ class _View:
     updates: int = 0
     priority: float = 0.0
     last_error: float = float("nan")
+    last_update: int = -1  # the policy's update count when this view last supervised one (-1: never)
     pixel_cells: dict = field(default_factory=dict)  # (h, w) -> (flat pixel idx [M], cell ids [M])
 
 
@@ -64,6 +75,8 @@ class MapGuidedViews(ViewPolicy):
     def __init__(self, cfg: ViewConfig | None = None, probe: SupportProbe | None = None,
                  cells: Microcells | None = None):
         self.cfg = cfg or ViewConfig()
+        if self.cfg.retained_replay not in ("stalest", "priority"):
+            raise ValueError(f"views.retained_replay must be 'stalest' or 'priority', got {self.cfg.retained_replay!r}")
         self.probe = probe or SupportProbe()
         self.cells = cells or Microcells(self.cfg.cells)
         self._views: list[_View] = []
@@ -74,6 +87,9 @@ class MapGuidedViews(ViewPolicy):
         self._flat = None  # (cells [F], weights [F], owner [F]) over all views; rebuilt when views change
         self.counts = {"released": 0, "admitted": 0, "pose_filtered": 0, "low_novelty": 0, "max_gap": 0,
                        "unchecked": 0}
+        self.updates = 0  # training updates fed back so far (the trace's time axis)
+        self._good = self.cfg.good_error  # the good-error level of the last refresh (``_good_level``)
+        self.trace = ViewsTrace(self.cfg.trace_max)
 
     # ---- admission ------------------------------------------------------------------------------------------
     def admit(self, frame: Frame, ctx: MapContext) -> bool:
@@ -119,6 +135,7 @@ class MapGuidedViews(ViewPolicy):
         self._by_frame[id(frame)] = view
         self._last_admit_ts = frame.timestamp
         self.counts["admitted"] += 1
+        self.trace.add("admit", self.updates, view=int(frame.index))
         if len(self._views) > self.cfg.max_views:
             self._evict()
         self._flat = None
@@ -130,6 +147,7 @@ class MapGuidedViews(ViewPolicy):
         candidates = [i for i in range(len(self._views) - 1) if i not in active] or list(range(len(self._views) - 1))
         worst = min(candidates, key=lambda i: self._views[i].priority)
         view = self._views.pop(worst)
+        self.trace.add("evict", self.updates, view=int(view.frame.index), priority=view.priority)
         self.cells.add_coverage(view.cells, -1)
         self._by_frame.pop(id(view.frame), None)
         view.frame.drop_cache()
@@ -138,15 +156,14 @@ class MapGuidedViews(ViewPolicy):
     def refresh(self) -> None:
         """Recompute every retained view's priority from its cells' need and rebuild the active set."""
         self._since_refresh = 0
+        before = {int(self._views[i].frame.index) for i in self.active if i < len(self._views)}
         if not self._views:
             self.active = []
             return
-        if self._flat is None:
-            owner = torch.cat([torch.full((v.cells.numel(),), i, dtype=torch.long) for i, v in enumerate(self._views)])
-            self._flat = (torch.cat([v.cells for v in self._views]), torch.cat([v.weights for v in self._views]), owner)
-        cells, weights, owner = self._flat
+        cells, weights, owner = self._flat_cells()
         c = self.cfg
-        need = self.cells.need(cells, c.good_error, c.regress_gain, c.regress_margin) * weights
+        self._good = self._good_level(cells)
+        need = self.cells.need(cells, self._good, c.regress_gain, c.regress_margin) * weights
         per_view = torch.zeros(len(self._views)).index_add_(0, owner, need)
         fresh = torch.tensor([max(0.0, 1.0 - v.updates / max(1, c.fresh_updates)) for v in self._views])
         prio = c.priority_floor + per_view + c.fresh_bonus * fresh
@@ -154,6 +171,71 @@ class MapGuidedViews(ViewPolicy):
             v.priority = p
         k = min(c.active_size, len(self._views))
         self.active = torch.topk(prio, k).indices.sort().values.tolist()
+        self._trace_refresh(before, prio, cells, weights, owner)
+
+    def _good_level(self, cells: torch.Tensor) -> float:
+        """The error level below which a cell needs no more supervision: ``good_error``, or the ``good_quantile``
+        of the running errors of the measured cells in the retained views' footprints if higher."""
+        level = self.cfg.good_error
+        if self.cfg.good_quantile > 0:
+            ids = torch.unique(cells)
+            ids = ids[self.cells.visits[ids] > 0]
+            if ids.numel():
+                level = max(level, float(torch.quantile(self.cells.error[ids], self.cfg.good_quantile)))
+        return level
+
+    def _flat_cells(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(cells [F], weights [F], owner [F]): every retained view's footprint, concatenated (cached)."""
+        if self._flat is None:
+            owner = torch.cat([torch.full((v.cells.numel(),), i, dtype=torch.long) for i, v in enumerate(self._views)])
+            self._flat = (torch.cat([v.cells for v in self._views]), torch.cat([v.weights for v in self._views]), owner)
+        return self._flat
+
+    def _view_errors(self, cells, weights, owner) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per retained view: footprint-weighted running error of its measured cells [V] (NaN: none measured) and
+        the share of its footprint in cells above ``good_error`` [V]."""
+        n = len(self._views)
+        measured = (self.cells.visits[cells] > 0).float() * weights
+        err = torch.zeros(n).index_add_(0, owner, measured * self.cells.error[cells])
+        norm = torch.zeros(n).index_add_(0, owner, measured)
+        weak = torch.zeros(n).index_add_(0, owner, (self.cells.error[cells] > self._good).float() * weights)
+        return torch.where(norm > 0, err / norm.clamp_min(1e-12), torch.full_like(err, float("nan"))), weak
+
+    def _trace_refresh(self, before: set, prio: torch.Tensor, cells, weights, owner) -> None:
+        """Promotions and demotions of this refresh, and how priority relates to the cells' measured error."""
+        after = {int(self._views[i].frame.index) for i in self.active}
+        if after == before and self.updates % (10 * self.cfg.refresh_every) != 0:
+            return  # nothing moved: a refresh row only every 10th refresh
+        err, weak = self._view_errors(cells, weights, owner)
+        rank = torch.empty(len(prio), dtype=torch.long)
+        rank[torch.argsort(prio, descending=True)] = torch.arange(len(prio))
+        by_index = {int(v.frame.index): i for i, v in enumerate(self._views)}
+        for event, group in (("promote", after - before), ("demote", before - after)):
+            for idx in sorted(group):
+                i = by_index.get(idx)
+                if i is None:  # evicted since the last refresh
+                    continue
+                v = self._views[i]
+                self.trace.add(event, self.updates, view=idx, priority=float(prio[i]), rank=int(rank[i]),
+                               cell_error=float(err[i]), weak_share=float(weak[i]), replays=v.updates)
+        self.trace.add("refresh", self.updates, retained=len(self._views), active=len(self.active),
+                       corr=pearson(prio.tolist(), err.tolist()), moved=len(after ^ before), good=self._good,
+                       prio_min=float(prio.min()), prio_max=float(prio.max()))
+
+    def trace_rows(self) -> list[dict]:
+        """The decision trace plus one ``final`` row per retained view (see :mod:`.views_trace`); no state changes."""
+        if not self._views:
+            return list(self.trace.rows)
+        cells, weights, owner = self._flat_cells()
+        err, weak = self._view_errors(cells, weights, owner)
+        active = set(self.active)
+        prio = torch.tensor([v.priority for v in self._views])
+        rank = torch.empty(len(prio), dtype=torch.long)
+        rank[torch.argsort(prio, descending=True)] = torch.arange(len(prio))
+        final = [{"update": self.updates, "event": "final", "view": int(v.frame.index), "priority": v.priority,
+                  "rank": int(rank[i]), "cell_error": float(err[i]), "weak_share": float(weak[i]),
+                  "replays": v.updates, "active": int(i in active)} for i, v in enumerate(self._views)]
+        return list(self.trace.rows) + final
 
     def priorities(self) -> list[float]:
         return [v.priority for v in self._views]
@@ -172,6 +254,9 @@ class MapGuidedViews(ViewPolicy):
         retained = [i for i in range(len(self._views)) if i not in active]
         pool = self.active
         if retained and float(torch.rand((), generator=rng)) >= self.cfg.active_share:
+            if self.cfg.retained_replay == "stalest":  # oldest last update first; ties: the higher priority
+                pick = min(retained, key=lambda i: (self._views[i].last_update, -self._views[i].priority))
+                return self._views[pick].frame
             pool = retained
         p = torch.tensor([self._views[i].priority for i in pool], dtype=torch.float64)
         pick = pool[int(torch.multinomial(p / p.sum(), 1, generator=rng))]
@@ -190,6 +275,8 @@ class MapGuidedViews(ViewPolicy):
         err = error.detach().reshape(-1).cpu()
         self.cells.accumulate(ids, err[pix])
         view.updates += 1
+        self.updates += 1
+        view.last_update = self.updates
         view.last_error = float(err.mean())
         self._since_refresh += 1
 
@@ -198,17 +285,19 @@ class MapGuidedViews(ViewPolicy):
         return [v.frame for v in self._views]
 
     def counters(self) -> dict:
-        return {**self.counts, "retained": len(self._views), "active": len(self.active)}
+        return {**self.counts, **self.trace.counts, "retained": len(self._views), "active": len(self.active),
+                "trace_dropped": self.trace.dropped}
 
     # ---- persistence ----------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
         views = [{"color": v.frame.color, "depth": v.frame.depth, "camera": v.frame.camera,
                   "T_world_cam": v.frame.T_world_cam, "timestamp": v.frame.timestamp, "index": v.frame.index,
                   "cells": v.cells, "weights": v.weights, "updates": v.updates, "priority": v.priority,
-                  "last_error": v.last_error} for v in self._views]
+                  "last_error": v.last_error, "last_update": v.last_update} for v in self._views]
         # the active set and priorities of the last refresh decide the next picks: saved, not recomputed
         return {"views": views, "cells": self.cells.state_dict(), "last_admit_ts": self._last_admit_ts,
-                "counts": dict(self.counts), "active": list(self.active), "since_refresh": self._since_refresh}
+                "counts": dict(self.counts), "active": list(self.active), "since_refresh": self._since_refresh,
+                "updates": self.updates, "trace": self.trace.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         self.cells.load_state_dict(state["cells"])
@@ -216,11 +305,13 @@ class MapGuidedViews(ViewPolicy):
         for d in state["views"]:
             frame = Frame(d["color"], d["depth"], d["camera"], d["T_world_cam"], d["timestamp"], d["index"])
             view = _View(frame, d["cells"], d["weights"], d["updates"], d.get("priority", 0.0),
-                         d.get("last_error", float("nan")))
+                         d.get("last_error", float("nan")), last_update=int(d.get("last_update", -1)))
             self._views.append(view)
             self._by_frame[id(frame)] = view
         self._last_admit_ts = state["last_admit_ts"]
         self.counts.update(state.get("counts", {}))
+        self.updates = int(state.get("updates", 0))
+        self.trace.load_state_dict(state.get("trace", {}))
         if "active" in state:
             self.active = [int(i) for i in state["active"]]
             self._since_refresh = int(state["since_refresh"])
