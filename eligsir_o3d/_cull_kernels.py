@@ -13,41 +13,63 @@ cached on disk like the renderer's kernels.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import prange
 
-from .render._cpu_kernels import _jit
+import math
+
+import numba
+
+from .render._cpu_kernels import HALF, LOG2E, ONE, SIG_CLAMP, ZERO, _exp2_neg, _jit
 
 CHUNK = 16384  # rows per task of frustum_rows
 
 
-@_jit
+def _jit_fast(fn):
+    """``njit(parallel, fastmath, cache)``: the view test is a bound with slack, so reassociation is harmless and
+    lets LLVM vectorise its loop; without a writable cache location, an uncached kernel."""
+    opts = dict(parallel=True, fastmath=True, nogil=True)
+    try:
+        return numba.njit(cache=True, **opts)(fn)
+    except RuntimeError:
+        return numba.njit(cache=False, **opts)(fn)
+
+
+@_jit_fast
 def _frustum_counts(means, log_scales, V, cam, mask, counts):
-    """mask[g] = 1 where Gaussian g may reach the image (see :func:`frustum_rows`); counts[c] = ones in chunk c."""
-    fx, fy, cx, cy, w, h, near, jb2 = cam[0], cam[1], cam[2], cam[3], cam[4], cam[5], cam[6], cam[7]
+    """mask[g] = 1 where Gaussian g may reach the image (see :func:`frustum_rows`); counts[c] = ones in chunk c.
+    Branch-free float32 (a vector loop); the largest scale bounded by a power of two (exponent bits, no exp)."""
+    fx, fy, cx, cy = np.float32(cam[0]), np.float32(cam[1]), np.float32(cam[2]), np.float32(cam[3])
+    w, h, jb2 = np.float32(cam[4] - 0.5), np.float32(cam[5] - 0.5), np.float32(cam[7])
+    near = np.float32(cam[6] * (1.0 - 1e-3) - 1e-6)  # below the renderer's near plane: float32 rounding of z
+    v00, v01, v02, v03 = np.float32(V[0, 0]), np.float32(V[0, 1]), np.float32(V[0, 2]), np.float32(V[0, 3])
+    v10, v11, v12, v13 = np.float32(V[1, 0]), np.float32(V[1, 1]), np.float32(V[1, 2]), np.float32(V[1, 3])
+    v20, v21, v22, v23 = np.float32(V[2, 0]), np.float32(V[2, 1]), np.float32(V[2, 2]), np.float32(V[2, 3])
     n = means.shape[0]
     for c in prange(counts.shape[0]):
         k = 0
         for g in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
-            mx, my, mz = np.float64(means[g, 0]), np.float64(means[g, 1]), np.float64(means[g, 2])
-            z = V[2, 0] * mx + V[2, 1] * my + V[2, 2] * mz + V[2, 3]
-            hit = 0
-            if z > near:
-                x = V[0, 0] * mx + V[0, 1] * my + V[0, 2] * mz + V[0, 3]
-                y = V[1, 0] * mx + V[1, 1] * my + V[1, 2] * mz + V[1, 3]
-                ls = max(log_scales[g, 0], max(log_scales[g, 1], log_scales[g, 2]))
-                s = math.exp(min(np.float64(ls), 80.0))
-                # ||J||_F^2 s^2 bounds the largest eigenvalue of J Sigma J^T; + 0.3 low-pass + 0.32 of the radius
-                # formula's clamp; + 2 px for the ceil and float32 rounding of the renderer's means2d
-                r = 3.0 * math.sqrt(s * s * jb2 / (z * z) + 0.62) * 1.001 + 2.0
-                u = fx * x / z + cx
-                v = fy * y / z + cy
-                if u + r > -0.5 and u - r < w - 0.5 and v + r > -0.5 and v - r < h - 0.5:
-                    hit = 1
-            mask[g] = hit
-            k += hit
+            mx, my, mz = means[g, 0], means[g, 1], means[g, 2]
+            x = v00 * mx + v01 * my + v02 * mz + v03
+            y = v10 * mx + v11 * my + v12 * mz + v13
+            z = v20 * mx + v21 * my + v22 * mz + v23
+            ls = max(log_scales[g, 0], max(log_scales[g, 1], log_scales[g, 2]))
+            # exp(ls) = 2^t from above (within 6%): 2^floor(t) (1 + frac(t)), 2^f being convex on [0, 1]; the
+            # power of two from exponent bits (no exp); beyond 2^16 m: always in
+            t = min(max(ls * LOG2E, -np.float32(125.0)), SIG_CLAMP)
+            e = np.float32(math.floor(t))
+            s = _exp2_neg(max(-e, ZERO)) / _exp2_neg(max(e, ZERO)) * (ONE + (t - e))
+            zs = max(z, near)
+            iz = ONE / zs
+            # ||J||_F^2 s^2 bounds the largest eigenvalue of J Sigma J^T; + 0.3 low-pass + 0.32 of the radius
+            # formula's clamp; + 2 px for the ceil and float32 rounding of the renderer's means2d
+            r = np.float32(3.003) * np.sqrt(s * s * jb2 * iz * iz + np.float32(0.62)) + np.float32(2.0)
+            u = fx * x * iz + cx
+            v = fy * y * iz + cy
+            inside = (u + r > -HALF) & (u - r < w) & (v + r > -HALF) & (v - r < h)
+            hit = (z > near) & (inside | (ls * LOG2E > SIG_CLAMP))
+            mask[g] = np.uint8(hit)
+            k += np.int64(hit)
         counts[c] = k
 
 
@@ -56,6 +78,8 @@ def _gather_rows(mask, starts, out):
     n = mask.shape[0]
     for c in prange(starts.shape[0]):
         k = starts[c]
+        if c + 1 < starts.shape[0] and starts[c + 1] == k or c + 1 == starts.shape[0] and out.shape[0] == k:
+            continue  # nothing of this chunk in view
         for g in range(c * CHUNK, min(n, (c + 1) * CHUNK)):
             if mask[g]:
                 out[k] = g
