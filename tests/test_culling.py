@@ -62,12 +62,16 @@ def test_culled_render_equals_map_render_images_and_gradients(renderer):
         assert not leaves[n].grad[out_rows].any()  # the rows dropped have no gradient in the map's render
 
 
-def test_compiled_view_test_matches_torch_bound():
+def test_compiled_view_test_keeps_the_torch_bound_and_little_more():
+    """The compiled test (float32, the scale bounded within 6%) keeps every row the float64 torch bound keeps and
+    none that the torch bound with 7% larger scales drops."""
     gm = _map(5000, seed=3, spread=3.0)
     for yaw in (0.0, 1.0, 2.5):
         fast = in_view(gm.params["means"], gm.params["scales"], CAM, _pose(yaw))
-        slow = in_view(gm.params["means"].double(), gm.params["scales"].double(), CAM, _pose(yaw))
-        assert torch.equal(fast, slow)
+        exact = in_view(gm.params["means"].double(), gm.params["scales"].double(), CAM, _pose(yaw))
+        loose = in_view(gm.params["means"].double(), gm.params["scales"].double() + np.log(1.07), CAM, _pose(yaw))
+        assert bool(torch.isin(exact, fast).all()) and bool(torch.isin(fast, loose).all())
+        assert len(exact) > 100
 
 
 def test_row_adam_of_a_view_is_exact_adam_per_row():
