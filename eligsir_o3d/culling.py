@@ -103,7 +103,7 @@ class InView:
         gmap, idx = self.gmap, self.idx
         if len(gmap) != self.n_map:
             raise RuntimeError(f"the map changed size ({self.n_map} -> {len(gmap)}) between render and step")
-        cfg, seen, items = gmap.adam, None, []
+        cfg, seen, items, shared = gmap.adam, None, [], None
         for name in PARAM_NAMES:  # "means" first: its row_seen is every row's age in updates seen
             p, g = gmap.params[name], self.leaves[name].grad
             if g is None or p.numel() == 0:
@@ -120,9 +120,12 @@ class InView:
             if name == "means":
                 state["row_seen"][idx] += (g != 0).any(1).to(torch.float32)
                 seen = state["row_seen"][idx]
-            k = state["row_step"][idx].double()
-            a_rows = (-group["lr"] / (1.0 - b1 ** k)).float()
-            b_rows = torch.sqrt(1.0 - b2 ** k).float()
+            k = state["row_step"][idx]
+            if shared is None or shared[0] != (b1, b2) or not torch.equal(shared[1], k):
+                kd = k.double()  # the parameters' counts agree unless a state was restored without them
+                shared = ((b1, b2), k, 1.0 / (1.0 - b1 ** kd), torch.sqrt(1.0 - b2 ** kd).float())
+            a_rows = (-group["lr"] * shared[2]).float()
+            b_rows = shared[3]
             if seen is not None:
                 if name == "means" and cfg.means_decay_to != 1.0:
                     a_rows = a_rows * torch.pow(cfg.means_decay_to, torch.clamp(seen / cfg.means_decay_updates, max=1.0))
