@@ -12,10 +12,14 @@ runs ``--warm`` updates untimed (Adam's moments allocated, caches warm) and time
 one; the table gives the median over all timed updates of all rounds and the ratio to the first checkout.
 
 Clock: the process's CPU time with one thread (a measure of work that holds up on a shared machine), the
-wall clock with more. ``NAME=DIR`` names a checkout (``DIR/eligsir_o3d`` is the package timed):
+wall clock with more. ``--in-view K``: every map holds the same K Gaussians in the views (the map of size K) and
+its remaining ``n - K`` Gaussians out of every view (copies of the kitchen's points shifted by tens of metres,
+those that some view could reach dropped), the scene of a large map whose update sees one room; the table adds
+the Gaussians the updates supervised (median). ``NAME=DIR`` names a checkout (``DIR/eligsir_o3d`` is the package timed):
 
     git -C . worktree add /tmp/old c6a5f9a      # or: mkdir /tmp/old && git archive c6a5f9a | tar -x -C /tmp/old
     python benchmarks/update_time.py --code old=/tmp/old --code new=. --gaussians 5000 20000 --threads 1 2
+    python benchmarks/update_time.py --in-view 20000 --gaussians 20000 200000 1000000 --threads 1 2
 """
 
 from __future__ import annotations
@@ -32,11 +36,16 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 KITCHEN = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 VIEW_FRAMES = tuple(range(0, 200, 10))
+NEAR_FRAMES = tuple(range(0, 25, 5))  # --in-view: views (and the in-view map's points) from nearby frames
+
+
+def view_frames(in_view: int | None) -> tuple:
+    return VIEW_FRAMES if in_view is None else NEAR_FRAMES
 
 
 # ------------------------------------------------------------------------------------------------ worker side ----
 
-def worker(threads: int, plys: list[str], warm: int, updates: int, data: str) -> None:
+def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in_view: int | None) -> None:
     import numba
     import numpy as np
     import torch
@@ -50,7 +59,7 @@ def worker(threads: int, plys: list[str], warm: int, updates: int, data: str) ->
     seq = open_sequence(data)
     cfg = Config(renderer="cpu")
     rec = Reconstructor(seq.camera, "cpu", cfg)
-    for i in VIEW_FRAMES:
+    for i in view_frames(in_view):
         rec.views._admit(seq.frame(i, depth_max=rec.config.depth_max))
     rec.warmup()
     import eligsir_o3d
@@ -63,19 +72,45 @@ def worker(threads: int, plys: list[str], warm: int, updates: int, data: str) ->
             rec.rng.manual_seed(0)
             n0 = len(rec.gmap)
             rec.optimize(warm, scale=0.25)
-            ts = []
+            ts, seen = [], []
             for _ in range(updates):
                 t0 = clock()
                 rec.optimize(1, scale=0.25)
                 ts.append(clock() - t0)
-            rows.append({"gaussians": n0, "gaussians_end": len(rec.gmap), "seconds": ts})
+                seen.append(rec.update_gaussians() if hasattr(rec, "update_gaussians") else len(rec.gmap))
+            rows.append({"gaussians": n0, "gaussians_end": len(rec.gmap), "seconds": ts, "in_view": seen})
         print(json.dumps({"rows": rows}), flush=True)
 
 
 # ------------------------------------------------------------------------------------------------ driver side ----
 
-def write_maps(sizes: list[int], out: Path, data: Path, seed: int = 0) -> list[Path]:
-    """One PLY per size: kitchen depth back-projected (frames of VIEW_FRAMES), ``n`` points at random."""
+def _out_of_view(pts, cols, n: int, frames, seed: int):
+    """``n`` copies of kitchen points (and their colours) shifted by 30-90 m, none of them reachable from a view."""
+    import numpy as np
+    import torch
+
+    from eligsir_o3d.culling import in_view
+
+    g = torch.Generator().manual_seed(seed + 1)
+    shifts = torch.tensor([[x, y, z] for x in (-60, 0, 60) for y in (-60, 0, 60) for z in (-60, 0, 60)
+                           if (x, y, z) != (0, 0, 0)], dtype=torch.float32)
+    got_p, got_c, have = [], [], 0
+    while have < n:
+        sel = torch.randint(0, pts.shape[0], (n - have + 1024,), generator=g)
+        p = pts[sel] + shifts[torch.randint(0, len(shifts), (sel.numel(),), generator=g)]
+        keep = torch.ones(sel.numel(), dtype=torch.bool)
+        logs = torch.full_like(p, float(np.log(0.05)))  # the largest scale a map Gaussian gets here
+        for f in frames:
+            keep[in_view(p, logs, f.camera, f.T_world_cam)] = False
+        got_p.append(p[keep])
+        got_c.append(cols[sel][keep])
+        have += int(keep.sum())
+    return torch.cat(got_p)[:n], torch.cat(got_c)[:n]
+
+
+def write_maps(sizes: list[int], out: Path, data: Path, seed: int = 0, in_view: int | None = None) -> list[Path]:
+    """One PLY per size: kitchen depth back-projected (frames of VIEW_FRAMES), ``n`` points at random; with
+    ``in_view``, those ``in_view`` points plus ``n - in_view`` out of every view (:func:`_out_of_view`)."""
     sys.path.insert(0, str(ROOT))
     import numpy as np
     import open3d as o3d
@@ -87,7 +122,7 @@ def write_maps(sizes: list[int], out: Path, data: Path, seed: int = 0) -> list[P
 
     seq = open_sequence(data)
     pts, cols = [], []
-    for i in VIEW_FRAMES:
+    for i in view_frames(in_view):
         f = seq.frame(i)
         p, idx = f.camera.backproject(torch.as_tensor(f.depth).cpu().float())
         T = torch.as_tensor(np.asarray(f.T_world_cam), dtype=torch.float32)
@@ -95,14 +130,19 @@ def write_maps(sizes: list[int], out: Path, data: Path, seed: int = 0) -> list[P
         cols.append(torch.as_tensor(f.color).cpu().float().reshape(-1, 3)[idx])
     pts, cols = torch.cat(pts), torch.cat(cols)
     paths = []
+    far = None
+    if in_view is not None:
+        far = _out_of_view(pts, cols, max(sizes) - in_view, [seq.frame(i) for i in view_frames(in_view)], seed)
     for n in sizes:
         g = torch.Generator().manual_seed(seed)
-        sel = torch.randperm(pts.shape[0], generator=g)[:n]
+        sel = torch.randperm(pts.shape[0], generator=g)[:n if in_view is None else in_view]
         p, c = pts[sel].contiguous(), cols[sel].contiguous()
+        if far is not None:
+            p, c = torch.cat([p, far[0][:n - in_view]]), torch.cat([c, far[1][:n - in_view]])
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(p.double().numpy()))
         nn = torch.from_numpy(np.asarray(pcd.compute_nearest_neighbor_distance())).float().clamp(1e-3, 0.05)
         gm = GaussianMap(0)
-        gm.add(p, c, nn, 0.5, torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=-1))
+        gm.add(p, c, nn, 0.5, torch.nn.functional.normalize(torch.randn(p.shape[0], 4, generator=g), dim=-1))
         paths.append(save_ply(gm, out / f"map_{n}.ply"))
     return paths
 
@@ -116,6 +156,7 @@ def main(argv=None) -> int:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--updates", type=int, default=5, help="timed updates per map per round")
     ap.add_argument("--warm", type=int, default=2, help="untimed updates after each reload")
+    ap.add_argument("--in-view", type=int, help="every map holds this many Gaussians in view, the rest out of view")
     ap.add_argument("--maps", type=Path, nargs="+", help="time these 3DGS PLYs (e.g. mapped maps) instead")
     ap.add_argument("--data", type=Path, default=KITCHEN)
     ap.add_argument("--json", type=Path, help="write every timed update here")
@@ -123,7 +164,7 @@ def main(argv=None) -> int:
     ap.add_argument("--plys", nargs="*", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        worker(args.threads[0], args.plys, args.warm, args.updates, str(args.data))
+        worker(args.threads[0], args.plys, args.warm, args.updates, str(args.data), args.in_view)
         return 0
     import numpy as np
 
@@ -132,7 +173,9 @@ def main(argv=None) -> int:
         if not eq or not (Path(d) / "eligsir_o3d").is_dir():
             ap.error(f"--code {name}{eq}{d}: expected NAME=DIR with DIR/eligsir_o3d")
     tmp = tempfile.TemporaryDirectory(prefix="update_time_")
-    plys = args.maps or write_maps(args.gaussians, Path(tmp.name), args.data)
+    if args.in_view is not None and min(args.gaussians) < args.in_view:
+        ap.error(f"--in-view {args.in_view}: every --gaussians size must be at least that")
+    plys = args.maps or write_maps(args.gaussians, Path(tmp.name), args.data, in_view=args.in_view)
     procs = {}
     for name, _, d in codes:
         for th in args.threads:
@@ -141,6 +184,7 @@ def main(argv=None) -> int:
                 env["OMP_WAIT_POLICY"] = "PASSIVE"
             cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--threads", str(th), "--warm",
                    str(args.warm), "--updates", str(args.updates), "--data", str(args.data),
+                   *(["--in-view", str(args.in_view)] if args.in_view is not None else []),
                    "--plys", *map(str, plys)]
             procs[(name, th)] = subprocess.Popen(cmd, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                                  text=True, cwd=str(ROOT))
@@ -165,14 +209,26 @@ def main(argv=None) -> int:
     table = {}
     for th in args.threads:
         for gi, n in enumerate([r["gaussians"] for r in results[(codes[0][0], th)][0]]):
-            med, ends = [], []
+            med, ends, seen = [], [], []
             for name, _, _ in codes:
                 rows = [r[gi] for r in results[(name, th)]]
                 med.append(1e3 * float(np.median([t for row in rows for t in row["seconds"]])))
                 ends.append(max(row["gaussians_end"] for row in rows))
+                seen.append(int(np.median([v for row in rows for v in row.get("in_view", [row["gaussians"]])])))
             table[f"{th}x{n}"] = dict(zip([c[0] for c in codes], med))
             print(f"{th:>7} {n:>9} " + " ".join(f"{m:12.1f}" for m in med)
-                  + "".join(f" {med[0] / m:14.2f}" for m in med[1:]) + f"   {ends}")
+                  + "".join(f" {med[0] / m:14.2f}" for m in med[1:]) + f"   {ends} in view {seen}")
+    sizes = [r["gaussians"] for r in results[(codes[0][0], args.threads[0])][0]]
+    for name, _, _ in codes:
+        for th in args.threads:
+            ms = [table[f"{th}x{n}"][name] for n in sizes]
+            print(f"# {name}, {th} thread(s): time / time at {sizes[0]} Gaussians: "
+                  + " ".join(f"{n}: {m / ms[0]:.2f}" for n, m in zip(sizes, ms)))
+        if len(args.threads) > 1:
+            t0 = args.threads[0]
+            print(f"# {name}: speed-up of " + ", ".join(
+                f"{th} over {t0} thread(s) " + "/".join(f"{table[f'{t0}x{n}'][name] / table[f'{th}x{n}'][name]:.2f}"
+                                                        for n in sizes) for th in args.threads[1:]))
     if args.json:
         args.json.write_text(json.dumps({"median_ms": table, "rounds": {f"{k[0]}@{k[1]}": v
                                                                          for k, v in results.items()}}) + "\n")

@@ -53,6 +53,10 @@ class OptimConfig:
     loss: LossConfig = field(default_factory=LossConfig)
     adam: AdamConfig = field(default_factory=AdamConfig)  # Adam's betas/eps and per-Gaussian schedule (off: torch's)
     refine_scale: float = 1.0  # refine(): supervision scale of post-mapping updates (+N PM)
+    # view culling (eligsir_o3d.culling): an update renders, steps (Adam with per-row bias correction), noises and
+    # relocates only the Gaussians that can reach its view, so its cost follows the Gaussians in view; renders for
+    # admission, growth and evaluation draw only those too (same images). False: every update covers the whole map
+    cull: bool = True
 
 
 @dataclass

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.atomic import atomic_write_text
-from .cost import CostModel
+from .cost import CostModel, priced_gaussians
 
 SCALES = (0.125, 0.25, 0.5, 1.0)
 MIN_GAUSSIAN_SPAN = 3.0  # largest / smallest map size among the timed updates needed for a full fit
@@ -75,14 +75,15 @@ def time_updates(rec, frames, scales=SCALES, updates_per_scale: int = 2, warmup_
         rec.integrate(frame, updates=0)
         dt = time.perf_counter() - t0
         if n >= warmup_frames:
-            frm.append((len(rec.gmap), dt))
+            frm.append((priced_gaussians(rec), dt))
         for s in scales:
             for _ in range(updates_per_scale):
-                px, g = rec.stats.supervised_pixels, len(rec.gmap)
+                px = rec.stats.supervised_pixels
                 t0 = time.perf_counter()
                 if rec.optimize(1, scale=s) == 0:
                     break
                 dt = time.perf_counter() - t0
+                g = priced_gaussians(rec)  # the Gaussians the update just paid for (in its view)
                 if n >= warmup_frames:
                     upd.append((rec.stats.supervised_pixels - px, g, dt))
     return np.array(upd, dtype=np.float64).reshape(-1, 3), np.array(frm, dtype=np.float64).reshape(-1, 2)

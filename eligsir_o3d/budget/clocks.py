@@ -28,7 +28,7 @@ from typing import Any, Callable, Iterable, Iterator
 
 from ..core.frame import Frame, FrameError
 from .clock import DEFAULT_FRAME_PERIOD_S
-from .cost import CostModel
+from .cost import CostModel, priced_gaussians
 
 
 @dataclass
@@ -266,7 +266,7 @@ class BudgetClock(_Replay):
                 on_release(item)
             try:
                 _integrate(rec, item, updates=0)
-                self.t += self.cost.frame(len(rec.gmap))
+                self.t += self.cost.frame(priced_gaussians(rec))
                 self._updates(rec, self.updates_per_frame)
                 report.integrated += 1
             except FrameError as e:
@@ -290,7 +290,7 @@ class BudgetClock(_Replay):
             px = rec.stats.supervised_pixels
             if rec.optimize(1) == 0:
                 break
-            self.t += self.cost.update(rec.stats.supervised_pixels - px, len(rec.gmap))
+            self.t += self.cost.update(rec.stats.supervised_pixels - px, priced_gaussians(rec))
             done += 1
         return done
 
@@ -298,7 +298,7 @@ class BudgetClock(_Replay):
         _integrate(rec, item, updates=0)
         # a frame without the full admission check (scheduling.load) pays no support render: no Gaussian term
         plan = getattr(rec, "frame_plan", None)
-        self.t += self.cost.frame(len(rec.gmap)) if plan is None or plan.check else self.cost.frame_s
+        self.t += self.cost.frame(priced_gaussians(rec)) if plan is None or plan.check else self.cost.frame_s
         if behind:
             self._updates(rec, _updates_behind(rec, self.min_updates_behind))
         else:

@@ -21,7 +21,8 @@ UPDATE_TERMS = ("update_s", "gaussian_s", "pixel_s", "pixel_gaussian_s")
 
 @dataclass
 class CostModel:
-    """Modelled seconds of the mapper's work. One update of ``pixels`` supervised pixels on a map of ``gaussians``:
+    """Modelled seconds of the mapper's work. One update of ``pixels`` supervised pixels over ``gaussians``
+    Gaussians (a view-culled update: the Gaussians in its view, :func:`priced_gaussians`; else the map's total):
     ``update_s + gaussian_s * gaussians + pixels * (pixel_s + pixel_gaussian_s * gaussians)`` (projection and Adam
     grow with N; blending grows with pixels times the Gaussians overlapping each pixel). One integrated frame
     (admission render, growth): ``frame_s + gaussian_s * gaussians``.
@@ -103,6 +104,14 @@ class CostModel:
         if not isinstance(data, dict) or not data:
             raise ValueError(f"{path}: no cost-model terms found")
         return cls.from_dict(data, str(path))
+
+
+def priced_gaussians(rec) -> int:
+    """The Gaussians the cost model prices for ``rec``'s work: those its last update supervised (a view-culled
+    update pays for the Gaussians in view, not the map's total; :meth:`Reconstructor.update_gaussians`), else
+    the map's total."""
+    count = getattr(rec, "update_gaussians", None)
+    return int(count()) if count is not None else len(rec.gmap)
 
 
 def nnls(A: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -58,6 +58,18 @@ class MapContext:
         return self._owner.stats.frames_released
 
     @property
+    def view(self):
+        """The current update's :class:`~..culling.InView` (the rows it supervises) while a view-culled update
+        runs; None otherwise (the update covers the whole map)."""
+        return getattr(self._owner, "view", None)
+
+    def in_view(self, camera: Camera, T_world_cam) -> int:
+        """How many Gaussians can reach ``camera``'s image at ``T_world_cam`` (:func:`~..culling.in_view`); the
+        map's total where the owner does not cull."""
+        count = getattr(self._owner, "in_view_count", None)
+        return len(self.gmap) if count is None else int(count(camera, T_world_cam))
+
+    @property
     def plan(self):
         """The current frame's :class:`~.load.FramePlan` (full admission check or not, support render scale)."""
         return getattr(self._owner, "frame_plan", FULL)

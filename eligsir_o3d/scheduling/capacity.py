@@ -1,13 +1,16 @@
 """How many Gaussians the budget can carry: the map-size cap of Targeted Geometry Growth tied to the compute budget.
 
-A Gaussian is not free: every update and every integrated frame pays for each one (the cost model's ``gaussian_s``
-and ``pixel_gaussian_s`` terms). A map that grows until updates become rare trains badly; a map held small stays
+A Gaussian is not free: every update and every integrated frame pays for each one it covers (the cost model's
+``gaussian_s`` and ``pixel_gaussian_s`` terms); with view culling (``config.optim.cull``, the default) an update
+covers the Gaussians that can reach its view, so N below counts the Gaussians *in one view*, and the map's total
+may grow wherever a view leaves room (``TargetedGrowth.cap``), up to ``config.max_gaussians`` (memory: ~200
+bytes per Gaussian with its Adam state). A map that grows until updates become rare trains badly; a map held small stays
 blurry however many updates it gets. The budget cap lets the map grow only while one source frame still buys
 ``min_updates`` updates of ``pixels`` supervised pixels (the growth policy prices them at ``growth.budget_scale``):
 
     frame(N) + min_updates * update(pixels, N) <= period_s
 
-with ``frame`` and ``update`` the cost model's, solved for N. At a tenth of real time a frame grants ten times the
+with ``frame`` and ``update`` the cost model's, solved for N (the Gaussians in view). At a tenth of real time a frame grants ten times the
 seconds, so the map may grow several times larger; on a faster machine (a calibrated, cheaper model) likewise. The
 cap never exceeds ``config.max_gaussians`` (memory) and never drops below ``min_gaussians`` (a map must exist).
 """

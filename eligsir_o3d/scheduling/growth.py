@@ -77,9 +77,15 @@ class TargetedGrowth(GrowthPolicy):
     def attach(self, period_s: float | None, cost=None) -> None:
         self.budget.attach(period_s, cost)
 
-    def cap(self, ctx: MapContext, pixels: int) -> int:
-        """The map-size cap now: ``ctx.max_gaussians``, lowered by the budget cap when one is set."""
-        return self.budget.cap(ctx.max_gaussians, pixels)
+    def cap(self, ctx: MapContext, pixels: int, in_view: int | None = None) -> int:
+        """The map-size cap now: ``ctx.max_gaussians`` (memory), lowered by the budget cap when one is set. The
+        budget prices an update by the Gaussians in its view, so with ``in_view`` (the Gaussians that reach the
+        view at hand) it caps those: the map may hold ``budget cap - in_view`` more, wherever the view leaves room."""
+        cap = self.budget.cap(ctx.max_gaussians, pixels)
+        if in_view is None:
+            return cap
+        n = len(ctx.gmap)
+        return int(min(ctx.max_gaussians, n - min(int(in_view), n) + cap))
 
     # ---- per released frame ---------------------------------------------------------------------------------
     def on_frame(self, frame: Frame, admitted: bool, ctx: MapContext) -> int:
@@ -88,7 +94,7 @@ class TargetedGrowth(GrowthPolicy):
         sup = self.probe.check(frame, ctx)
         if self.cfg.budget_scale > 0:
             self.pixels = _pixels_at(frame.camera, self.cfg.budget_scale)
-        cap = self.cap(ctx, self.pixels or sup.camera.pixels)
+        cap = self.cap(ctx, self.pixels or sup.camera.pixels, ctx.in_view(sup.camera, frame.T_world_cam))
         vs, us = torch.nonzero(sup.valid, as_tuple=True)
         if vs.numel() == 0:
             return 0
@@ -164,15 +170,18 @@ class TargetedGrowth(GrowthPolicy):
 
     # ---- around every update --------------------------------------------------------------------------------
     def pre_backward(self, out: RenderOutput, ctx: MapContext) -> torch.Tensor | None:
+        if ctx.view is not None:  # a view-culled update: the rows in view carry the regulariser's gradient
+            return ctx.view.regulariser(self.cfg.mcmc.opacity_reg, self.cfg.mcmc.scale_reg)
         return self.mcmc.regulariser(ctx.gmap)
 
     def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
         self.pixels = _pixels_at(frame.camera, self.cfg.budget_scale) if self.cfg.budget_scale > 0 else camera.pixels
-        cap = self.cap(ctx, self.pixels)
+        view = ctx.view
+        cap = self.cap(ctx, self.pixels, None if view is None else len(view))
         fill = 0
         if self.cfg.budget_updates > 0 and self.cfg.budget_fill > 0:
             fill = math.ceil(self.cfg.budget_fill * max(0, cap - len(ctx.gmap)))
-        self.mcmc.post_step(ctx.gmap, cap, fill)
+        self.mcmc.post_step(ctx.gmap, cap, fill, None if view is None else view.idx)
 
     def counters(self) -> dict:
         return {**self.counts, **self.mcmc.counts, "evidence_voxels": len(self.voxels)}

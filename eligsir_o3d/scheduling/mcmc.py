@@ -71,13 +71,17 @@ def _split(gmap: GaussianMap, sources: torch.Tensor, min_opacity: float, n_max: 
 
 
 def relocate(gmap: GaussianMap, dead: torch.Tensor, generator: torch.Generator | None = None,
-             min_opacity: float = 0.005, n_max: int = 51) -> int:
+             min_opacity: float = 0.005, n_max: int = 51, rows: torch.Tensor | None = None) -> int:
     """Move the Gaussians where ``dead`` [N] is True onto live ones sampled by opacity; returns how many moved.
 
-    Source and copies share the closed-form opacity and scale; the Adam moments of both are reset.
+    Source and copies share the closed-form opacity and scale; the Adam moments of both are reset. ``rows``
+    (ids [M]): only those rows are candidates, dead or alive (a culled update's view); ``dead`` is then [M].
     """
-    dead_idx = torch.nonzero(dead).squeeze(1)
-    alive_idx = torch.nonzero(~dead).squeeze(1)
+    if rows is None:
+        dead_idx = torch.nonzero(dead).squeeze(1)
+        alive_idx = torch.nonzero(~dead).squeeze(1)
+    else:
+        dead_idx, alive_idx = rows[dead], rows[~dead]
     if dead_idx.numel() == 0 or alive_idx.numel() == 0:
         return 0
     sources = alive_idx[_sample(gmap.opacities.detach()[alive_idx], dead_idx.numel(), generator)]
@@ -87,12 +91,16 @@ def relocate(gmap: GaussianMap, dead: torch.Tensor, generator: torch.Generator |
 
 
 def sample_add(gmap: GaussianMap, n: int, cap: int, generator: torch.Generator | None = None,
-               min_opacity: float = 0.005, n_max: int = 51) -> int:
-    """Append up to ``n`` copies of live Gaussians sampled by opacity, never exceeding ``cap``; returns the count."""
+               min_opacity: float = 0.005, n_max: int = 51, rows: torch.Tensor | None = None) -> int:
+    """Append up to ``n`` copies of live Gaussians sampled by opacity, never exceeding ``cap``; returns the count.
+    ``rows`` (ids [M]): the sources are drawn among those rows only."""
     n = min(int(n), cap - len(gmap))
-    if n <= 0 or len(gmap) == 0:
+    if n <= 0 or len(gmap) == 0 or (rows is not None and rows.numel() == 0):
         return 0
-    sources = _sample(gmap.opacities.detach(), n, generator)
+    if rows is None:
+        sources = _sample(gmap.opacities.detach(), n, generator)
+    else:
+        sources = rows[_sample(torch.sigmoid(gmap.params["opacities"].detach()[rows]), n, generator)]
     _split(gmap, sources, min_opacity, n_max)
     raw = {name: p.detach()[sources].clone() for name, p in gmap.params.items()}
     idx = gmap.add(raw["means"], sh0_to_rgb(raw["sh0"][:, 0]), torch.exp(raw["scales"]),
@@ -102,10 +110,15 @@ def sample_add(gmap: GaussianMap, n: int, cap: int, generator: torch.Generator |
 
 
 @torch.no_grad()
-def inject_noise(gmap: GaussianMap, scaler: float, generator: torch.Generator | None = None) -> None:
+def inject_noise(gmap: GaussianMap, scaler: float, generator: torch.Generator | None = None,
+                 rows: torch.Tensor | None = None) -> None:
     """MCMC's exploration noise: covariance-shaped, gated to (nearly) transparent Gaussians
-    (sigmoid(100 * ((1 - o) - 0.995)) as in the paper's reference code), scaled by ``scaler`` = lr * noise_lr."""
+    (sigmoid(100 * ((1 - o) - 0.995)) as in the paper's reference code), scaled by ``scaler`` = lr * noise_lr.
+    ``rows`` (ids [M]): only those rows move (one normal triple drawn per row); the others stay untouched."""
     if len(gmap) == 0:
+        return
+    if rows is not None:
+        _noise_at(gmap, scaler, generator, rows)
         return
     if gmap.device.type == "cpu" and gmap.means.dtype == torch.float32:
         from ..optim.update_kernels import mcmc_noise
@@ -121,6 +134,26 @@ def inject_noise(gmap: GaussianMap, scaler: float, generator: torch.Generator | 
     z = torch.randn(len(gmap), 3, generator=generator, device=o.device)  # generator on the map's device
     noise = torch.einsum("nij,nj->ni", cov, z) * (gate * scaler)[:, None]
     gmap.params["means"].add_(noise)
+
+
+def _noise_at(gmap: GaussianMap, scaler: float, generator, rows: torch.Tensor) -> None:
+    """:func:`inject_noise` on ``rows`` [M] only: the rows are gathered, moved and written back."""
+    if rows.numel() == 0:
+        return
+    p = gmap.params
+    means = p["means"].detach()[rows]
+    quats, scales = p["quats"].detach()[rows], torch.exp(p["scales"].detach()[rows])
+    o = torch.sigmoid(p["opacities"].detach()[rows])
+    z = torch.randn(rows.numel(), 3, generator=generator, device=o.device)
+    if gmap.device.type == "cpu" and means.dtype == torch.float32:
+        from ..optim.update_kernels import mcmc_noise
+
+        mcmc_noise(means, quats, scales, o, z, scaler)
+    else:
+        gate = torch.sigmoid(100.0 * ((1.0 - o) - 0.995))
+        M = quat_to_rotmat(quats) * scales[:, None, :]
+        means += torch.einsum("nij,nj->ni", M @ M.transpose(1, 2), z) * (gate * scaler)[:, None]
+    p["means"].data[rows] = means
 
 
 class MCMCRefiner:
@@ -161,19 +194,24 @@ class MCMCRefiner:
             return None
         return self.cfg.opacity_reg * gmap.opacities.mean() + self.cfg.scale_reg * gmap.scales.mean()
 
-    def post_step(self, gmap: GaussianMap, cap: int, min_add: int = 0) -> None:
+    def post_step(self, gmap: GaussianMap, cap: int, min_add: int = 0, rows: torch.Tensor | None = None) -> None:
         """Relocation and densification every ``refine_every`` updates (densification adds ``growth_rate`` of the
-        map, at least ``min_add``, never beyond ``cap``), then the position noise."""
+        map, at least ``min_add``, never beyond ``cap``), then the position noise. ``rows`` (ids [M], a culled
+        update's view): all of it acts on those rows only (relocation among them, copies of them, noise on them;
+        densification adds ``growth_rate`` of M), so the rows out of view stay untouched."""
         self.steps += 1
         c = self.cfg
         rng = self.generator(gmap.device)
         if self.steps >= c.refine_start and self.steps % c.refine_every == 0 and len(gmap):
-            dead = gmap.opacities.detach() <= c.min_opacity
-            self.counts["relocated"] += relocate(gmap, dead, rng, c.min_opacity, c.n_max)
-            n_add = max(math.ceil(c.growth_rate * len(gmap)), int(min_add))
-            self.counts["added"] += sample_add(gmap, n_add, cap, rng, c.min_opacity, c.n_max)
+            if rows is None:
+                dead = gmap.opacities.detach() <= c.min_opacity
+            else:
+                dead = torch.sigmoid(gmap.params["opacities"].detach()[rows]) <= c.min_opacity
+            self.counts["relocated"] += relocate(gmap, dead, rng, c.min_opacity, c.n_max, rows)
+            n_add = max(math.ceil(c.growth_rate * (len(gmap) if rows is None else rows.numel())), int(min_add))
+            self.counts["added"] += sample_add(gmap, n_add, cap, rng, c.min_opacity, c.n_max, rows)
         if c.noise_lr > 0:
-            inject_noise(gmap, gmap.lrs.means * c.noise_lr, rng)
+            inject_noise(gmap, gmap.lrs.means * c.noise_lr, rng, rows)
 
     def state_dict(self) -> dict:
         return {"rng": self.rng.get_state(), "rng_device": str(self.rng.device), "steps": self.steps,

@@ -1,0 +1,146 @@
+"""View-culled updates: an update projects, composites, steps (Adam), noises and relocates only the Gaussians that
+can reach its view, so its cost follows the Gaussians in view and not the map's total.
+
+- :func:`in_view`: the ids of the Gaussians whose screen footprint can reach a camera's image. The test bounds the
+  renderer's 3-sigma radius from above (the clamped projection Jacobian's Frobenius norm times the largest scale,
+  plus the low-pass, the radius formula's clamp and rounding), so every Gaussian the renderer would draw is kept
+  and rendering the kept ones gives the same image and the same gradients as rendering the map (tested against
+  the torch reference). On the CPU one compiled pass (:mod:`._cull_kernels`), elsewhere the same bound in torch.
+- :class:`InView`: the kept rows gathered as leaf tensors (raw parameters, [M, ...]); the update renders them,
+  back-propagates into them, and :meth:`InView.adam_step` applies Adam to those rows of the map only, with a step
+  count per row (``row_step``: the updates that stepped the row since its moments were zeroed), so the bias
+  correction stays exact for a Gaussian that is in view in a fraction of the updates. Rows outside the view are
+  neither read nor written: their parameters and moments stay bit for bit as they were.
+
+A per-Gaussian test was chosen over a cell index: at 1M Gaussians it reads 24 bytes per Gaussian once per update
+(~1-3 ms on one core, ``benchmarks/update_time.py --in-view``) and needs no upkeep when Gaussians move, are added,
+removed or relocated.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .core.camera import Camera
+from .core.gaussians import PARAM_NAMES, sh0_to_rgb
+from .render.projection import NEAR, world_to_cam
+
+
+def camera_bounds(camera: Camera) -> np.ndarray:
+    """(fx, fy, cx, cy, width, height, near, jb2) float64; jb2 * s^2 / z^2 bounds the largest eigenvalue of the
+    projected covariance of a Gaussian of largest scale s at depth z (the Jacobian's x/z, y/z clamped as the
+    renderer clamps them, :func:`.render.projection.project`)."""
+    fx, fy, cx, cy, w, h = camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height
+    tan_x, tan_y = 0.5 * w / fx, 0.5 * h / fy
+    lx = max((w - cx - 0.5) / fx, (cx + 0.5) / fx) + 0.3 * tan_x
+    ly = max((h - cy - 0.5) / fy, (cy + 0.5) / fy) + 0.3 * tan_y
+    jb2 = fx * fx * (1.0 + lx * lx) + fy * fy * (1.0 + ly * ly)
+    return np.array([fx, fy, cx, cy, w, h, NEAR, jb2], np.float64)
+
+
+def in_view(means: torch.Tensor, log_scales: torch.Tensor, camera: Camera, T_world_cam) -> torch.Tensor:
+    """Ids [M] int64 (ascending, on the map's device) of the Gaussians (raw means [N, 3], log scales [N, 3]) that
+    can reach ``camera``'s image at ``T_world_cam``; a superset of those the renderer draws."""
+    cam = camera_bounds(camera)
+    V = world_to_cam(T_world_cam, "cpu", torch.float64).numpy()
+    if means.device.type == "cpu" and means.dtype == torch.float32 and log_scales.dtype == torch.float32:
+        from ._cull_kernels import frustum_rows
+
+        rows = frustum_rows(means.detach().contiguous().numpy(), log_scales.detach().contiguous().numpy(), V, cam)
+        return torch.from_numpy(rows)
+    Vt = torch.as_tensor(V, device=means.device)
+    p = means.detach().double() @ Vt[:3, :3].T + Vt[:3, 3]
+    x, y, z = p.unbind(-1)
+    front = z > cam[6]
+    zs = torch.where(front, z, torch.ones_like(z))
+    s = torch.exp(log_scales.detach().double().amax(-1).clamp(max=80.0))
+    r = 3.0 * torch.sqrt(s * s * cam[7] / (zs * zs) + 0.62) * 1.001 + 2.0
+    u, v = cam[0] * x / zs + cam[2], cam[1] * y / zs + cam[3]
+    hit = front & (u + r > -0.5) & (u - r < cam[4] - 0.5) & (v + r > -0.5) & (v - r < cam[5] - 0.5)
+    return torch.nonzero(hit).squeeze(1)
+
+
+class InView:
+    """The rows ``idx`` [M] of ``gmap`` one update supervises, as leaf tensors of their raw parameters."""
+
+    def __init__(self, gmap, idx: torch.Tensor):
+        self.gmap = gmap
+        self.idx = idx.to(gmap.device)
+        self.n_map = len(gmap)
+        self.leaves = {n: gmap.params[n].detach()[self.idx].requires_grad_(True) for n in PARAM_NAMES}
+
+    @classmethod
+    def select(cls, gmap, camera: Camera, T_world_cam) -> "InView":
+        return cls(gmap, in_view(gmap.params["means"], gmap.params["scales"], camera, T_world_cam))
+
+    def __len__(self) -> int:
+        return int(self.idx.numel())
+
+    def render_args(self) -> tuple:
+        """:meth:`.gaussians.GaussianMap.render_args` of the kept rows (activated units, differentiable)."""
+        lv = self.leaves
+        if self.gmap.sh_degree == 0:
+            colors = torch.clamp_min(sh0_to_rgb(lv["sh0"][:, 0]), 0.0)
+        else:
+            colors = torch.cat([lv["sh0"], lv["shN"]], 1)
+        return lv["means"], lv["quats"], torch.exp(lv["scales"]), torch.sigmoid(lv["opacities"]), colors
+
+    def regulariser(self, opacity_reg: float, scale_reg: float) -> torch.Tensor | None:
+        """3DGS-MCMC's ``opacity_reg * mean(opacity) + scale_reg * mean(scale)`` over the map, with the rows out
+        of view held constant: the kept rows get the gradient the map-wide mean gives them (1 / N each)."""
+        if self.n_map == 0 or len(self) == 0 or (opacity_reg <= 0 and scale_reg <= 0):
+            return None
+        lv = self.leaves
+        return (opacity_reg * torch.sigmoid(lv["opacities"]).sum()
+                + scale_reg * torch.exp(lv["scales"]).sum() / 3.0) / self.n_map
+
+    @torch.no_grad()
+    def adam_step(self) -> None:
+        """Adam on the kept rows of every parameter whose leaf received a gradient; per-row step counts."""
+        from .optim.update_kernels import adam_state
+
+        gmap, idx = self.gmap, self.idx
+        if len(gmap) != self.n_map:
+            raise RuntimeError(f"the map changed size ({self.n_map} -> {len(gmap)}) between render and step")
+        cfg, seen, items, shared = gmap.adam, None, [], None
+        for name in PARAM_NAMES:  # "means" first: its row_seen is every row's age in updates seen
+            p, g = gmap.params[name], self.leaves[name].grad
+            if g is None or p.numel() == 0:
+                continue
+            opt = gmap.optimizers[name]
+            group = opt.param_groups[0]
+            b1, b2 = group["betas"]
+            state = adam_state(opt, p)
+            for key in ("row_step",) + (("row_seen",) if name == "means" else ()):
+                if key not in state:  # a state without rows (torch's Adam, a checkpoint): count from now
+                    state[key] = torch.zeros(len(gmap), dtype=torch.float32, device=p.device)
+            state["step"] += 1
+            state["row_step"][idx] += 1
+            if name == "means":
+                state["row_seen"][idx] += (g != 0).any(1).to(torch.float32)
+                seen = state["row_seen"][idx]
+            k = state["row_step"][idx]
+            if shared is None or shared[0] != (b1, b2) or not torch.equal(shared[1], k):
+                kd = k.double()  # the parameters' counts agree unless a state was restored without them
+                shared = ((b1, b2), k, 1.0 / (1.0 - b1 ** kd), torch.sqrt(1.0 - b2 ** kd).float())
+            a_rows = (-group["lr"] * shared[2]).float()
+            b_rows = shared[3]
+            if seen is not None:
+                if name == "means" and cfg.means_decay_to != 1.0:
+                    a_rows = a_rows * torch.pow(cfg.means_decay_to, torch.clamp(seen / cfg.means_decay_updates, max=1.0))
+                if cfg.warmup_updates > 0:
+                    a_rows = a_rows * torch.clamp(seen / cfg.warmup_updates, max=1.0)
+            items.append((p, g, state["exp_avg"], state["exp_avg_sq"], a_rows, b_rows,
+                          (1.0 - b1, b2, 1.0 - b2, group["eps"])))
+        if gmap.device.type == "cpu" and all(it[0].dtype == torch.float32 for it in items):
+            from ._cull_kernels import adam_rows_at
+
+            adam_rows_at(items, idx.numpy())
+            return
+        for p, g, m, v, a_rows, b_rows, (w, beta2, w2, eps) in items:
+            shape = (a_rows.shape[0],) + (1,) * (p.ndim - 1)
+            mi = m[idx] + w * (g - m[idx])
+            vi = v[idx] * beta2 + w2 * g * g
+            m[idx], v[idx] = mi, vi
+            p.data[idx] = p.data[idx] + a_rows.view(shape) * (mi / (torch.sqrt(vi) / b_rows.view(shape) + eps))
