@@ -8,7 +8,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,14 +20,15 @@ import torch
 from .core.camera import Camera, check_pose
 from .budget.stages import StageTimes
 from .culling import InView, in_view
-from .io.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
 from .config import Config
 from .core.frame import Frame, FrameError
 from .core.gaussians import GaussianMap
 from .optim.losses import supervision_loss
 from .pose.refine import PoseRefiner
+from .reconstructor_state import ReconstructorState
 from .render import RenderOutput, get_renderer
 from .scheduling import MapContext, get_policies
+from .scheduling.coarse_to_fine import install_means_lr_decay
 from .scheduling.fixed_work import FULL, LoadScaledChecks
 
 
@@ -51,17 +51,20 @@ class MappingStats:
         return self.supervised_pixels / 1e6
 
 
-class Reconstructor:
+class Reconstructor(ReconstructorState):
     """Online RGB-D -> 3D Gaussian map under a bounded optimisation budget (EliGSiR).
 
     intrinsic: ``o3d.camera.PinholeCameraIntrinsic`` of the incoming images; device: ``"cpu"`` or ``"cuda:0"``.
     ``config`` selects the renderer, the policies (``config.ablate``) and the budget (the Reconstructor keeps a
     resolved copy, ``rec.config``); ``pose_source`` tracks frames integrated with ``pose=None``; ``depth_scale``:
     integer depth / depth_scale = metres (Open3D's spelling; default ``config.depth_scale``, 1000).
+    ``offline_frames``: the offline reference over that many source frames (every frame retained and seeded, one
+    long coarse-to-fine schedule: ``get_policies(config, offline=True)``); None: the online mapper.
     """
 
     def __init__(self, intrinsic: o3d.camera.PinholeCameraIntrinsic, device: str = "cpu",
-                 config: Config | None = None, pose_source=None, *, depth_scale: float | None = None):
+                 config: Config | None = None, pose_source=None, *, depth_scale: float | None = None,
+                 offline_frames: int | None = None):
         changes = {"device": str(device)} if depth_scale is None else {"device": str(device),
                                                                         "depth_scale": float(depth_scale)}
         self.config = (config if config is not None else Config()).resolve(**changes)  # a resolved copy
@@ -71,7 +74,9 @@ class Reconstructor:
         torch.manual_seed(self.config.seed)
         self.rng = torch.Generator().manual_seed(self.config.seed)
         self.gmap = GaussianMap(self.config.sh_degree, self.device, self.config.optim.lrs, self.config.optim.adam)
-        self.views, self.fidelity, self.growth = get_policies(self.config)
+        self.offline_frames = None if offline_frames is None else int(offline_frames)
+        self.views, self.fidelity, self.growth = get_policies(self.config, offline=self.offline_frames is not None,
+                                                              n_source=self.offline_frames or 0)
         self.pose_refine = PoseRefiner(self.config.pose_refine, self.device)  # per-training-view pose corrections
         self.fixed_work = LoadScaledChecks(self.config.fixed_work)  # how much fixed work each frame gets, from the backlog
         self.frame_plan = FULL  # the current frame's plan (read by the policies through ctx.plan)
@@ -85,6 +90,8 @@ class Reconstructor:
         self.view: InView | None = None  # the rows the running update supervises (view-culled updates)
         self.last_in_view: int | None = None  # Gaussians the last update supervised (the cost model's N)
         self.set_load(0, self.config.clock.frame_period_s)
+        if self.offline_frames is not None:  # the means' step size decays over the offline schedule
+            install_means_lr_decay(self, self.fidelity, self.config.clock.offline_means_lr_final)
 
     # ---- the online loop -------------------------------------------------------------------------------
     def integrate(self, rgbd, pose=None, timestamp: float | None = None, *, updates: int | None = None,
@@ -319,105 +326,6 @@ class Reconstructor:
         gmap = load_ply(path, self.device, self.config.optim.lrs, self.config.optim.adam)
         self.gmap = gmap
         self.config.sh_degree = gmap.sh_degree
-
-    def save(self, path: str | Path, *, extra: dict | None = None, sequence=None) -> Path:
-        """Checkpoint the full mapper state (:meth:`state_dict`) to ``path``, atomically; ``extra``: a caller's
-        plain dict stored beside it; ``sequence``: views that are its frames are stored as references."""
-        return save_checkpoint(self.state_dict(), path, extra=extra, sequence=sequence)
-
-    @classmethod
-    def load(cls, path: str | Path, device: str | None = None, *, sequence=None, pose_source=None,
-             setup: Callable[["Reconstructor"], None] | None = None) -> "Reconstructor":
-        """A Reconstructor restored from :meth:`save`'s checkpoint; it continues where the saved one stopped."""
-        return cls.from_checkpoint(read_checkpoint(path, sequence=sequence), device, pose_source=pose_source,
-                                   setup=setup)
-
-    @classmethod
-    def from_checkpoint(cls, ck: dict, device: str | None = None, *, pose_source=None,
-                        setup: Callable[["Reconstructor"], None] | None = None) -> "Reconstructor":
-        """A Reconstructor built from a decoded checkpoint (``read_checkpoint``'s dict; its ``extra`` is the
-        caller's). device: default where it was saved (the renderer is re-chosen when the device type changes).
-        setup: called with the fresh Reconstructor before the state is restored, for a driver that replaces
-        policies after construction (the offline reference does) to do the same again."""
-        path = ck.get("path", "checkpoint")
-        if ck.get("unresolved_views"):
-            raise CheckpointError(f"{path}: {ck['unresolved_views']} views were saved as references to a sequence; "
-                                  f"pass sequence= (the one given when saving) to load it")
-        cfg = Config.from_dict(ck["config"])
-        saved_dev = torch.device(ck["device"])
-        dev = torch.device(device) if device is not None else saved_dev
-        if dev.type == "cuda" and not torch.cuda.is_available():
-            raise CheckpointError(f"{path}: saved on {saved_dev}, but CUDA is not available here; "
-                                  f"pass device='cpu' to load it on the CPU")
-        if dev.type != saved_dev.type:
-            cfg.renderer = "auto"
-        rec = cls(Camera(**ck["camera"]), str(dev), cfg, pose_source=pose_source)
-        if setup is not None:
-            setup(rec)
-        try:
-            rec.load_state_dict(ck)
-        except ValueError as e:
-            raise CheckpointError(f"{path}: {e}") from None
-        return rec
-
-    def state_dict(self) -> dict:
-        """Everything the next decisions depend on: config and camera, the Gaussians with their Adam moments, the
-        three policies' states, the retained views, the counters, the random generators and the pose source's
-        state. Plain containers, tensors, arrays, Frames and Cameras (what ``save_checkpoint`` encodes)."""
-        return {
-            "config": self.config.to_dict(),
-            "camera": dataclasses.asdict(self.camera),
-            "device": str(self.device),
-            "retained_views": list(self.views.views),  # first, so a policy state holding their tensors refers to them
-            "gmap": self.gmap.state_dict(),
-            "policies": {name: {"class": type(p).__name__, "state": p.state_dict()}
-                         for name, p in self._policies()},
-            "retained": [{"index": int(f.index), "timestamp": float(f.timestamp)} for f in self.views.views],
-            "stats": dataclasses.asdict(self.stats),
-            "backlog": self.backlog,
-            "rng": self.rng.get_state(),
-            "torch_rng": torch.get_rng_state(),
-            "cuda_rng": torch.cuda.get_rng_state_all() if self.device.type == "cuda" else None,
-            "pose_source": self.pose_source.state_dict() if hasattr(self.pose_source, "state_dict") else None,
-            "fixed_work": self.fixed_work.state_dict(),
-            "pose_refine": self.pose_refine.state_dict(),
-        }
-
-    def load_state_dict(self, state: dict) -> None:
-        """Restore :meth:`state_dict`'s output into this Reconstructor (built with the same config and policies).
-        Raises ValueError when a policy class differs or the view policy does not restore its retained views."""
-        for name, policy in self._policies():
-            saved = state["policies"][name]
-            if type(policy).__name__ != saved["class"]:
-                raise ValueError(f"the {name} policy was {saved['class']} when saved but the config builds "
-                                 f"{type(policy).__name__} (a policy replaced after construction must be replaced "
-                                 f"again: Reconstructor.load(..., setup=fn))")
-        self.gmap.load_state_dict(state["gmap"])
-        for name, policy in self._policies():
-            policy.load_state_dict(state["policies"][name]["state"])
-        restored = [(int(f.index), float(f.timestamp)) for f in self.views.views]
-        expected = [(int(v["index"]), float(v["timestamp"])) for v in state["retained"]]
-        if restored != expected:
-            raise ValueError(
-                f"the {state['policies']['views']['class']} view policy restored {len(restored)} retained views "
-                f"but {len(expected)} were saved: its state_dict() must include its retained views (Frame objects "
-                f"or their tensors) and load_state_dict() must put them back")
-        known = {f.name for f in dataclasses.fields(self.stats)}
-        for k, v in state["stats"].items():
-            if k in known:
-                setattr(self.stats, k, v)
-        self.backlog = state.get("backlog", 0)
-        self.fixed_work.load_state_dict(state.get("fixed_work", {}))
-        self.pose_refine.load_state_dict(state.get("pose_refine"))
-        self.rng.set_state(state["rng"])
-        torch.set_rng_state(state["torch_rng"])
-        if state.get("cuda_rng") is not None and self.device.type == "cuda":
-            torch.cuda.set_rng_state_all(state["cuda_rng"])
-        if state.get("pose_source") is not None and hasattr(self.pose_source, "load_state_dict"):
-            self.pose_source.load_state_dict(state["pose_source"])
-
-    def _policies(self):
-        return (("views", self.views), ("fidelity", self.fidelity), ("growth", self.growth))
 
     # ---- geometry export -------------------------------------------------------------------------------
     def extract_point_cloud(self, min_opacity: float = 0.1, **kw) -> o3d.geometry.PointCloud:

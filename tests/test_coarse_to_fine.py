@@ -62,28 +62,19 @@ def _offline(tmp_path, **clock):
     seen = []
     opts = RunOptions(max_frames=8, holdout_every=4, eval_every=0, progress=False, plots=False, pictures=False,
                       offline_reference=True)
-    from eligsir_o3d.run import pipeline
+    from eligsir_o3d.reconstructor import Reconstructor
 
-    real = pipeline._offline_setup
+    step = Reconstructor._step
 
-    def spy(n):  # record the means' step size each update is taken with
-        setup = real(n)
+    def traced(rec, scale):  # record the means' step size each update is taken with
+        seen.append(rec.gmap.optimizers["means"].param_groups[0]["lr"])
+        return step(rec, scale)
 
-        def wrapped(rec):
-            setup(rec)
-            step = rec._step
-
-            def traced(scale):
-                seen.append(rec.gmap.optimizers["means"].param_groups[0]["lr"])
-                return step(scale)
-            rec._step = traced
-        return wrapped
-
-    pipeline._offline_setup = spy
+    Reconstructor._step = traced
     try:
         m = run_mapping("synthetic", tmp_path, cfg, opts, sequence_options={"n_frames": 8, "width": 64, "height": 48})
     finally:
-        pipeline._offline_setup = real
+        Reconstructor._step = step
     return m, seen
 
 
@@ -109,3 +100,27 @@ def test_bad_offline_lr_decay_is_named():
 
     with pytest.raises(ValueError, match="offline_means_lr_final"):
         check_clock_config(ClockConfig(offline_means_lr_final=0.0))
+
+
+def test_offline_policies_come_from_the_factory_and_survive_a_checkpoint(tmp_path):
+    """get_policies(cfg, offline=True) builds the offline reference's policies; a checkpoint restores them with no
+    setup= hook (offline_frames is part of the state)."""
+    import eligsir_o3d as eo3d
+    from eligsir_o3d.datasets import open_sequence
+    from eligsir_o3d.scheduling import get_policies
+    from eligsir_o3d.scheduling.coarse_to_fine import CoarseToFine
+    from eligsir_o3d.scheduling.keyframes import StrideKeyframes
+    from eligsir_o3d.scheduling.seeding import NewSpaceSeeding
+
+    cfg = Config(renderer="cpu")
+    views, fidelity, growth = get_policies(cfg, offline=True, n_source=6)
+    assert isinstance(views, StrideKeyframes) and views.cfg.every == 1 and views.cfg.max_views == 6
+    assert isinstance(fidelity, CoarseToFine) and fidelity.total == 6 * cfg.clock.offline_updates_per_frame
+    assert isinstance(growth, NewSpaceSeeding) and not growth.cfg.dense
+    seq = open_sequence("synthetic", n_frames=3, width=64, height=48)
+    rec = eo3d.Reconstructor(seq.camera, "cpu", cfg, offline_frames=3)
+    for i in range(3):
+        rec.integrate(seq.frame(i), updates=2)
+    back = eo3d.Reconstructor.load(rec.save(tmp_path / "ck.pt"), sequence=seq)
+    assert back.offline_frames == 3 and type(back.fidelity) is CoarseToFine
+    assert back.fidelity.updates == rec.fidelity.updates == 6

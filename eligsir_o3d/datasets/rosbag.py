@@ -124,21 +124,10 @@ def _first(reader, conn):
     return None
 
 
-def open_rosbag(path: Path, *, rgb_topic: str | None = None, depth_topic: str | None = None,
-                rgb_info_topic: str | None = None, depth_info_topic: str | None = None,
-                pose_topic: str | None = None, pose_frames: str | None = None, max_dt: float = 0.02,
-                intrinsics: str | None = None, depth_scale: float | None = None) -> BagSequence:
-    """Open a ROS 1 or ROS 2 bag (see the module docstring for the rules and options)."""
-    if not max_dt > 0:
-        raise DatasetError(f"max_dt must be positive, got {max_dt}")
-    reader = open_reader(path)
-    ros1 = not reader.is2
-    conns: dict[str, list] = {}
-    for c in reader.connections:
-        conns.setdefault(c.topic, []).append(c)
-    topics = {t: cs[0].msgtype for t, cs in conns.items()}
-
-    # -- which topics --------------------------------------------------------------------------------------------
+def _pick_topics(reader, conns: dict, topics: dict, path: Path, rgb_topic, depth_topic, rgb_info_topic,
+                 depth_info_topic, pose_topic, pose_frames):
+    """(colour, depth, colour CameraInfo, depth CameraInfo, pose) topics: the given ones, checked, else the only
+    candidate of each kind (an ambiguous or missing choice is a DatasetError that lists the candidates)."""
     colors, depths = [], []
     for t, typ in sorted(topics.items()):
         if typ == COMPRESSED_TYPE:
@@ -178,7 +167,13 @@ def open_rosbag(path: Path, *, rgb_topic: str | None = None, depth_topic: str | 
     elif pose_topic is not None:
         raise DatasetError("give pose_topic or pose_frames, not both")
 
-    # -- one pass over the bag: stamps, intrinsics, poses --------------------------------------------------------
+    return rgb_topic, depth_topic, rgb_info, depth_info, pose_topic
+
+
+def _read_messages(reader, conns: dict, topics: dict, path: Path, ros1: bool, rgb_topic, depth_topic, rgb_info,
+                   depth_info, pose_topic, pose_frames):
+    """One pass over the bag: per image topic its header stamps and message refs, the first CameraInfo of each info
+    topic, the pose messages (stamps, T_world_cam) and the tf tree."""
     want = {rgb_topic, depth_topic, *(t for t in (rgb_info, depth_info, pose_topic) if t)}
     if pose_frames is not None:
         want |= {t for t, typ in topics.items() if typ == TF_TYPE}
@@ -209,6 +204,29 @@ def open_rosbag(path: Path, *, rgb_topic: str | None = None, depth_topic: str | 
         raise DatasetError(f"{path}: depth topic {depth_topic} has no messages")
     if not stamps[rgb_topic][0]:
         raise DatasetError(f"{path}: colour topic {rgb_topic} has no messages")
+
+    return stamps, info_msgs, pose_t, pose_T, tf
+
+
+def open_rosbag(path: Path, *, rgb_topic: str | None = None, depth_topic: str | None = None,
+                rgb_info_topic: str | None = None, depth_info_topic: str | None = None,
+                pose_topic: str | None = None, pose_frames: str | None = None, max_dt: float = 0.02,
+                intrinsics: str | None = None, depth_scale: float | None = None) -> BagSequence:
+    """Open a ROS 1 or ROS 2 bag (see the module docstring for the rules and options)."""
+    if not max_dt > 0:
+        raise DatasetError(f"max_dt must be positive, got {max_dt}")
+    reader = open_reader(path)
+    ros1 = not reader.is2
+    conns: dict[str, list] = {}
+    for c in reader.connections:
+        conns.setdefault(c.topic, []).append(c)
+    topics = {t: cs[0].msgtype for t, cs in conns.items()}
+
+    rgb_topic, depth_topic, rgb_info, depth_info, pose_topic = _pick_topics(
+        reader, conns, topics, path, rgb_topic, depth_topic, rgb_info_topic, depth_info_topic, pose_topic, pose_frames)
+
+    stamps, info_msgs, pose_t, pose_T, tf = _read_messages(reader, conns, topics, path, ros1, rgb_topic, depth_topic,
+                                                           rgb_info, depth_info, pose_topic, pose_frames)
 
     # -- cameras ---------------------------------------------------------------------------------------------------
     first_depth = depth_from_msg(reader.deserialize(*_raw_first(reader, stamps[depth_topic][1][0])),

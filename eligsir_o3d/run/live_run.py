@@ -148,12 +148,51 @@ class SequenceReplay(FrameSource):
         return item.rgbd, ts
 
 
+def _capture(source: FrameSource, queue: deque, lock: threading.Lock, stats: dict, done: threading.Event,
+             queue_size: int, max_frames: int | None, seconds: float | None) -> None:
+    """The capture thread: read frames into ``queue`` (the oldest waiting one dropped beyond ``queue_size``) until
+    the source ends, ``max_frames`` are captured or ``seconds`` have passed; then set ``done``."""
+    t_end = None if seconds is None else time.perf_counter() + seconds
+    try:
+        while not done.is_set():
+            item = source.read()
+            if item is None or (t_end is not None and time.perf_counter() > t_end):
+                break
+            with lock:
+                if len(queue) >= queue_size:
+                    queue.popleft()
+                    stats["dropped"] += 1
+                queue.append((stats["captured"], *item))
+                stats["captured"] += 1
+            if max_frames is not None and stats["captured"] >= max_frames:
+                break
+    finally:
+        done.set()
+
+
+def _write_outputs(out: Path, rec, config, source: FrameSource, tracker, stats: dict, stamps: list, poses: list,
+                   wall0: float) -> dict:
+    """map.ply, trajectory.txt, config.json (``config`` as given) and live.json (the summary, returned)."""
+    from ..pose import write_tum_trajectory
+
+    rec.save_ply(out / "map.ply")
+    if stamps:
+        write_tum_trajectory(out / "trajectory.txt", stamps, poses)
+    (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+    summary = {"source": source.name, **stats, "gaussians": len(rec.gmap), "updates": rec.stats.updates,
+               "wall_s": time.perf_counter() - wall0, "tracking_ms_per_frame": tracker.ms_per_frame,
+               "camera": {"width": source.camera.width, "height": source.camera.height, "fx": source.camera.fx,
+                          "fy": source.camera.fy, "cx": source.camera.cx, "cy": source.camera.cy}}
+    (out / "live.json").write_text(json.dumps(summary, indent=1))
+    return summary
+
+
 def run_live(source: FrameSource, out: str | Path, config=None, *, pose: str = "odometry", max_frames: int | None = None,
              seconds: float | None = None, queue_size: int = 4, drain_s: float = 2.0) -> dict:
     """Map ``source`` in real time into ``out`` (see the module docstring). Returns the summary in live.json."""
     from ..config import Config
     from ..core.frame import Frame, FrameError
-    from ..pose import TrackingLost, get_pose_source, write_tum_trajectory
+    from ..pose import TrackingLost, get_pose_source
     from ..reconstructor import Reconstructor
 
     config = config or Config()
@@ -170,25 +209,8 @@ def run_live(source: FrameSource, out: str | Path, config=None, *, pose: str = "
     done = threading.Event()
     lock = threading.Lock()
 
-    def capture() -> None:
-        t_end = None if seconds is None else time.perf_counter() + seconds
-        try:
-            while not done.is_set():
-                item = source.read()
-                if item is None or (t_end is not None and time.perf_counter() > t_end):
-                    break
-                with lock:
-                    if len(queue) >= queue_size:
-                        queue.popleft()
-                        stats["dropped"] += 1
-                    queue.append((stats["captured"], *item))
-                    stats["captured"] += 1
-                if max_frames is not None and stats["captured"] >= max_frames:
-                    break
-        finally:
-            done.set()
-
-    thread = threading.Thread(target=capture, name="eligsir-capture", daemon=True)
+    thread = threading.Thread(target=_capture, args=(source, queue, lock, stats, done, queue_size, max_frames, seconds),
+                              name="eligsir-capture", daemon=True)
     wall0 = time.perf_counter()
     thread.start()
     stamps, poses, period = [], [], 1.0 / 30.0
@@ -233,13 +255,4 @@ def run_live(source: FrameSource, out: str | Path, config=None, *, pose: str = "
         thread.join(timeout=5.0)
         source.stop()
     rec.finalize(rec.clock_now() + drain_s)
-    rec.save_ply(out / "map.ply")
-    if stamps:
-        write_tum_trajectory(out / "trajectory.txt", stamps, poses)
-    (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
-    summary = {"source": source.name, **stats, "gaussians": len(rec.gmap), "updates": rec.stats.updates,
-               "wall_s": time.perf_counter() - wall0, "tracking_ms_per_frame": tracker.ms_per_frame,
-               "camera": {"width": source.camera.width, "height": source.camera.height, "fx": source.camera.fx,
-                          "fy": source.camera.fy, "cx": source.camera.cx, "cy": source.camera.cy}}
-    (out / "live.json").write_text(json.dumps(summary, indent=1))
-    return summary
+    return _write_outputs(out, rec, config, source, tracker, stats, stamps, poses, wall0)

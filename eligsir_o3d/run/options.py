@@ -21,6 +21,33 @@ COST_MODEL_RULE = ("Cost model (what --clock cost charges an update): --cost-mod
 
 
 @dataclass
+class RunOptions:
+    """How a sequence is run (the mapper's own settings, the clock included, are the :class:`Config`)."""
+
+    max_frames: int | None = None
+    sequence_options: dict | None = None  # passed to open_sequence (e.g. {"n_frames": 240} for the synthetic room)
+    holdout_every: int = 8  # frames i with i % holdout_every == holdout_every // 2 are held out
+    holdout_list: str | None = None  # a text file of frame indices to hold out instead
+    pose: str = "gt"  # gt | odometry | kiss-icp | colmap | path to a TUM trajectory
+    eval_every: int = 100  # held-out checkpoint every N optimisation updates (0 = only at the end)
+    # with checkpoints on (eval_every > 0), also one each time the stream has released this share of its frames, so
+    # a variant with few, expensive updates still gets a curve over the whole stream
+    eval_every_progress: float = 0.1
+    eval_sample_stride: int = 2  # regional samples: every 2nd pixel in x and y of each held-out view
+    eval_ssim_at_checkpoints: bool = True
+    refine: int = 0  # +N post-mapping updates after the drain (map state "+N PM")
+    offline_reference: bool = False  # all source frames available at once, long full-resolution schedule
+    checkpoint_every: int = 0  # frames between checkpoints (0 = none)
+    resume: bool = False
+    force_unlock: bool = False  # take over another host's lock on the results folder (eligsir map --force-unlock)
+    plots: bool = True
+    pictures: bool = True  # heldout/*.png comparisons and flythrough.mp4 (eligsir_o3d.visual.run_pictures)
+    formats: str = "ply"  # map files: "ply", "spz", "splat", comma-separated (map.ply always; eligsir map --format)
+    view: object | None = None  # a live viewer (eligsir_o3d.visual.live.LiveView) fed while mapping; not recorded
+    progress: bool = True
+
+
+@dataclass
 class MapOptions:
     """A run as a user asks for it; ``None`` means "the config's" (or the RunOptions default)."""
 
@@ -102,10 +129,8 @@ def to_config(o: MapOptions):
     return cfg
 
 
-def to_run_options(o: MapOptions):
-    """The :class:`~.pipeline.RunOptions` of a run (how the sequence is read, held out, evaluated and written)."""
-    from .pipeline import RunOptions
-
+def to_run_options(o: MapOptions) -> RunOptions:
+    """The :class:`RunOptions` of a run (how the sequence is read, held out, evaluated and written)."""
     names = {f.name for f in fields(RunOptions)} & {f.name for f in fields(MapOptions)}
     opts = RunOptions(**{n: getattr(o, n) for n in sorted(names)})
     opts.holdout_list = str(o.holdout_list) if o.holdout_list else None

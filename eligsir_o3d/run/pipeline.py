@@ -13,7 +13,6 @@ import dataclasses
 import logging
 import math
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
@@ -21,40 +20,17 @@ import numpy as np
 
 from ..config import Config
 from ..core.frame import Frame
-from .frame_faults import BAD_FRAME_ERRORS, frame_fault
 from ..pose.refine import HELDOUT_POSE_RULES
-from .resume import apply_new_settings, check_resume, run_record
+from .frame_faults import BAD_FRAME_ERRORS, frame_fault
 from .lock import RunLock
+from .options import RunOptions
 from .outputs import Outputs, PeriodicCheckpoints
+from .poses import pose_source_name, prepare_pose_source, trajectory_accuracy_of
+from .resume import apply_new_settings, check_resume, run_record
+
+__all__ = ["MappingPipeline", "RunOptions", "heldout_indices", "read_run", "run_mapping"]
 
 log = logging.getLogger("eligsir_o3d")
-
-
-@dataclass
-class RunOptions:
-    """How a sequence is run (the mapper's own settings, the clock included, are the :class:`Config`)."""
-
-    max_frames: int | None = None
-    sequence_options: dict | None = None  # passed to open_sequence (e.g. {"n_frames": 240} for the synthetic room)
-    holdout_every: int = 8  # frames i with i % holdout_every == holdout_every // 2 are held out
-    holdout_list: str | None = None  # a text file of frame indices to hold out instead
-    pose: str = "gt"  # gt | odometry | kiss-icp | colmap | path to a TUM trajectory
-    eval_every: int = 100  # held-out checkpoint every N optimisation updates (0 = only at the end)
-    # with checkpoints on (eval_every > 0), also one each time the stream has released this share of its frames, so
-    # a variant with few, expensive updates still gets a curve over the whole stream
-    eval_every_progress: float = 0.1
-    eval_sample_stride: int = 2  # regional samples: every 2nd pixel in x and y of each held-out view
-    eval_ssim_at_checkpoints: bool = True
-    refine: int = 0  # +N post-mapping updates after the drain (map state "+N PM")
-    offline_reference: bool = False  # all source frames available at once, long full-resolution schedule
-    checkpoint_every: int = 0  # frames between checkpoints (0 = none)
-    resume: bool = False
-    force_unlock: bool = False  # take over another host's lock on the results folder (eligsir map --force-unlock)
-    plots: bool = True
-    pictures: bool = True  # heldout/*.png comparisons and flythrough.mp4 (eligsir_o3d.visual.run_pictures)
-    formats: str = "ply"  # map files: "ply", "spz", "splat", comma-separated (map.ply always; eligsir map --format)
-    view: object | None = None  # a live viewer (eligsir_o3d.visual.live.LiveView) fed while mapping; not recorded
-    progress: bool = True
 
 
 CALIBRATION_FRAMES = 12  # consecutive source frames that eligsir map times to fit the cost model
@@ -157,7 +133,7 @@ class MappingPipeline:
         self.config = self.config.resolve(depth_scale=float(seq.depth_scale))
         self.skipped = list(getattr(seq, "skipped_frames", ()))  # frames the reader left out (e.g. invalid poses)
         self.pose_name = pose_source_name(self.opts.pose, seq)  # what metrics.json names
-        self.pose_source = _pose_source(self.opts.pose, seq, self.source)
+        self.pose_source = prepare_pose_source(self.opts.pose, seq, self.source)
         log.info("loading %d held-out views", len(self.held))
         self.heldout_frames, self.heldout_skipped = read_heldout(seq, self.held, self.config.depth_max,
                                                                  self.config.clock.on_bad_frame)  # unreadable: dropped
@@ -175,14 +151,13 @@ class MappingPipeline:
         from ..budget import get_clock
         from ..reconstructor import Reconstructor
 
-        setup = _offline_setup(len(self.source)) if self.opts.offline_reference else None
         ck_path = self.out / "checkpoint.pt"
         if self.opts.resume and ck_path.is_file():
-            self.rec = self._resume(ck_path, setup)
-        else:
-            self.rec = Reconstructor(self.seq.camera, self.config.device, self.config, pose_source=self.pose_source)
-            if setup is not None:
-                setup(self.rec)
+            self.rec = self._resume(ck_path)
+        else:  # the offline reference's policies are built with it (get_policies(cfg, offline=True))
+            offline = len(self.source) if self.opts.offline_reference else None
+            self.rec = Reconstructor(self.seq.camera, self.config.device, self.config, pose_source=self.pose_source,
+                                     offline_frames=offline)
         self.config = self.rec.config
         self.cost_model_source = self._cost_model()
         self.clock = get_clock(self.config, offline=self.opts.offline_reference)
@@ -208,13 +183,15 @@ class MappingPipeline:
             return info
         return {"source": "shipped" if c.cost == CostModel() else "config"}
 
-    def _resume(self, ck_path: Path, setup):
+    def _resume(self, ck_path: Path):
         from ..io.checkpoint import read_checkpoint
         from ..reconstructor import Reconstructor
 
         ck = read_checkpoint(ck_path, sequence=self.seq)
         check_resume(self.out, ck, self.config, self._run_record())  # another config or split: refused
-        rec = Reconstructor.from_checkpoint(ck, self.config.device, pose_source=self.pose_source, setup=setup)
+        if self.opts.offline_reference:  # a checkpoint of the first release does not record it
+            ck.setdefault("offline_frames", len(self.source))
+        rec = Reconstructor.from_checkpoint(ck, self.config.device, pose_source=self.pose_source)
         apply_new_settings(rec.config, self.config)
         extra = ck.get("extra") or {}
         self.start = int(extra.get("next_source", 0))
@@ -332,7 +309,7 @@ class MappingPipeline:
     def evaluate(self) -> None:
         self.released = len(self.source)  # the stream has ended: every source frame was released
         self._checkpoint(self.rec)  # the curve ends at the evaluated map state (p = 1)
-        self.accuracy = _trajectory_accuracy(self.seq, self.trajectory, self.out, self.opts, self.outputs) \
+        self.accuracy = trajectory_accuracy_of(self.seq, self.trajectory, self.out, self.opts, self.outputs) \
             if self.pose_source is not None else {}
         if self.accuracy:
             from ..pose.accuracy import pose_alignment
@@ -364,62 +341,6 @@ class MappingPipeline:
         metrics = collect_metrics(self)
         write_results(self, metrics)
         return metrics
-
-
-def pose_source_name(spec: str, seq) -> str:
-    """The pose source a run uses: ``spec``, or the reader's default for a recording without poses (a bag)."""
-    if spec == "gt" and seq.poses is None and getattr(seq, "default_pose", None):
-        return seq.default_pose
-    return spec
-
-
-def _pose_source(spec: str, seq, frames: list[int]):
-    if pose_source_name(spec, seq) != spec:  # e.g. a bag without poses
-        log.info("%s has no poses: tracking with the %s pose source", seq.path, seq.default_pose)
-        spec = seq.default_pose
-    if spec == "gt":
-        if seq.poses is None:
-            raise ValueError(f"{seq.path}: the sequence has no ground-truth poses; choose --pose odometry|kiss-icp|colmap")
-        return None
-    from ..pose import get_pose_source
-
-    src = get_pose_source(spec, sequence=seq)
-    src.prepare(seq)
-    src.check_frames(seq, frames)  # e.g. a trajectory file that ends before the source frames: an error up front
-    return src
-
-
-def _offline_setup(n_source: int):
-    """Offline reference: every source frame is retained and seeded, then one long coarse-to-fine schedule. The
-    policies are replaced after construction, so a resumed run does the same again (``setup=``)."""
-    def setup(rec) -> None:
-        from ..budget import offline_updates
-        from ..scheduling.coarse_to_fine import offline_schedule
-        from ..scheduling.keyframes import KeyframesConfig, StrideKeyframes
-        from ..scheduling.seeding import NewSpaceSeeding
-
-        c = rec.config.clock
-        rec.views = StrideKeyframes(KeyframesConfig(every=1, newest_fraction=0.0, max_views=max(n_source, 1)))
-        # coarse updates first, full resolution last; the means' step size decays over the schedule
-        offline_schedule(rec, offline_updates(c, n_source), c.offline_stages, c.offline_means_lr_final)
-        rec.growth = NewSpaceSeeding(rec.config.seeding, seed=rec.config.seed, probe=rec.config.support)
-
-    return setup
-
-
-def _trajectory_accuracy(seq, trajectory: dict, out: Path, opts: RunOptions, outputs) -> dict:
-    """ATE/RPE of the tracked source trajectory against the sequence's ground truth, and a top-view plot."""
-    if seq.poses is None or len(trajectory) < 3:
-        return {}
-    from ..pose import plot_trajectories, trajectory_accuracy
-
-    est = {ts: T for ts, T in trajectory.values()}
-    gt = {float(seq.timestamps[i]): seq.poses[i] for i in trajectory}
-    acc = trajectory_accuracy(est, gt, return_alignment=True)
-    if opts.plots:
-        outputs.stage(out / "trajectory_topview.png", plot_trajectories, out / "trajectory_topview.png",
-                      {"gt": gt, opts.pose: est}, reference="gt", title=f"ATE {acc['ate_rmse_m'] * 100:.2f} cm")
-    return acc
 
 
 def _progress(items, enabled: bool, desc: str, total: int | None = None, initial: int = 0):

@@ -90,13 +90,20 @@ class MeansLrDecay:
         gmap.optimizers["means"].param_groups[0]["lr"] = self.lr(gmap.lrs.means)
 
 
+def install_means_lr_decay(rec, schedule: CoarseToFine, means_lr_final: float) -> None:
+    """When ``means_lr_final`` < 1, decay the means' step size over ``schedule`` to that share of ``lrs.means``: an
+    update callback on ``rec``, applied once now for the first update (progress 0, or a resumed schedule's)."""
+    if means_lr_final < 1:
+        decay = MeansLrDecay(schedule, means_lr_final)
+        rec.callbacks.append(decay)
+        decay(rec)
+
+
 def offline_schedule(rec, total: int, stages=DEFAULT_STAGES, means_lr_final: float = 1.0) -> CoarseToFine:
-    """Install the offline reference's schedule on ``rec``: coarse-to-fine supervision over ``total`` updates and,
-    when ``means_lr_final`` < 1, the means' step-size decay to that share of ``lrs.means`` by the end."""
+    """Install the offline reference's schedule on an existing ``rec`` (coarse-to-fine supervision over ``total``
+    updates and the means' step-size decay). The offline run itself builds it at construction instead
+    (``Reconstructor(..., offline_frames=n)``, ``get_policies(cfg, offline=True)``)."""
     policy = CoarseToFine(total, stages)
     rec.fidelity = policy
-    if means_lr_final < 1:
-        decay = MeansLrDecay(policy, means_lr_final)
-        rec.callbacks.append(decay)
-        decay(rec)  # the first update's step size (progress 0, or a resumed schedule's progress)
+    install_means_lr_decay(rec, policy, means_lr_final)
     return policy
