@@ -77,7 +77,7 @@ def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in
                 t0 = clock()
                 rec.optimize(1, scale=0.25)
                 ts.append(clock() - t0)
-                seen.append(rec.update_gaussians() if hasattr(rec, "update_gaussians") else len(rec.gmap))
+                seen.append(getattr(rec, "last_in_view", None) or len(rec.gmap))
             rows.append({"gaussians": n0, "gaussians_end": len(rec.gmap), "seconds": ts, "in_view": seen})
         print(json.dumps({"rows": rows}), flush=True)
 

@@ -128,7 +128,8 @@ class InView:
             b_rows = shared[3]
             if seen is not None:
                 if name == "means" and cfg.means_decay_to != 1.0:
-                    a_rows = a_rows * torch.pow(cfg.means_decay_to, torch.clamp(seen / cfg.means_decay_updates, max=1.0))
+                    decay = torch.clamp(seen / cfg.means_decay_updates, max=1.0)
+                    a_rows = a_rows * torch.pow(cfg.means_decay_to, decay)
                 if cfg.warmup_updates > 0:
                     a_rows = a_rows * torch.clamp(seen / cfg.warmup_updates, max=1.0)
             items.append((p, g, state["exp_avg"], state["exp_avg_sq"], a_rows, b_rows,

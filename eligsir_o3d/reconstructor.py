@@ -19,7 +19,8 @@ import torch
 
 from .core.camera import Camera, check_pose
 from .budget.stages import StageTimes
-from .culling import InView, in_view
+from .budget.cost import priced_gaussians
+from .culling import InView
 from .config import Config
 from .core.frame import Frame, FrameError
 from .core.gaussians import GaussianMap
@@ -87,8 +88,7 @@ class Reconstructor(ReconstructorState):
         self.callbacks: list[Callable[["Reconstructor"], None]] = []  # after every update; time excluded
         self.timing = StageTimes()  # wall seconds per stage (admission, growth, update, tracking): stage_times
         self._background = torch.tensor(self.config.background, dtype=torch.float32, device=self.device)
-        self.view: InView | None = None  # the rows the running update supervises (view-culled updates)
-        self.last_in_view: int | None = None  # Gaussians the last update supervised (the cost model's N)
+        self.view, self.last_in_view = None, None  # the running update's InView (culled); the last one's size
         self.set_load(0, self.config.clock.frame_period_s)
         if self.offline_frames is not None:  # the means' step size decays over the offline schedule
             install_means_lr_decay(self, self.fidelity, self.config.clock.offline_means_lr_final)
@@ -145,31 +145,23 @@ class Reconstructor(ReconstructorState):
         frame = self.views.select(self.rng)
         s = self.fidelity.scale() if scale is None else scale
         color, depth, cam = frame.at_scale(s, self.device)
-        if self.config.optim.cull:  # only the rows that can reach the view (the refined pose's)
-            self.view = InView.select(self.gmap, cam, self.pose_refine.posed(frame).T_world_cam)
-            self.last_in_view = len(self.view)
-        else:
-            self.last_in_view = len(self.gmap)
-        try:
-            args = self.view.render_args() if self.view is not None else self.gmap.render_args()
-            args, T = self.pose_refine.render_args(frame, args)  # at the refined pose (off: as is)
-            out = self.renderer.render(*args, cam, T, self._background)
-            loss, error = supervision_loss(out, color, depth, self.config.optim.loss)
-            reg = self.growth.pre_backward(out, self.ctx)
-            if reg is not None:
-                loss = loss + reg
-            self.gmap.zero_grad()
-            if loss.requires_grad:  # an empty view (every row out of it) leaves nothing to differentiate
-                loss.backward()
-            if self.view is not None:
-                self.view.adam_step()
-            else:
-                self.gmap.step()
-            posed = self.pose_refine.posed(frame)  # the pose the view was rendered at (before its correction steps)
-            self.pose_refine.step()
-            self.growth.post_step(posed, out, depth, cam, self.ctx)
-        finally:
-            self.view = None
+        cull = self.config.optim.cull  # only the rows that can reach the view (at its refined pose): drawn and stepped
+        self.view = InView.select(self.gmap, cam, self.pose_refine.posed(frame).T_world_cam) if cull else None
+        rows = self.view if self.view is not None else self.gmap
+        self.last_in_view = len(rows)
+        args, T = self.pose_refine.render_args(frame, rows.render_args())  # at the refined pose
+        out = self.renderer.render(*args, cam, T, self._background)
+        loss, error = supervision_loss(out, color, depth, self.config.optim.loss)
+        if (reg := self.growth.pre_backward(out, self.ctx)) is not None:
+            loss = loss + reg
+        self.gmap.zero_grad()
+        if loss.requires_grad:  # an empty view (every row out of it) leaves nothing to differentiate
+            loss.backward()
+        self.view.adam_step() if self.view is not None else self.gmap.step()
+        posed = self.pose_refine.posed(frame)  # the pose the view was rendered at (before its correction steps)
+        self.pose_refine.step()
+        self.growth.post_step(posed, out, depth, cam, self.ctx)
+        self.view = None
         self.views.feedback(frame, out, error, depth, cam)
         dt = time.perf_counter() - t0
         self.stats.updates += 1
@@ -189,16 +181,9 @@ class Reconstructor(ReconstructorState):
         fidelity policy measures seconds). The one route by which load reaches the fidelity policy."""
         self.backlog = int(backlog)
         if period_s is not None:
-            cost_fn = None if cost is None else (lambda pixels: cost.update(pixels, self.update_gaussians()))
+            cost_fn = None if cost is None else (lambda pixels: cost.update(pixels, priced_gaussians(self)))
             self.fidelity.attach(period_s, cost_fn)
             self.growth.attach(period_s, cost)  # the budget cap on the map size (scheduling.capacity)
-
-    def update_gaussians(self) -> int:
-        """The Gaussians an update pays for: those the last update supervised (all of the map without culling,
-        or before the first update)."""
-        if not self.config.optim.cull or self.last_in_view is None:
-            return len(self.gmap)
-        return min(int(self.last_in_view), len(self.gmap))
 
     def policy_counters(self) -> dict:
         """Each policy's name and what it decided so far (admissions, seeds, insertions, relocations, scales)."""
@@ -239,19 +224,11 @@ class Reconstructor(ReconstructorState):
 
     # ---- rendering -------------------------------------------------------------------------------------
     def _render(self, camera: Camera, T_world_cam) -> RenderOutput:
-        """The map at ``camera``/``T_world_cam`` (differentiable); culled to the rows in view (the same image)
-        unless ``config.optim.cull`` is off. Per-Gaussian outputs (radii, ...) are then the kept rows'."""
-        if self.config.optim.cull:
-            args = InView.select(self.gmap, camera, T_world_cam).render_args()
-        else:
-            args = self.gmap.render_args()
+        """The map at ``camera``/``T_world_cam`` (differentiable); with ``config.optim.cull`` only the rows in view
+        are drawn (the same image; per-Gaussian outputs such as radii are then the kept rows')."""
+        cull = self.config.optim.cull
+        args = InView.select(self.gmap, camera, T_world_cam).render_args() if cull else self.gmap.render_args()
         return self.renderer.render(*args, camera, T_world_cam, self._background)
-
-    def in_view_count(self, camera: Camera, T_world_cam) -> int:
-        """Gaussians that can reach ``camera``'s image at ``T_world_cam`` (the map's total without culling)."""
-        if not self.config.optim.cull:
-            return len(self.gmap)
-        return int(in_view(self.gmap.params["means"], self.gmap.params["scales"], camera, T_world_cam).numel())
 
     @torch.no_grad()
     def render(self, pose, intrinsic: o3d.camera.PinholeCameraIntrinsic | Camera | None = None,

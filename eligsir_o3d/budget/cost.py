@@ -108,10 +108,9 @@ class CostModel:
 
 def priced_gaussians(rec) -> int:
     """The Gaussians the cost model prices for ``rec``'s work: those its last update supervised (a view-culled
-    update pays for the Gaussians in view, not the map's total; :meth:`Reconstructor.update_gaussians`), else
-    the map's total."""
-    count = getattr(rec, "update_gaussians", None)
-    return int(count()) if count is not None else len(rec.gmap)
+    update pays for the Gaussians in view, not the map's total: ``rec.last_in_view``), else the map's total."""
+    seen = getattr(rec, "last_in_view", None)
+    return len(rec.gmap) if seen is None else min(int(seen), len(rec.gmap))
 
 
 def nnls(A: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -66,8 +66,12 @@ class MapContext:
     def in_view(self, camera: Camera, T_world_cam) -> int:
         """How many Gaussians can reach ``camera``'s image at ``T_world_cam`` (:func:`~..culling.in_view`); the
         map's total where the owner does not cull."""
-        count = getattr(self._owner, "in_view_count", None)
-        return len(self.gmap) if count is None else int(count(camera, T_world_cam))
+        optim = getattr(self._owner.config, "optim", None)
+        if not getattr(optim, "cull", False):
+            return len(self.gmap)
+        from ..culling import in_view
+
+        return int(in_view(self.gmap.params["means"], self.gmap.params["scales"], camera, T_world_cam).numel())
 
     @property
     def plan(self):
