@@ -19,7 +19,7 @@ SEVEN = ROOT / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 pytestmark = pytest.mark.skipif(not SEVEN.is_dir(), reason="../shared/data is not available")
 
 
-def _splat_transform() -> list[str] | None:
+def _splat_transform() -> list[str] | None:  # node + PlayCanvas splat-transform, where installed
     exe = Path(os.environ.get("ELIGSIR_SPLAT_TRANSFORM", ROOT / ".npm" / "node_modules" / ".bin" / "splat-transform"))
     if not exe.exists() or shutil.which("node") is None:
         return None
@@ -122,3 +122,46 @@ def test_heldout_picture_of_real_frames_is_at_most_300_kB():
     assert back.shape == pic.shape  # still full size: legible
     mse = np.mean((back.astype(float) - pic.astype(float)) ** 2)
     assert 10 * np.log10(255.0 ** 2 / mse) > 30.0  # 256 colours, no dithering: text and colour maps intact
+
+
+def _draw_spz(spz: Path, tmp_path: Path, tag: str) -> np.ndarray:
+    """Screenshot [H, W, 3] of ``spz`` drawn by the SuperSplat viewer (splat-transform's .html output) in headless
+    Chromium (software WebGL)."""
+    import functools
+    import http.server
+    import sys
+    import threading
+    import time
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from headless_browser import HeadlessChromium
+
+    html = tmp_path / f"{tag}.html"
+    subprocess.run([*_splat_transform(), "-w", str(spz), str(html)], check=True, capture_output=True, timeout=300)
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(tmp_path))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        with HeadlessChromium(640, 480, timeout_s=60) as browser:
+            browser.open(f"http://127.0.0.1:{server.server_port}/{html.name}?webgl&noanim&noui")
+            time.sleep(12)  # decode, upload, sort, first frames on a software GL
+            return browser.screenshot()
+    finally:
+        server.shutdown()
+
+
+def test_spz_is_drawn_in_headless_chromium(run_sh0, tmp_path):
+    from headless_browser import find_chromium
+
+    if _splat_transform() is None or find_chromium() is None:
+        pytest.skip("needs splat-transform (.npm/) and chromium (tools/setup.sh --test)")
+    pcd = read_splats(run_sh0 / "map.ply")
+    clear = rdf_to_rub(pcd)  # the same map with every Gaussian transparent: the viewer must draw (almost) nothing
+    clear.point["opacity"] = clear.point["opacity"] * 0.0 - 12.0
+    import open3d as o3d
+
+    o3d.t.io.write_point_cloud(str(tmp_path / "clear.spz"), clear)
+    shown = _draw_spz(run_sh0 / "map.spz", tmp_path, "map")
+    empty = _draw_spz(tmp_path / "clear.spz", tmp_path, "clear")
+    lit = lambda img: float((img.max(axis=2) > 40).mean())  # noqa: E731
+    assert lit(shown) > 0.02 and lit(empty) < 0.005, (lit(shown), lit(empty))

@@ -41,7 +41,8 @@ class TrackedHeldout:
 
     After :meth:`track`: ``frames`` (the trackable held-out frames, their ``T_world_cam`` set to the tracked
     pose), ``untracked`` (list of {"index", "reason"}), ``source_poses`` (sequence index -> [4, 4] pose of each
-    source frame in the same evaluation trajectory; empty for an offline source, whose poses ARE the map's),
+    source frame in the same evaluation trajectory; empty for an offline source, whose poses ARE the map's:
+    :func:`heldout_into_map_frame` aligns with them),
     ``seconds`` (wall time spent).
     """
 
@@ -101,15 +102,29 @@ class TrackedHeldout:
             except BAD_FRAME_ERRORS:  # the mapper skips and reports it; here it only is not a reference pose
                 continue
 
-    def into_map_frame(self, map_poses: dict[int, np.ndarray]) -> None:
-        """Move the held-out poses into the map's frame: the rigid alignment of this trajectory's source poses to
-        the mapper's ``map_poses`` (sequence index -> [4, 4], in the map's frame). Nothing to do for an offline
-        source or with fewer than 3 common frames."""
-        from ..pose.accuracy import pose_alignment
 
-        common = sorted(set(self.source_poses) & set(map_poses))
-        if len(common) < 3:
-            return
-        T_map_eval = pose_alignment([self.source_poses[i] for i in common], [map_poses[i] for i in common])
-        for f in self.frames:
-            f.T_world_cam = T_map_eval @ f.T_world_cam
+
+def track_heldout(p) -> TrackedHeldout | None:
+    """For a :class:`~eligsir_o3d.run.pipeline.MappingPipeline` ``p`` whose recording has no poses but a pose source:
+    track its held-out views (``p.heldout_frames`` becomes the trackable ones) and return the tracker; else None."""
+    if p.seq.poses is not None or p.pose_source is None or not p.heldout_frames:
+        return None
+    tracking = TrackedHeldout(p.pose_name, p.pose_source, p.seq, p.config.depth_max)
+    p.heldout_frames = tracking.track(p.heldout_frames, p.source)
+    return tracking
+
+
+def heldout_into_map_frame(frames: list, map_poses: dict[int, np.ndarray], reference: dict[int, np.ndarray]) -> None:
+    """Express held-out poses (given in the ``reference`` trajectory's frame: the ground truth, or the evaluation
+    trajectory of :class:`TrackedHeldout`) in the map's frame, through one rigid alignment of the reference's
+    source poses to the mapper's (``map_poses``: sequence index -> [4, 4], refined): the paper's
+    "training-pose alignment". Nothing to do with fewer than 3 common frames (an offline source's held-out
+    poses are the map's already)."""
+    from ..pose.accuracy import pose_alignment
+
+    common = [i for i in map_poses if i in reference]
+    if len(common) < 3:
+        return
+    T_map_ref = np.linalg.inv(pose_alignment([map_poses[i] for i in common], [reference[i] for i in common]))
+    for f in frames:
+        f.T_world_cam = T_map_ref @ f.T_world_cam

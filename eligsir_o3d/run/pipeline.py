@@ -116,6 +116,7 @@ class MappingPipeline:
     def open(self) -> None:
         from ..datasets import open_sequence
         from ..eval import HeldoutEvaluator
+        from ..eval.tracked_heldout import track_heldout
         from .frame_faults import read_heldout
 
         self.out.mkdir(parents=True, exist_ok=True)
@@ -137,12 +138,7 @@ class MappingPipeline:
         log.info("loading %d held-out views", len(self.held))
         self.heldout_frames, self.heldout_skipped = read_heldout(seq, self.held, self.config.depth_max,
                                                                  self.config.clock.on_bad_frame)  # unreadable: dropped
-        self.heldout_tracking = None  # a recording without poses: held-out views posed by the run's pose source
-        if seq.poses is None and self.pose_source is not None and self.heldout_frames:
-            from ..eval.tracked_heldout import TrackedHeldout
-
-            self.heldout_tracking = TrackedHeldout(self.pose_name, self.pose_source, seq, self.config.depth_max)
-            self.heldout_frames = self.heldout_tracking.track(self.heldout_frames, self.source)
+        self.heldout_tracking = track_heldout(self)  # no poses: held-out views posed by the run's pose source
         self.evaluator = HeldoutEvaluator(self.heldout_frames, sample_stride=self.opts.eval_sample_stride,
                                           checkpoint_ssim=self.opts.eval_ssim_at_checkpoints)
 
@@ -311,21 +307,15 @@ class MappingPipeline:
         self._checkpoint(self.rec)  # the curve ends at the evaluated map state (p = 1)
         self.accuracy = trajectory_accuracy_of(self.seq, self.trajectory, self.out, self.opts, self.outputs) \
             if self.pose_source is not None else {}
-        if self.accuracy:
-            from ..pose.accuracy import pose_alignment
+        if self.accuracy or self.heldout_tracking is not None:  # held-out poses into the (refined) map's frame
+            from ..eval.tracked_heldout import heldout_into_map_frame
 
-            # Evaluation poses stay the ground truth's; they are expressed in the map's frame through the
-            # alignment of the tracked source poses to the ground truth (the paper's "training-pose alignment").
-            ref = self.rec.pose_refine  # the map lives in the refined frame: align the refined tracked poses
-            T_est_gt = np.linalg.inv(pose_alignment([ref.carried_pose(i, T, always=True)
-                                                     for i, (_, T) in self.trajectory.items()],
-                                                    [self.seq.poses[i] for i in self.trajectory]))
-            for f in self.heldout_frames:
-                f.T_world_cam = T_est_gt @ f.T_world_cam
-        elif self.heldout_tracking is not None:  # tracked held-out views: into the (refined) map's frame
+            # evaluation poses stay the ground truth's (or the evaluation trajectory's), moved by the alignment of
+            # the refined tracked source poses to them (the paper's "training-pose alignment")
             ref = self.rec.pose_refine
-            self.heldout_tracking.into_map_frame({i: ref.carried_pose(i, T, always=True)
-                                                  for i, (_, T) in self.trajectory.items()})
+            truth = dict(enumerate(self.seq.poses)) if self.accuracy else self.heldout_tracking.source_poses
+            heldout_into_map_frame(self.heldout_frames, {i: ref.carried_pose(i, T, always=True)
+                                                         for i, (_, T) in self.trajectory.items()}, truth)
         self.final = self.evaluator.final(self._render)
         self.pose_rule_scores = None  # a pose-refined map: the held-out figure under each rule (given: the strict one)
         if self.rec.pose_refine.moved and self.pose_source is None:
