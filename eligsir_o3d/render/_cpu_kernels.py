@@ -273,14 +273,17 @@ def target_features() -> tuple[str, str]:
 
 
 def target_summary() -> str:
-    """e.g. ``znver5 (host; avx512f)``, ``haswell (avx2)``, ``generic (sse2)``: the ISA the kernels are built for."""
+    """e.g. ``znver5 (host; avx512f)``, ``haswell (avx2)``, ``neoverse-v1 (host; neon+sve)``: the ISA the kernels
+    are built for."""
     name, feats = target_features()
     on = set(f[1:] for f in feats.split(",") if f.startswith("+"))
     host = numba.config.CPU_NAME is None
     if not feats:  # the named CPU's own features: LLVM knows them, numba does not say
         isa = "its own features"
     else:
-        isa = next((x for x in ("avx512f", "avx2", "avx", "sse4.2", "neon", "sve") if x in on), "baseline")
+        x86 = next((x for x in ("avx512f", "avx2", "avx", "sse4.2") if x in on), None)
+        arm = "+".join(x for x in ("neon", "sve", "sve2") if x in on)  # aarch64: NEON, and SVE where present
+        isa = x86 or arm or "baseline"
     return f"{name} ({'host; ' if host else ''}{isa})"
 
 
