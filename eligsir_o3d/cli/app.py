@@ -95,12 +95,15 @@ def map_cmd(
                                                 rich_help_panel=EVAL),
     eval_every: int = typer.Option(100, help="Held-out checkpoint every N updates (0: only at the end).",
                                    rich_help_panel=EVAL),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Results folder (default: runs/map; with "
-                                       "--rerun DIR: DIR-rerun).", rich_help_panel=OUTPUT),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Results folder (default: runs/map, or "
+                                       "runs/map-2, -3, ... if taken; with --rerun DIR: DIR-rerun, likewise).", rich_help_panel=OUTPUT),
     checkpoint_every: int = typer.Option(0, help="Write OUT/checkpoint.pt every N source frames (atomic).",
                                          rich_help_panel=OUTPUT),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoint.pt of an interrupted run.",
                                 rich_help_panel=OUTPUT),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the results of another run in OUT (its "
+                                   "files are removed first; without it such a folder is refused).",
+                                   rich_help_panel=OUTPUT),
     force_unlock: bool = typer.Option(False, "--force-unlock", help="Take over OUT/eligsir.lock although another "
                                       "host's run holds it (make sure that run has ended).", rich_help_panel=OUTPUT),
     quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress bar.", rich_help_panel=OUTPUT),
@@ -136,6 +139,7 @@ def map_cmd(
     """Map a recorded RGB-D sequence into a 3D Gaussian map and evaluate it on held-out views."""
     from ..budget import CostModel
     from ..config import Config, apply_override
+    from ..run.folder_guard import fresh_folder
     from ..run.pipeline import RunOptions, read_run, run_mapping
 
     logging.basicConfig(level=logging.WARNING if quiet else logging.INFO, format="%(levelname)s %(message)s")
@@ -146,7 +150,7 @@ def map_cmd(
                 _fail("give either a sequence PATH or --rerun DIR, not both")
             path, cfg, opts = read_run(rerun)
             opts.progress = not quiet
-            out = out or Path(str(rerun).rstrip("/") + "-rerun")
+            out = out or fresh_folder(str(rerun).rstrip("/") + "-rerun")
         else:
             if path is None:
                 _fail("missing the sequence PATH (or --rerun DIR)")
@@ -191,8 +195,8 @@ def map_cmd(
             if no_register:
                 seq_opts["register"] = False
             opts.sequence_options = seq_opts or None
-            out = out or Path("runs/map")
-        opts.force_unlock = force_unlock
+            out = out or fresh_folder("runs/map")
+        opts.force_unlock, opts.overwrite = force_unlock, overwrite
         if view:
             opts.view = _live_view(view_host, view_port)
         m = run_mapping(path, out, cfg, opts)
@@ -274,7 +278,9 @@ def _summary(m: dict, out: Path) -> None:
 
 @app.command()
 def demo(
-    out: Path = typer.Option(Path("runs/demo"), "--out", "-o", help="Results folder."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Results folder (default: runs/demo, or "
+                                       "runs/demo-2, ... if taken)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the results of another run in OUT."),
     frames: int = typer.Option(120, help="Frames of the embedded synthetic room."),
     speed: float = typer.Option(0.1, help="Replay speed: 0.1 gives the mapper 10x the recording's duration."),
     device: str = typer.Option("cpu"),
@@ -283,11 +289,17 @@ def demo(
     from ..config import Config
     from ..run.pipeline import RunOptions, run_mapping
 
+    from ..run.folder_guard import fresh_folder
+
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    out = out or fresh_folder("runs/demo")
     cfg = Config(device=device)
     cfg.clock.speed = speed  # 0.1: the mapper gets 10x the recording's duration (modelled, deterministic)
-    m = run_mapping("synthetic", out, cfg, RunOptions(max_frames=frames, eval_every=200,
-                                                      sequence_options={"n_frames": frames}))
+    try:
+        m = run_mapping("synthetic", out, cfg, RunOptions(max_frames=frames, eval_every=200, overwrite=overwrite,
+                                                          sequence_options={"n_frames": frames}))
+    except (ValueError, OSError, RuntimeError) as e:
+        _fail(str(e), getattr(e, "exit_code", 2))
     _summary(m, out)
 
 

@@ -49,6 +49,7 @@ class RunOptions:
     offline_reference: bool = False  # all source frames available at once, long full-resolution schedule
     checkpoint_every: int = 0  # frames between checkpoints (0 = none)
     resume: bool = False
+    overwrite: bool = False  # replace the results of another run in the folder (eligsir map --overwrite; folder_guard)
     force_unlock: bool = False  # take over another host's lock on the results folder (eligsir map --force-unlock)
     plots: bool = True
     pictures: bool = True  # heldout/*.png comparisons and flythrough.mp4 (eligsir_o3d.visual.run_pictures)
@@ -124,7 +125,10 @@ class MappingPipeline:
         self.checkpoints = PeriodicCheckpoints(self.out / "checkpoint.pt", self.opts.checkpoint_every)
 
     def run(self) -> dict:
+        from .folder_guard import check_folder
+
         with RunLock(self.out, force=self.opts.force_unlock):  # one run per results folder
+            check_folder(self.out, self.opts.resume, self.opts.overwrite)  # never two runs' results mixed
             return self._run()
 
     def _run(self) -> dict:
