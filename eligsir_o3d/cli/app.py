@@ -322,8 +322,10 @@ def export(
     try:
         summary = export_from_ply(map_ply, mesh, point_cloud, poses=poses, voxel_size=voxel_size,
                                   depth_max=depth_max, min_opacity=min_opacity, device=device)
-    except (ValueError, OSError) as e:
+    except (ValueError, OSError, RuntimeError) as e:
         _fail(str(e))
+    except MemoryError:
+        _fail(f"{map_ply}: not enough memory for this export (try a larger --voxel-size)")
     for k, v in summary.items():
         typer.echo(f"{k}: {v}")
 
@@ -338,7 +340,10 @@ def eval_cmd(
     missing = [str(r) for r in results if not (r / "metrics.json").is_file()]
     if missing:
         _fail(f"no metrics.json in {', '.join(missing)}")
-    typer.echo(compare_results(results))
+    try:
+        typer.echo(compare_results(results))
+    except (ValueError, OSError) as e:
+        _fail(str(e))
 
 
 for _name, _command in COMMANDS.items():  # live, calibrate-color, view, render, batch (cli_commands.py)
