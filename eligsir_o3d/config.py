@@ -85,6 +85,7 @@ class Config:
         import torch
 
         from .budget.clock import check_clock_config
+        from .config_checks import check_values
         from .render import resolve_backend
         from .scheduling import ABLATIONS
 
@@ -106,6 +107,7 @@ class Config:
             raise ValueError(f"unknown ablation(s) {unknown}; choose from {', '.join(ABLATIONS)}")
         cfg.ablate = tuple(cfg.ablate)
         check_clock_config(cfg.clock)
+        check_values(cfg)  # NaN, negative counts, an empty map budget, a background that is not RGB
         return cfg
 
     def to_dict(self) -> dict:
