@@ -64,6 +64,7 @@ class Config:
     depth_scale: float = 1000.0  # integer depth / depth_scale = metres (Open3D's spelling)
     depth_max: float = DEPTH_MAX  # metres; farther depth counts as no measurement
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    max_image_side: int = 16384  # pixels: an image file whose header declares more is refused before decoding
     seed: int = 0
     ablate: tuple[str, ...] = ()  # any of: views, fidelity, growth (each swaps in the plain policy)
     optim: OptimConfig = field(default_factory=OptimConfig)

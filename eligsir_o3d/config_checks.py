@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
-POSITIVE = ("max_gaussians", "depth_max", "depth_scale")
+POSITIVE = ("max_gaussians", "depth_max", "depth_scale", "max_image_side")
 ANY_INTEGER: tuple[str, ...] = ()  # none: numpy's generators take no negative seed
 
 
