@@ -48,7 +48,7 @@ def read_results(folder: str | Path):
     """(sequence, Config, RunOptions, source indices, held-out indices, source poses {index: T_world_cam [4, 4]})
     of a results folder; the source poses are those of its trajectory.txt (matched to frames by timestamp)."""
     from eligsir_o3d.datasets import open_sequence
-    from eligsir_o3d.pipeline import heldout_indices, read_run
+    from eligsir_o3d.run.pipeline import heldout_indices, read_run
     from eligsir_o3d.pose.trajectory import nearest_index, read_tum_trajectory
 
     folder = Path(folder)
@@ -76,7 +76,7 @@ def fuse(seq, poses: dict, depth_max: float, voxel_size: float = VOXEL_SIZE, tru
     import open3d as o3d
     import open3d.core as o3c
 
-    from eligsir_o3d.camera import extrinsic_from_pose
+    from eligsir_o3d.core.camera import extrinsic_from_pose
 
     dev = o3c.Device("CPU:0")
     vbg = o3d.t.geometry.VoxelBlockGrid(("tsdf", "weight", "color"), (o3c.float32, o3c.float32, o3c.float32),
@@ -111,7 +111,7 @@ class MeshRenderer:
         """(colour [H, W, 3] in [0, 1], black where nothing is hit; z-depth [H, W] metres, 0 where nothing is hit)."""
         import open3d.core as o3c
 
-        from eligsir_o3d.camera import extrinsic_from_pose
+        from eligsir_o3d.core.camera import extrinsic_from_pose
 
         K = np.asarray(camera.K, dtype=np.float64).copy()
         K[0, 2] += 0.5  # create_rays_pinhole shoots through (u + 0.5, v + 0.5): centres at integers need cx + 0.5
@@ -159,7 +159,7 @@ def evaluate(folder: str | Path, voxel_size: float = VOXEL_SIZE, weight_threshol
     ``picture_views`` in the split (all when empty)."""
     import torch
 
-    from eligsir_o3d.ply import load_ply
+    from eligsir_o3d.io.ply import load_ply
     from eligsir_o3d.render import get_renderer
 
     folder = Path(folder)

@@ -68,6 +68,7 @@ class Config:
     depth_scale: float = 1000.0  # integer depth / depth_scale = metres (Open3D's spelling)
     depth_max: float = DEPTH_MAX  # metres; farther depth counts as no measurement
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    max_image_side: int = 16384  # pixels: an image file whose header declares more is refused before decoding
     seed: int = 0
     ablate: tuple[str, ...] = ()  # any of: views, fidelity, growth (each swaps in the plain policy)
     optim: OptimConfig = field(default_factory=OptimConfig)
@@ -89,6 +90,7 @@ class Config:
         import torch
 
         from .budget.clock import check_clock_config
+        from .config_checks import check_values
         from .render import resolve_backend
         from .scheduling import ABLATIONS
 
@@ -110,6 +112,7 @@ class Config:
             raise ValueError(f"unknown ablation(s) {unknown}; choose from {', '.join(ABLATIONS)}")
         cfg.ablate = tuple(cfg.ablate)
         check_clock_config(cfg.clock)
+        check_values(cfg)  # NaN, negative counts, an empty map budget, a background that is not RGB
         return cfg
 
     def to_dict(self) -> dict:

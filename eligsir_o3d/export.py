@@ -223,14 +223,22 @@ def export_from_ply(map_ply: str | Path, mesh_path: str | Path | None = None, cl
     from .io.ply import load_ply
     from .render import get_renderer
 
+    from .io.guards import check_tsdf_memory, refuse_overwriting_inputs
+
     map_ply = Path(map_ply)
     if mesh_path is None and cloud_path is None:
         raise ValueError("nothing to export: give a mesh path and/or a point-cloud path")
+    refuse_overwriting_inputs({"--mesh": mesh_path, "--point-cloud": cloud_path},
+                              {"the map": map_ply, "--poses": poses if isinstance(poses, (str, Path)) else None,
+                               "trajectory.txt": map_ply.parent / "trajectory.txt",
+                               "config.json": map_ply.parent / "config.json"})
     if views not in ("auto", "trajectory", "sphere"):
         raise ValueError(f"views must be 'auto', 'trajectory' or 'sphere', got {views!r}")
     gmap = load_ply(map_ply, device)
     if len(gmap) == 0:
         raise ValueError(f"{map_ply}: the map has no Gaussians")
+    if mesh_path is not None:  # a tiny voxel would fill memory for minutes before failing
+        check_tsdf_memory(gmap.means.detach().float().cpu().numpy(), voxel_size)
     camera = camera or camera_next_to(map_ply) or DEFAULT_CAMERA
     source = "given"
     if isinstance(poses, (str, Path)):

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from eligsir_o3d import Config
-from eligsir_o3d.pipeline import RunOptions, run_mapping
+from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -117,7 +117,8 @@ def _run(request: dict, folder: Path, device: str | None, resume: bool) -> dict:
     if device is not None:
         cfg.device = device
     # a retry resumes the folder of an attempt that died, maybe on another machine: its lock is taken over
-    opts = RunOptions(**request["options"], resume=resume, force_unlock=resume, progress=True)
+    opts = RunOptions(**request["options"], resume=resume, force_unlock=resume, progress=True,
+                      overwrite=True)  # the batch decided (folder_status) that this folder is its own to remap
     return run_mapping(request["path"], folder, cfg, opts)
 
 

@@ -38,6 +38,7 @@ def map_cmd(**kw) -> None:
     # as for eligsir batch
     from ..run.options import resolve
     from ..run.pipeline import read_run, run_mapping
+    from ..run.folder_guard import fresh_folder
 
     logging.basicConfig(level=logging.WARNING if kw["quiet"] else logging.INFO, format="%(levelname)s %(message)s")
     path, out, opts = kw["path"], kw["out"], None
@@ -47,13 +48,13 @@ def map_cmd(**kw) -> None:
                 _fail("give either a sequence PATH or --rerun DIR, not both")
             path, cfg, opts = read_run(kw["rerun"])
             opts.progress = not kw["quiet"]
-            out = out or Path(str(kw["rerun"]).rstrip("/") + "-rerun")
+            out = out or fresh_folder(str(kw["rerun"]).rstrip("/") + "-rerun")
         else:
             if path is None:
                 _fail("missing the sequence PATH (or --rerun DIR)")
             cfg, opts = resolve(map_options(kw))
-            out = out or Path("runs/map")
-        opts.force_unlock = kw["force_unlock"]
+            out = out or fresh_folder("runs/map")
+        opts.force_unlock, opts.overwrite = kw["force_unlock"], kw["overwrite"]
         if kw["view"]:
             opts.view = _live_view(kw["view_host"], kw["view_port"])
         m = run_mapping(path, out, cfg, opts)
@@ -129,7 +130,9 @@ def _summary(m: dict, out: Path) -> None:
 
 @app.command()
 def demo(
-    out: Path = typer.Option(Path("runs/demo"), "--out", "-o", help="Results folder."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Results folder (default: runs/demo, or "
+                                       "runs/demo-2, ... if taken)."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace the results of another run in OUT."),
     frames: int = typer.Option(120, help="Frames of the embedded synthetic room."),
     speed: float = typer.Option(0.1, help="Replay speed: 0.1 gives the mapper 10x the recording's duration."),
     device: str = typer.Option("cpu"),
@@ -138,11 +141,18 @@ def demo(
     from ..run.options import MapOptions, resolve
     from ..run.pipeline import run_mapping
 
+    from ..run.folder_guard import fresh_folder
+
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    out = out or fresh_folder("runs/demo")
     # speed 0.1: the mapper gets 10x the recording's duration (modelled, deterministic); the config's cost model
     cfg, opts = resolve(MapOptions(device=device, speed=speed, max_frames=frames, eval_every=200,
                                    sequence_options={"n_frames": frames}))
-    m = run_mapping("synthetic", out, cfg, opts)
+    opts.overwrite = overwrite
+    try:
+        m = run_mapping("synthetic", out, cfg, opts)
+    except (ValueError, OSError, RuntimeError) as e:
+        _fail(str(e), getattr(e, "exit_code", 2))
     _summary(m, out)
 
 
@@ -173,8 +183,10 @@ def export(
         if mesh is not None or point_cloud is not None:
             summary.update(export_from_ply(map_ply, mesh, point_cloud, poses=poses, voxel_size=voxel_size,
                                            depth_max=depth_max, min_opacity=min_opacity, device=device))
-    except (ValueError, OSError) as e:
+    except (ValueError, OSError, RuntimeError) as e:
         _fail(str(e))
+    except MemoryError:
+        _fail(f"{map_ply}: not enough memory for this export (try a larger --voxel-size)")
     for k, v in summary.items():
         typer.echo(f"{k}: {v}")
 
@@ -192,7 +204,10 @@ def eval_cmd(
     missing = [str(r) for r in results if not (r / "metrics.json").is_file()]
     if missing:
         _fail(f"no metrics.json in {', '.join(missing)}")
-    typer.echo(compare_results(results))
+    try:
+        typer.echo(compare_results(results))
+    except (ValueError, OSError) as e:
+        _fail(str(e))
     if len(results) == 2:
         from ..eval.spatial import compare_spatial, format_summary
 

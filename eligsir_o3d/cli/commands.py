@@ -148,6 +148,8 @@ def render(
                                   renderer=renderer.value, device=device)
     except (ValueError, OSError, RuntimeError) as e:
         _fail(str(e))
+    except MemoryError:
+        _fail(f"{map_ply}: not enough memory to render at --scale {scale:g}; use a smaller --scale")
     for k, v in summary.items():
         typer.echo(f"{k}: {v}")
 

@@ -94,10 +94,12 @@ EVAL_OPTIONS = [
     ("eval_every", int, _opt(100, "Held-out checkpoint every N updates (0: only at the end).", EVAL)),
 ]
 OUTPUT_OPTIONS = [
-    ("out", Optional[Path], _opt(None, "Results folder (default: runs/map; with --rerun DIR: DIR-rerun).", OUTPUT,
-                                 "--out", "-o")),
+    ("out", Optional[Path], _opt(None, "Results folder (default: runs/map, or runs/map-2, -3, ... if taken; with "
+                                 "--rerun DIR: DIR-rerun, likewise).", OUTPUT, "--out", "-o")),
     ("checkpoint_every", int, _opt(0, "Write OUT/checkpoint.pt every N source frames (atomic).", OUTPUT)),
     ("resume", bool, _opt(False, "Continue from OUT/checkpoint.pt of an interrupted run.", OUTPUT, "--resume")),
+    ("overwrite", bool, _opt(False, "Replace the results of another run in OUT (its files are removed first; "
+                             "without it such a folder is refused).", OUTPUT, "--overwrite")),
     ("force_unlock", bool, _opt(False, "Take over OUT/eligsir.lock although another host's run holds it (make sure "
                                 "that run has ended).", OUTPUT, "--force-unlock")),
     ("quiet", bool, _opt(False, "No progress bar.", OUTPUT, "--quiet", "-q")),
@@ -121,7 +123,7 @@ MAPPER_OPTIONS = [
 PANELS = [INPUT_OPTIONS, POSE_OPTIONS, BUDGET_OPTIONS, EVAL_OPTIONS, OUTPUT_OPTIONS, MAPPER_OPTIONS]
 SEQUENCE_OPTIONS = ("rgb_topic", "depth_topic", "rgb_info_topic", "depth_info_topic", "pose_topic", "pose_frames",
                     "min_confidence")
-CLI_ONLY = ("path", "set_", "rerun", "no_register", "out", "quiet", "view", "view_port", "view_host",
+CLI_ONLY = ("path", "set_", "rerun", "no_register", "out", "overwrite", "quiet", "view", "view_port", "view_host",
             *SEQUENCE_OPTIONS)
 
 

@@ -229,6 +229,13 @@ def calibrate_color(seq, *, pairs: int = 8, gap: int | None = None, stride: int 
     the principal point counts as identified only when it lowers the error by more than ``pp_min_gain``
     (relative) at an interior minimum.
     """
+    for name, v in (("--pairs", pairs), ("--stride", stride), ("downsample", downsample)):
+        if not isinstance(v, int) or v < 1:
+            raise ValueError(f"{name} must be a whole number >= 1, got {v}")
+    if gap is not None and gap < 1:
+        raise ValueError(f"--gap must be a whole number >= 1, got {gap}")
+    if frames is not None and frames < 2:
+        raise ValueError(f"--max-frames must be at least 2 for colour calibration (frame pairs), got {frames}")
     if seq.poses is None:
         raise ValueError(f"{seq.path or seq.name}: colour calibration needs poses (the sequence has none)")
     n = len(seq) if frames is None else min(len(seq), int(frames))

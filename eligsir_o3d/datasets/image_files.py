@@ -11,18 +11,22 @@ from ..core.camera import Camera
 from .errors import DatasetError
 
 
-def _read_image(path: Path, index: int, what: str) -> o3d.t.geometry.Image:
+def _read_image(path: Path, index: int, what: str, camera: Camera | None = None) -> o3d.t.geometry.Image:
+    from .image_header import check_declared_size
+
     if not path.is_file():
         raise DatasetError(f"frame {index}: {what} file {path} does not exist")
+    # the header first: a small file may declare a huge image (issue 31), refused before it is decoded
+    check_declared_size(path, index, what, None if camera is None else (camera.width, camera.height))
+    if path.suffix.lower() in (".jpg", ".jpeg") and not _jpeg_complete(path):
+        # libjpeg decodes a cut-off JPEG without an error (the missing rows grey): a truncated file, not a frame
+        raise DatasetError(f"frame {index}: {what} file {path} is truncated (no JPEG end-of-image marker)")
     try:
         image = o3d.t.io.read_image(str(path))
     except Exception as e:  # Open3D raises only for odd cases; most failures give an empty image
         raise DatasetError(f"frame {index}: cannot read {what} file {path}: {e}") from None
     if image.is_empty():
         raise DatasetError(f"frame {index}: {what} file {path} is corrupt or not an image")
-    if path.suffix.lower() in (".jpg", ".jpeg") and not _jpeg_complete(path):
-        # libjpeg decodes a cut-off JPEG without an error (the missing rows grey): a truncated file, not a frame
-        raise DatasetError(f"frame {index}: {what} file {path} is truncated (no JPEG end-of-image marker)")
     return image
 
 
@@ -42,7 +46,7 @@ def _check_size(image: o3d.t.geometry.Image, path: Path, index: int, what: str, 
 
 def read_color(path: Path, index: int, camera: Camera) -> o3d.t.geometry.Image:
     """Colour image as UInt8 [H, W, 3] RGB (grey is repeated, alpha dropped, 16-bit scaled to 8-bit)."""
-    image = _read_image(path, index, "colour")
+    image = _read_image(path, index, "colour", camera)
     _check_size(image, path, index, "colour", camera)
     if image.dtype == o3d.core.uint8 and image.channels == 3:
         return image
@@ -58,7 +62,7 @@ def read_color(path: Path, index: int, camera: Camera) -> o3d.t.geometry.Image:
 
 def read_depth(path: Path, index: int, camera: Camera) -> o3d.t.geometry.Image:
     """Depth image as UInt16 [H, W, 1] raw units (a 16-bit single-channel PNG)."""
-    image = _read_image(path, index, "depth")
+    image = _read_image(path, index, "depth", camera)
     _check_size(image, path, index, "depth", camera)
     if image.channels != 1 or image.dtype not in (o3d.core.uint16, o3d.core.float32):
         raise DatasetError(f"frame {index}: depth file {path} must be a single-channel 16-bit image, got "

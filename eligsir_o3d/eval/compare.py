@@ -74,7 +74,13 @@ def compare_results(dirs: list[Path]) -> str:
         f = d / "metrics.json" if d.is_dir() or not d.suffix else d
         if not f.is_file():
             raise FileNotFoundError(f"{d}: no metrics.json (is it a results folder of `eligsir map`?)")
-        runs.append(json.loads(f.read_text()))
+        try:
+            m = json.loads(f.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as e:
+            raise ValueError(f"{f}: not a valid metrics.json ({type(e).__name__}: {str(e).splitlines()[0]})") from None
+        if not isinstance(m, dict):
+            raise ValueError(f"{f}: not a valid metrics.json (a JSON {type(m).__name__}, not an object)")
+        runs.append(m)
     header = ["metric"] + _names([d if d.is_dir() else d.parent for d in dirs])
     table = [header] + [[label] + [_fmt(_get(m, paths), fmt) for m in runs] for label, paths, fmt in ROWS]
     widths = [max(len(row[i]) for row in table) for i in range(len(header))]

@@ -7,14 +7,16 @@ command line), so a second ``eligsir map --out OUT`` refuses instead of interlea
 - A lock from another host (a shared network folder) cannot be checked from here: it is respected unless the run
   is given ``force=True`` (``eligsir map --force-unlock``), which takes it over with a warning.
 
-Taking the lock is atomic between processes of one host: the file is created with ``O_CREAT`` and its owner
-record written under an exclusive ``flock``, which the owner keeps for the whole run (the kernel drops it when the
+Taking the lock is atomic between processes of one host: the file is created with ``O_CREAT`` (``O_NOFOLLOW``:
+a symbolic link in its place is refused, never written through; so is a hard link or anything not a plain file) and
+its owner record written under an exclusive ``flock``, which the owner keeps for the whole run (the kernel drops it when the
 owner dies, even by SIGKILL).
 """
 
 from __future__ import annotations
 
 import datetime
+import errno
 import json
 import logging
 import os
@@ -82,7 +84,7 @@ class RunLock:
 
         self.folder.mkdir(parents=True, exist_ok=True)
         for _ in range(10):  # the file may be replaced between open and flock: then try the new one
-            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            fd = self._open()
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:  # a live process of this host holds it right now
@@ -107,8 +109,34 @@ class RunLock:
             raise
         self._fd = fd
 
+    def _open(self) -> int:
+        """An fd of the lock file, created if absent; a link or a non-plain file in its place is refused."""
+        import stat
+
+        bad = f"{self.path}: not a plain file"
+        try:
+            st = os.lstat(self.path)
+            if not stat.S_ISREG(st.st_mode):
+                raise RunLocked(f"{bad} ({'a symbolic link' if stat.S_ISLNK(st.st_mode) else 'a special file'}); "
+                                f"refusing to write the run lock through it: remove it or choose another --out")
+        except FileNotFoundError:
+            pass
+        flags = os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0)
+        try:
+            fd = os.open(self.path, flags, 0o644)
+        except OSError as e:
+            if e.errno == errno.ELOOP:  # a link appeared between the lstat and the open
+                raise RunLocked(f"{bad} (a symbolic link); refusing to write the run lock through it") from None
+            raise
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink > 1:
+            os.close(fd)
+            raise RunLocked(f"{bad} ({'a hard link to another file' if stat.S_ISREG(st.st_mode) else 'a special file'}"
+                            f"); refusing to write the run lock through it: remove it or choose another --out")
+        return fd
+
     def _take(self, fd: int) -> None:
-        owner = self._read()
+        owner = self._read(fd)
         if owner:
             host, pid = owner.get("host"), int(owner.get("pid") or 0)
             if host == _host() and pid == os.getpid():
@@ -130,9 +158,20 @@ class RunLock:
         os.fsync(fd)
         self.owner = record
 
-    def _read(self) -> dict | None:
+    def _read(self, fd: int | None = None) -> dict | None:
         try:
-            text = self.path.read_text().strip()
+            if fd is not None:
+                text = os.pread(fd, 1 << 16, 0).decode("utf-8", "replace").strip()
+            else:
+                import stat
+
+                if not stat.S_ISREG(os.lstat(self.path).st_mode):
+                    return None
+                fd2 = os.open(self.path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
+                try:
+                    text = os.pread(fd2, 1 << 16, 0).decode("utf-8", "replace").strip()
+                finally:
+                    os.close(fd2)
         except OSError:
             return None
         if not text:
@@ -152,7 +191,7 @@ class RunLock:
         if self._fd is None:
             return
         try:
-            if (self._read() or {}).get("pid") == os.getpid():
+            if (self._read(self._fd) or {}).get("pid") == os.getpid():
                 self.path.unlink(missing_ok=True)  # before closing: no one can take a lock we still remove
         except OSError:
             pass

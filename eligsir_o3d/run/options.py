@@ -39,6 +39,7 @@ class RunOptions:
     offline_reference: bool = False  # all source frames available at once, long full-resolution schedule
     checkpoint_every: int = 0  # frames between checkpoints (0 = none)
     resume: bool = False
+    overwrite: bool = False  # replace the results of another run in the folder (eligsir map --overwrite; folder_guard)
     force_unlock: bool = False  # take over another host's lock on the results folder (eligsir map --force-unlock)
     plots: bool = True
     pictures: bool = True  # heldout/*.png comparisons and flythrough.mp4 (eligsir_o3d.visual.run_pictures)

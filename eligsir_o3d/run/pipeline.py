@@ -101,7 +101,10 @@ class MappingPipeline:
         self.checkpoints = PeriodicCheckpoints(self.out / "checkpoint.pt", self.opts.checkpoint_every)
 
     def run(self) -> dict:
+        from .folder_guard import check_folder
+
         with RunLock(self.out, force=self.opts.force_unlock):  # one run per results folder
+            check_folder(self.out, self.opts.resume, self.opts.overwrite)  # never two runs' results mixed
             return self._run()
 
     def _run(self) -> dict:
@@ -119,7 +122,10 @@ class MappingPipeline:
         from ..eval.tracked_heldout import track_heldout
         from .frame_faults import read_heldout
 
+        from ..datasets.image_header import set_max_image_side
+
         self.out.mkdir(parents=True, exist_ok=True)
+        set_max_image_side(self.config.max_image_side)  # image headers are checked against it before decoding
         seq = self.seq = open_sequence(self.path, **(self.opts.sequence_options or {}))
         self.n = len(seq) if self.opts.max_frames is None else min(len(seq), int(self.opts.max_frames))
         if self.n == 0:
@@ -172,12 +178,28 @@ class MappingPipeline:
         if c.cost_source == "calibrate":
             # consecutive frames, as a stream delivers them: frames picked far apart are each mostly new space,
             # and their seeding made the fitted per-frame cost 2-3x what a stream pays (less budget than real)
-            frames = [self.seq.frame(i, depth_max=self.config.depth_max) for i in self.source[:CALIBRATION_FRAMES]]
+            frames = self._calibration_frames()
             model, info = self.rec.calibrate(frames, n_frames=len(frames))
             c.cost, c.cost_source = model, "config"
             log.info("cost model: calibrated for this machine (%s)", info.get("cache"))
             return info
         return {"source": "shipped" if c.cost == CostModel() else "config"}
+
+    def _calibration_frames(self) -> list[Frame]:
+        """The first :data:`CALIBRATION_FRAMES` readable source frames. A bad frame follows the one rule
+        (``clock.on_bad_frame``): skipped with a warning (the stream reports it again when it reaches it), or the
+        run stops."""
+        frames = []
+        for i in self.source:
+            if len(frames) == CALIBRATION_FRAMES:
+                break
+            try:
+                frames.append(self.seq.frame(i, depth_max=self.config.depth_max))
+            except BAD_FRAME_ERRORS as e:
+                frame_fault(i, e, self.config.clock.on_bad_frame, "cost-model calibration: not timing")
+        if not frames:
+            raise ValueError(f"{self.path}: no source frame can be read to calibrate the cost model")
+        return frames
 
     def _resume(self, ck_path: Path):
         from ..io.checkpoint import read_checkpoint

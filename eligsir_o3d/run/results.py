@@ -130,7 +130,8 @@ def write_results(p, metrics: dict) -> None:
                                             p.trajectory, render_heldout=p._render)
     cam = rec.camera
     run = {"sequence": p.path, "options": {f.name: getattr(p.opts, f.name) for f in dataclasses.fields(p.opts)
-                                           if f.name not in ("resume", "progress", "view", "force_unlock")},
+                                           if f.name not in ("resume", "progress", "view", "force_unlock",
+                                                                             "overwrite")},
            "camera": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                       "cy": cam.cy}}
     outputs.stage(out / RUN_FILE, atomic_write_text, out / RUN_FILE, json.dumps(jsonable(run), indent=2))

@@ -13,6 +13,8 @@ H.264).
 
 from __future__ import annotations
 
+import math
+
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -209,14 +211,19 @@ def render_map_file(map_ply: str | Path, poses_file: str | Path, out_dir: str | 
     from ..io.ply import load_ply
     from ..pose.trajectory import read_tum_trajectory
 
-    if not scale > 0:
-        raise ValueError(f"scale must be positive, got {scale}")
+    if not (scale > 0 and math.isfinite(scale)):
+        raise ValueError(f"--scale must be a positive number, got {scale}")
     if not fps > 0:
         raise ValueError(f"fps must be positive, got {fps}")
     gmap = load_ply(map_ply, device)
     _, poses = read_tum_trajectory(poses_file)
     if smooth > 0:
         poses = smooth_path(poses, sigma=smooth)
-    camera = (camera_next_to(Path(map_ply)) or DEFAULT_CAMERA).scaled(scale)
+    from ..io.guards import check_image_size, refuse_overwriting_inputs
+
+    refuse_overwriting_inputs({"--video": video}, {"the map": map_ply, "--poses": poses_file})
+    base = camera_next_to(Path(map_ply)) or DEFAULT_CAMERA
+    check_image_size(round(base.width * scale), round(base.height * scale), f"--scale {scale:g}: each frame")
+    camera = base.scaled(scale)
     summary = render_path(map_render_fn(gmap, renderer, device), poses, camera, out_dir, video, fps)
     return {"map": str(map_ply), "gaussians": len(gmap), **summary}

@@ -1,0 +1,48 @@
+"""Values no run can use, refused when a Config is resolved (issue 31 item 9), whichever way they came in
+(``--set``, ``--depth-max``, a config file, the API): one line naming the key.
+
+- Every number in the config tree is finite (NaN and infinities are refused; no key's default is one).
+- Every integer (counts, periods, ``seed``) is >= 0.
+- The keys in :data:`POSITIVE` are > 0 (``max_gaussians=-5`` would map nothing and report it as a result).
+- ``sh_degree`` is 0..3, ``background`` three numbers in [0, 1].
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+POSITIVE = ("max_gaussians", "depth_max", "depth_scale", "max_image_side")
+ANY_INTEGER: tuple[str, ...] = ()  # none: numpy's generators take no negative seed
+
+
+def _walk(obj, prefix: str = ""):
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        if dataclasses.is_dataclass(v):
+            yield from _walk(v, prefix + f.name + ".")
+        else:
+            yield prefix + f.name, v
+
+
+def check_values(cfg) -> None:
+    """Raise ValueError naming the first key of ``cfg`` (a Config) whose value no run can use."""
+    for key, v in _walk(cfg):
+        items = v if isinstance(v, (tuple, list)) else (v,)
+        for x in items:
+            if isinstance(x, bool) or not isinstance(x, (int, float)):
+                continue
+            if isinstance(x, float) and not math.isfinite(x):
+                raise ValueError(f"config key {key}: {v!r} is not a finite number")
+            if isinstance(x, int) and x < 0 and key not in ANY_INTEGER:
+                raise ValueError(f"config key {key}: {v!r} is negative (must be >= 0)")
+        if key in POSITIVE and not (isinstance(v, (int, float)) and v > 0):
+            raise ValueError(f"config key {key}: must be > 0, got {v!r}")
+    if not (isinstance(cfg.sh_degree, int) and 0 <= cfg.sh_degree <= 3):
+        raise ValueError(f"config key sh_degree: must be 0, 1, 2 or 3, got {cfg.sh_degree!r}")
+    bg = cfg.background
+    if not (isinstance(bg, (tuple, list)) and len(bg) == 3 and all(isinstance(x, (int, float)) and
+                                                                  not isinstance(x, bool) and 0 <= x <= 1
+                                                                  for x in bg)):
+        raise ValueError(f"config key background: must be three numbers in [0, 1] (red, green, blue), got "
+                         f"{list(bg) if isinstance(bg, (tuple, list)) else bg!r}")

@@ -1,0 +1,103 @@
+"""A results folder holds one run's results, never two mixed (issue 31 items 2 and 3).
+
+- A folder that holds another run's results (any of :data:`RESULT_FILES`) is refused unless the run is given
+  ``overwrite`` (``eligsir map --overwrite``) or ``resume`` with a checkpoint there (``--resume``; the checkpoint
+  itself then checks that it is of this sequence, config and split, :mod:`.resume`).
+- ``--resume`` where the folder holds results but no ``checkpoint.pt`` (a finished run, maybe of another sequence)
+  is refused: there is nothing to continue, and mapping from scratch would overwrite it. An empty or new folder
+  starts from frame 0 (a batch retry of an attempt that died before its first checkpoint).
+- On overwrite, every file an earlier ``eligsir map`` wrote there is removed before mapping, so what the new run
+  does not write (``heldout/*.png`` and ``flythrough.mp4`` under ``--no-pictures``, plots under ``--no-plots``, a
+  stale checkpoint) cannot sit beside the new map. Files eligsir does not write are left alone.
+- :func:`fresh_folder`: the folder a run without ``--out`` takes: ``runs/map``, else ``runs/map-2``, ``-3``, ...
+
+Refusals are :class:`FolderInUse` (a ``ValueError``: one line, exit 2).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+log = logging.getLogger("eligsir_o3d")
+
+# what eligsir map writes in its folder (results.py, visual/run_pictures.py, eval/plots.py, the pipeline)
+RESULT_FILES = ("metrics.json", "map.ply", "run.json", "config.json", "trajectory.txt", "trajectory_refined.txt",
+                "checkpoint.pt", "cells.json", "fidelity_trace.csv", "flythrough.mp4", "trajectory_topview.png",
+                "heldout_quality_vs_time.png", "heldout_quality_vs_progress.png", "heldout_quality_vs_mpix.png",
+                "cuc20_vs_progress.png", "cell_psnr_topdown.png")
+RESULT_DIRS = ("heldout",)
+MARKERS = ("metrics.json", "map.ply", "run.json", "checkpoint.pt")  # a folder with one of these holds a run
+
+
+class FolderInUse(ValueError):
+    """The results folder holds another run's results (the message says what to pass)."""
+
+    exit_code = 2
+
+
+def held_results(folder: str | Path) -> list[str]:
+    """The names of the run markers in ``folder`` (empty: no run's results there)."""
+    folder = Path(folder)
+    return [m for m in MARKERS if (folder / m).is_file() or (folder / m).is_symlink()]
+
+
+def check_folder(folder: str | Path, resume: bool, overwrite: bool) -> None:
+    """Refuse (:class:`FolderInUse`) or prepare ``folder`` for a new run, per the module docstring."""
+    folder = Path(folder)
+    found = held_results(folder)
+    if not found:
+        return
+    if resume:
+        if (folder / "checkpoint.pt").is_file():
+            return  # the checkpoint decides (sequence, config, split)
+        if not overwrite:
+            raise FolderInUse(f"--resume: {folder} has no checkpoint.pt to continue (it holds the results of a "
+                              f"finished run: {', '.join(found)}); map into a new --out, or pass --overwrite to "
+                              f"replace them")
+    elif not overwrite:
+        raise FolderInUse(f"{folder} already holds the results of another run ({', '.join(found)}); pass --overwrite "
+                          f"to replace them, --resume to continue an interrupted run, or choose another --out")
+    clear_results(folder)
+
+
+def clear_results(folder: Path) -> list[str]:
+    """Remove what an earlier eligsir map wrote in ``folder`` (links are removed, not followed); returns names."""
+    removed = []
+    for name in RESULT_FILES:
+        p = folder / name
+        if p.is_symlink() or p.is_file():
+            p.unlink()
+            removed.append(name)
+    for name in RESULT_DIRS:
+        d = folder / name
+        if d.is_symlink():
+            d.unlink()
+            removed.append(name)
+        elif d.is_dir():
+            for f in d.iterdir():  # only our pictures; anything else keeps the folder
+                if (f.is_file() or f.is_symlink()) and f.suffix.lower() in (".png", ".jpg", ".json"):
+                    f.unlink()
+            try:
+                d.rmdir()
+            except OSError:
+                pass
+            removed.append(name + "/")
+    if removed:
+        log.warning("--overwrite: removed the earlier run's %s from %s", ", ".join(removed), folder)
+    return removed
+
+
+def fresh_folder(base: str | Path = "runs/map") -> Path:
+    """``base`` if it holds no run, else the first of ``base-2``, ``base-3``, ... that does not exist or is empty."""
+    base = Path(base)
+
+    def free(p: Path) -> bool:
+        return not p.exists() and not p.is_symlink() or (p.is_dir() and not any(p.iterdir()))
+
+    if free(base):
+        return base
+    n = 2
+    while not free(base.with_name(f"{base.name}-{n}")):
+        n += 1
+    return base.with_name(f"{base.name}-{n}")
