@@ -78,7 +78,7 @@ def image_size(path: str | Path) -> tuple[int, int] | None:
 def check_declared_size(path: Path, index: int, what: str, expected: tuple[int, int] | None = None) -> None:
     """Raise ValueError (a DatasetError when given by the caller) before decoding ``path`` when its header declares
     more than ``max_image_side`` pixels a side, or another size than ``expected`` (width, height)."""
-    from .base import DatasetError
+    from .errors import DatasetError
 
     try:
         size = image_size(path)
