@@ -31,7 +31,7 @@ for a in "$@"; do
 done
 case " $* " in
   *" --test "*|*" --all "*)
-    if ! command -v chromium >/dev/null 2>&1; then  # tests/test_viewer_browser.py skips, saying so, without it
+    if ! command -v chromium >/dev/null 2>&1; then  # tests/visual/test_viewer_browser.py skips, saying so, without it
       { $SUDO apt-get update -q && $SUDO apt-get install -y -q chromium; } ||
         echo "chromium could not be installed: the viewer's browser test will be skipped"
     fi

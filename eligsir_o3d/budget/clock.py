@@ -25,13 +25,13 @@ class ClockConfig:
     updates_per_frame: int = 8  # mode "updates", and Reconstructor.integrate() without a clock
     drain_updates: int = 100  # finalize(): bounded drain after the stream (the paper's ME state)
     realtime_drain_fraction: float = 0.03  # realtime: the drain also stops after this share of the stream
-    # offline reference: its schedule is this many updates per source frame (coarse to fine; 7-Scenes 200 frames:
-    # 25.29 dB in 17.7 min of mapping at a load of 6-16 on the 2-core reference machine, 24.99 without the decay)
+    # offline reference: its schedule is this many updates per source frame (coarse to fine; what it reaches:
+    # docs/measurements.md, "Offline reference")
     offline_updates_per_frame: int = 40
     offline_updates: int = 0  # offline reference: a fixed schedule length instead (0: per source frame)
     # offline reference: (scale, share) stages of its coarse-to-fine supervision, and the means' step size at the
-    # schedule's end as a share of optim.lrs.means (log-linear decay, 3DGS's 100x; 1: constant). The decay: 7-Scenes
-    # 200 frames 24.99 -> 25.29 dB, SUN3D 50 frames (1000 updates) 21.29 -> 21.38 dB
+    # schedule's end as a share of optim.lrs.means (log-linear decay, 3DGS's 100x; 1: constant; measured effect:
+    # docs/measurements.md)
     offline_stages: tuple = ((0.25, 0.4), (0.5, 0.3), (1.0, 0.3))
     offline_means_lr_final: float = 0.01
     # where mode "cost" takes its model: "config" (``cost`` below: the shipped fit unless a file set it) or

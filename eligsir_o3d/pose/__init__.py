@@ -26,9 +26,7 @@ poses, off only by the tracking drift), else at the identity. Where the frames d
 trajectory file from elsewhere), ``trajectory_accuracy(est, gt, return_alignment=True)["T_gt_est"]`` is the rigid
 Umeyama alignment; ``inv(T_gt_est) @ T_gt`` brings a ground-truth pose into the map's frame.
 
-First 300 frames of 7scenes_redkitchen_jpg1000 (2-core CPU, ``python benchmarks/poses.py``): frame-to-model
-odometry ATE 2.55 cm at 37 ms/frame, frame-to-frame Hybrid 2.70 cm at 69 ms, kiss-icp 3.42 cm at 14 ms;
-pycolmap on the 50 frames of sun3d_mit76_studyroom_f0935: ATE 1.40 cm, 19 s wall.
+Each source's measured accuracy and time: docs/measurements.md ("Pose sources").
 """
 
 from __future__ import annotations

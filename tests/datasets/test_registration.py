@@ -17,7 +17,7 @@ from eligsir_o3d.datasets.color_calibration import calibrate_color, choose_pairs
 from eligsir_o3d.datasets import DatasetError, RGBDSequence, SyntheticRoom, open_sequence
 from eligsir_o3d.datasets.registration import TwoCameraRig, read_color_block, register_depth
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 SEVEN = DATA / "7scenes_redkitchen_jpg1000"
 SUN3D = DATA / "sun3d_mit76_studyroom_f0935"
 needs_data = pytest.mark.skipif(not SEVEN.is_dir(), reason="../shared/data is not available")

@@ -16,7 +16,7 @@ from eligsir_o3d.datasets import DatasetError, open_sequence
 pytest.importorskip("rosbags")
 from eligsir_o3d.datasets.writers import write_rosbag  # noqa: E402
 
-SEVEN = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
+SEVEN = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 pytestmark = pytest.mark.skipif(not SEVEN.is_dir(), reason="../shared/data is not available")
 N = 6
 T0 = 1.7e9

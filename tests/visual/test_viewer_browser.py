@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from headless_browser import HeadlessChromium, find_chromium
-from visual_fixtures import wall_colors, write_wall_map
+from helpers.headless_browser import HeadlessChromium, find_chromium
+from helpers.visual_fixtures import wall_colors, write_wall_map
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 pytestmark = [
     pytest.mark.skipif(find_chromium() is None, reason="chromium is not installed (Debian: apt-get install chromium; "

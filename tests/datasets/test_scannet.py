@@ -12,7 +12,7 @@ import pytest
 from eligsir_o3d.datasets import DatasetError, open_sequence
 from eligsir_o3d.datasets.writers import write_sens
 
-SEVEN = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
+SEVEN = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 pytestmark = pytest.mark.skipif(not SEVEN.is_dir(), reason="../shared/data is not available")
 
 

@@ -29,7 +29,7 @@ from eligsir_o3d.datasets import open_sequence
 from eligsir_o3d.pose import (PoseSource, TrackingLost, get_pose_source, plot_trajectories, read_tum_trajectory,
                               trajectory_accuracy, umeyama_alignment, write_tum_trajectory)
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 KITCHEN = DATA / "7scenes_redkitchen_jpg1000"
 STUDYROOM = DATA / "sun3d_mit76_studyroom_f0935"
 

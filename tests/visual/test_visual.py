@@ -17,7 +17,7 @@ from eligsir_o3d.visual.pictures import comparison_picture, spread, write_heldou
 from eligsir_o3d.visual.splats import read_splats
 from eligsir_o3d.visual.video import smooth_path
 
-from visual_fixtures import ViewerConnection, write_third_party_ply, write_wall_map
+from helpers.visual_fixtures import ViewerConnection, write_third_party_ply, write_wall_map
 
 
 def test_splats_of_a_third_party_sh3_ply(tmp_path):

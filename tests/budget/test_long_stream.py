@@ -10,7 +10,7 @@ import pytest
 import eligsir_o3d as eo3d
 from eligsir_o3d.scheduling.fidelity import FidelityConfig, LoadAdaptiveFidelity
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _soak_module():

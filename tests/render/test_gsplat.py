@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import torch
 
-import gsplat_standin
+from helpers import gsplat_standin
 from eligsir_o3d.core.camera import Camera
 from eligsir_o3d.render import get_renderer
 from eligsir_o3d.render.gsplat_backend import GsplatRenderer

@@ -21,7 +21,7 @@ from eligsir_o3d.batch import BatchError, SequenceSpec, expand_inputs, read_mani
 from eligsir_o3d.batch.specs import Defaults, build_request, folder_status, write_state
 from eligsir_o3d.cli.app import app
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 SEVEN = DATA / "7scenes_redkitchen_jpg1000"
 SUN3D = DATA / "sun3d_mit76_studyroom_f0935"
 needs_data = pytest.mark.skipif(not SEVEN.is_dir() or not SUN3D.is_dir(), reason="../shared/data is not available")

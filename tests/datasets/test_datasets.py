@@ -17,7 +17,7 @@ from eligsir_o3d.datasets import (DatasetError, RGBDSequence, SequenceFrame, Syn
 from eligsir_o3d.datasets.tum import associate
 from eligsir_o3d.core.frame import Frame
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
+DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 SEVEN = DATA / "7scenes_redkitchen_jpg1000"
 SUN3D = DATA / "sun3d_mit76_studyroom_f0935"
 REPLICA = DATA / "replica_office0_micro4"

@@ -15,7 +15,7 @@ from eligsir_o3d.datasets import DatasetError, open_sequence
 from eligsir_o3d.core.frame import FrameError
 from eligsir_o3d.run.frame_faults import read_heldout
 
-SEVEN = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
+SEVEN = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 LISTS = ("rgb.txt", "depth.txt", "groundtruth.txt")
 
 
