@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from eligsir_o3d.visual.video import VideoWriter
-from headless_browser import HeadlessChromium, find_chromium
+from helpers.headless_browser import HeadlessChromium, find_chromium
 
 pytestmark = pytest.mark.skipif(find_chromium() is None, reason="chromium is not installed (tools/setup.sh --test)")
 

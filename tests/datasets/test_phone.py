@@ -18,7 +18,7 @@ pytest.importorskip("liblzfse")
 pytest.importorskip("imageio_ffmpeg")
 from eligsir_o3d.datasets.phone_writers import write_polycam, write_record3d, write_stray  # noqa: E402
 
-SEVEN = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
+SEVEN = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 pytestmark = pytest.mark.skipif(not SEVEN.is_dir(), reason="../shared/data is not available")
 WRITERS = {"record3d": (write_record3d, "cap.r3d"), "stray": (write_stray, "stray"), "polycam": (write_polycam, "poly")}
 N_MAP = 16

@@ -19,7 +19,7 @@ from eligsir_o3d.core.camera import Camera
 from eligsir_o3d.datasets.base import DatasetError, read_color, read_depth
 from eligsir_o3d.datasets.image_header import image_size
 
-SEVEN = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
+SEVEN = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 CAM = Camera(640, 480, 525.0, 525.0, 319.5, 239.5)
 
 
@@ -78,7 +78,7 @@ def test_peak_memory_stays_bounded_on_a_huge_png(tmp_path):
             "try:\n    read_depth(Path(sys.argv[1]), 0, Camera(640, 480, 525.0, 525.0, 319.5, 239.5))\n"
             "except ValueError as e:\n    print('refused', e)\n"
             "print('grew_kib', resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base)\n")
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     r = subprocess.run([sys.executable, "-c", code, str(p)], capture_output=True, text=True, env=env, timeout=300)
     assert "refused" in r.stdout and "declares 40000x40000" in r.stdout, r.stdout + r.stderr
     grew = int(r.stdout.split("grew_kib")[1].split()[0])

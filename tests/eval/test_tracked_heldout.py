@@ -17,7 +17,7 @@ from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 pytest.importorskip("rosbags")
 from eligsir_o3d.datasets.writers import write_rosbag  # noqa: E402
 
-SEVEN = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
+SEVEN = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 pytestmark = pytest.mark.skipif(not SEVEN.is_dir(), reason="../shared/data is not available")
 
 

@@ -12,7 +12,7 @@ import pytest
 from eligsir_o3d import Config
 from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _baseline():

@@ -11,7 +11,7 @@ import pytest
 from eligsir_o3d import _open3d_check
 from eligsir_o3d._open3d_check import MissingSystemLibrary, hint, import_open3d
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 # The loader's own words, as `import open3d` prints them on a machine without libusb (Open3D 0.19/0.20 wheels).
 LIBUSB_ERROR = "libusb-1.0.so.0: cannot open shared object file: No such file or directory"
 

@@ -14,7 +14,7 @@ from eligsir_o3d import Config
 from eligsir_o3d.export_splats import parse_formats, rdf_to_rub, read_splats, write_web_formats
 from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SEVEN = ROOT / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 pytestmark = pytest.mark.skipif(not SEVEN.is_dir(), reason="../shared/data is not available")
 
@@ -133,8 +133,7 @@ def _draw_spz(spz: Path, tmp_path: Path, tag: str) -> np.ndarray:
     import threading
     import time
 
-    sys.path.insert(0, str(Path(__file__).parent))
-    from headless_browser import HeadlessChromium
+    from helpers.headless_browser import HeadlessChromium
 
     html = tmp_path / f"{tag}.html"
     subprocess.run([*_splat_transform(), "-w", str(spz), str(html)], check=True, capture_output=True, timeout=300)
@@ -151,7 +150,7 @@ def _draw_spz(spz: Path, tmp_path: Path, tag: str) -> np.ndarray:
 
 
 def test_spz_is_drawn_in_headless_chromium(run_sh0, tmp_path):
-    from headless_browser import find_chromium
+    from helpers.headless_browser import find_chromium
 
     if _splat_transform() is None or find_chromium() is None:
         pytest.skip("needs splat-transform (.npm/) and chromium (tools/setup.sh --test)")
