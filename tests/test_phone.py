@@ -184,6 +184,14 @@ def test_stray_old_odometry_without_timestamp_columns(tmp_path, src):
     np.testing.assert_allclose(seq.poses[2], src.poses[2], atol=1e-6)
 
 
+def test_stray_hevc_video_as_the_app_writes_it(tmp_path, src):
+    seq = open_sequence(write_stray(src, tmp_path / "hevc", frames=range(3), hevc=True))
+    for i in (2, 0):  # backwards: the decoder is reopened
+        a = seq[i].rgbd.color.as_tensor().numpy().astype(float)
+        b = src[i].rgbd.color.as_tensor().numpy().astype(float)
+        assert 10 * np.log10(255.0 ** 2 / np.mean((a - b) ** 2)) > 30.0
+
+
 def test_confidence_and_range_drop_depth():
     d = np.array([[1.0, 2.0, 6.0, np.nan]], dtype=np.float32)
     conf = np.array([[0, 1, 2, 2]], dtype=np.uint8)
