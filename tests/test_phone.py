@@ -59,6 +59,15 @@ def test_phone_resolution_depth_is_registered_into_colour(tmp_path, src, fmt):
     assert np.median(np.abs(d[both] - ref[both])) < 0.02
 
 
+def test_colour_much_larger_than_depth_is_scaled_down(tmp_path, src):
+    seq = open_sequence(write_record3d(src, tmp_path / "c.r3d", frames=range(2), depth_size=(256, 192)),
+                        color_width=320)
+    assert (seq.camera.width, seq.camera.height) == (320, 240)
+    assert seq.camera.fx == pytest.approx(src.camera.fx / 2)
+    f = seq.frame(1)
+    assert f.color.shape == (240, 320, 3) and f.depth.shape == (240, 320) and (f.depth > 0).float().mean() > 0.5
+
+
 def _cfg() -> Config:
     cfg = Config(renderer="cpu")
     cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 2, 20
