@@ -85,10 +85,10 @@ def write_record3d(seq, out: str | Path, *, frames: Sequence[int] | None = None,
 
 
 def write_stray(seq, out: str | Path, *, frames: Sequence[int] | None = None, depth_size=None,
-                header: str = "timestamp, frame, x, y, z, qx, qy, qz, qw") -> Path:
+                header: str = "timestamp, frame, x, y, z, qx, qy, qz, qw", hevc: bool = False) -> Path:
     """Write frames of ``seq`` as a Stray Scanner folder. The video is lossless H.264 (``libx264rgb``, qp 0,
-    through imageio-ffmpeg) so that a round trip reads back the same colour; the app itself writes HEVC.
-    ``header``: the odometry.csv header ("" writes none, as the oldest captures)."""
+    through imageio-ffmpeg) so that a round trip reads back the same colour; ``hevc=True`` writes HEVC (``hvc1``,
+    lossy) as the app does. ``header``: the odometry.csv header ("" writes none, as the oldest captures)."""
     import cv2
     import imageio_ffmpeg
 
@@ -97,10 +97,11 @@ def write_stray(seq, out: str | Path, *, frames: Sequence[int] | None = None, de
         (out / sub).mkdir(parents=True, exist_ok=True)
     K = cam.K
     (out / "camera_matrix.csv").write_text("\n".join(", ".join(f"{v:.10g}" for v in row) for row in K) + "\n")
-    writer = imageio_ffmpeg.write_frames(str(out / "rgb.mp4"), (cam.width, cam.height), fps=30,
-                                         codec="libx264rgb", pix_fmt_in="rgb24", pix_fmt_out="rgb24",
-                                         output_params=["-qp", "0", "-preset", "ultrafast"], macro_block_size=1,
-                                         quality=None)
+    codec, pix, params = ("libx265", "yuv420p", ["-tag:v", "hvc1", "-x265-params", "log-level=error"]) if hevc else \
+        ("libx264rgb", "rgb24", ["-qp", "0", "-preset", "ultrafast"])
+    writer = imageio_ffmpeg.write_frames(str(out / "rgb.mp4"), (cam.width, cam.height), fps=30, codec=codec,
+                                         pix_fmt_in="rgb24", pix_fmt_out=pix, output_params=params,
+                                         macro_block_size=1, quality=None)
     writer.send(None)
     lines = [header] if header else []
     for n, i in enumerate(idx):

@@ -155,7 +155,7 @@ def open_record3d(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0
         n = keep[i]
         data = np.frombuffer(ar.read(f"rgbd/{n}.jpg"), dtype=np.uint8)
         bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
-        if bgr is None or not data[-64:].tobytes().__contains__(b"\xff\xd9"):
+        if bgr is None or b"\xff\xd9" not in data[-64:].tobytes():  # libjpeg decodes a cut-off JPEG silently
             raise DatasetError(f"frame {i}: colour {ar.where(f'rgbd/{n}.jpg')} is corrupt or truncated")
         return bgr[..., ::-1].copy(), blob(n, "depth", np.float32, True), blob(n, "conf", np.uint8, False)
 

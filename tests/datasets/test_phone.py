@@ -59,6 +59,15 @@ def test_phone_resolution_depth_is_registered_into_colour(tmp_path, src, fmt):
     assert np.median(np.abs(d[both] - ref[both])) < 0.02
 
 
+def test_colour_much_larger_than_depth_is_scaled_down(tmp_path, src):
+    seq = open_sequence(write_record3d(src, tmp_path / "c.r3d", frames=range(2), depth_size=(256, 192)),
+                        color_width=320)
+    assert (seq.camera.width, seq.camera.height) == (320, 240)
+    assert seq.camera.fx == pytest.approx(src.camera.fx / 2)
+    f = seq.frame(1)
+    assert f.color.shape == (240, 320, 3) and f.depth.shape == (240, 320) and (f.depth > 0).float().mean() > 0.5
+
+
 def _cfg() -> Config:
     cfg = Config(renderer="cpu")
     cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 2, 20
@@ -182,6 +191,14 @@ def test_stray_old_odometry_without_timestamp_columns(tmp_path, src):
     seq = open_sequence(stray, fps=60.0)
     assert seq.timestamps[1] == pytest.approx(1 / 60)
     np.testing.assert_allclose(seq.poses[2], src.poses[2], atol=1e-6)
+
+
+def test_stray_hevc_video_as_the_app_writes_it(tmp_path, src):
+    seq = open_sequence(write_stray(src, tmp_path / "hevc", frames=range(3), hevc=True))
+    for i in (2, 0):  # backwards: the decoder is reopened
+        a = seq[i].rgbd.color.as_tensor().numpy().astype(float)
+        b = src[i].rgbd.color.as_tensor().numpy().astype(float)
+        assert 10 * np.log10(255.0 ** 2 / np.mean((a - b) ** 2)) > 30.0
 
 
 def test_confidence_and_range_drop_depth():
