@@ -49,6 +49,10 @@ def collect_metrics(p) -> dict:
         "cost_model": {**p.cost_model_source, "terms": rec.config.clock.cost.to_dict()}
         if p.cost_model_source.get("source") else None,
         "heldout": {k: final.get(k) for k in ("psnr", "ssim", "lpips", "depth_rmse_m", "depth_rmse_2m_m")},
+        # the rule "heldout" used: with pose refinement pose_refine.heldout_poses ("aligned", the paper's rule, by
+        # default); without it "given" (the map's frame is the given one); a tracked run's views are aligned to
+        # the ground truth through its tracked poses ("aligned" as well)
+        "heldout_pose_rule": heldout_rule(p),
         # with pose refinement: the same views at their given poses as they are (the strict figure), and under
         # each rule of pose_refine.heldout_poses ("heldout" is the configured one's)
         "heldout_given_poses": (getattr(p, "pose_rule_scores", None) or {}).get("given"),
@@ -86,6 +90,13 @@ def collect_metrics(p) -> dict:
                                               bool(getattr(rec.fidelity, "trace", None)))) if present},
     }
     return metrics
+
+
+def heldout_rule(p) -> str:
+    """The held-out pose rule of ``metrics["heldout"]`` for pipeline ``p`` (see :func:`collect_metrics`)."""
+    if p.pose_source is not None:
+        return "aligned" if getattr(p, "accuracy", None) else "tracked"
+    return p.rec.pose_refine.cfg.heldout_poses if p.rec.pose_refine.moved else "given"
 
 
 def write_results(p, metrics: dict) -> None:
