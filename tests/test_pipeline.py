@@ -131,7 +131,7 @@ def test_a_tracked_and_pose_refined_map_is_aligned_to_the_ground_truth_by_its_re
     orig = accuracy.pose_alignment
     monkeypatch.setattr(accuracy, "pose_alignment", lambda est, gt: seen.append(list(est)) or orig(est, gt))
     cfg = _cfg()
-    cfg.pose_refine.lr, cfg.pose_refine.min_updates = 2e-3, 0
+    cfg.pose_refine.enabled, cfg.pose_refine.lr, cfg.pose_refine.min_updates = True, 2e-3, 0
     p = MappingPipeline("synthetic", tmp_path / "out", cfg, _opts(max_frames=12, pose=str(traj), eval_every=0,
                                                                   pictures=False))
     p.run()
