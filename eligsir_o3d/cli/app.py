@@ -99,21 +99,33 @@ def config_cmd(
     typer.echo(json.dumps(cfg.to_dict(), indent=2))
 
 
+# what each held-out pose rule means, as the summary prints it (pose.refine.HELDOUT_POSE_RULES)
+POSE_RULE_LABELS = {
+    "aligned": "aligned: given poses after one rigid training-pose alignment, the paper's rule",
+    "carried": "carried: in the map's refined frame",
+    "given": "given: the poses as they are",
+    "tracked": "tracked: poses from the run's pose source",
+}
+
+
 def _summary(m: dict, out: Path) -> None:
     h = m["heldout"]
 
     def f(x, fmt):
         return "n/a" if x is None else format(x, fmt)
 
-    typer.echo(f"held-out PSNR {f(h['psnr'], '.2f')} dB  SSIM {f(h['ssim'], '.3f')}  depth RMSE {f(h['depth_rmse_m'], '.3f')} m")
+    rule = m.get("heldout_pose_rule")
+    where = f" ({POSE_RULE_LABELS[rule]})" if rule in POSE_RULE_LABELS else ""
+    typer.echo(f"held-out PSNR {f(h['psnr'], '.2f')} dB{where}  SSIM {f(h['ssim'], '.3f')}  "
+               f"depth RMSE {f(h['depth_rmse_m'], '.3f')} m")
     posed = m.get("heldout_pose_origin") or "ground truth"
     if posed != "ground truth":  # a recording without poses: say so next to the figure
         lost = len(m.get("heldout_untracked") or [])
         typer.echo(f"  held-out views at poses {posed}" + (f"; {lost} untrackable view(s) left out" if lost else ""))
-    rules = m.get("heldout_by_pose_rule")
-    if rules:  # pose refinement: the held-out views' poses moved into the refined frame by each rule
-        typer.echo("held-out PSNR by pose rule: " + "  ".join(f"{r} {f(v['psnr'], '.2f')} dB" for r, v in rules.items())
-                   + " (given: the poses as they are)")
+    rules = {r: v for r, v in (m.get("heldout_by_pose_rule") or {}).items() if r != rule}
+    if rules:  # pose refinement: the same views under the other rules, each labelled
+        typer.echo("  beside it: " + ";  ".join(f"{f(v['psnr'], '.2f')} dB ({POSE_RULE_LABELS.get(r, r)})"
+                                                for r, v in rules.items()))
     typer.echo(f"CVQ-AUC {f(m['cvq_auc'], '.2f')} dB  CUC@20 {f(m['cuc20_final'], '.3f')}  "
                f"Gaussians {m['gaussians']}  updates {m['updates']}  supervised {m['supervised_mpix']:.1f} MPix")
     pol = m.get("policies") or {}

@@ -55,6 +55,10 @@ def collect_metrics(p) -> dict:
         # source, which tracked them without admitting them into the map; views it could not track are left out
         "heldout_pose_origin": _heldout_pose_origin(p),
         "heldout_untracked": list(p.heldout_tracking.untracked) if getattr(p, "heldout_tracking", None) else [],
+        # the rule "heldout" used: with pose refinement pose_refine.heldout_poses ("aligned", the paper's rule, by
+        # default); without it "given" (the map's frame is the given one); a tracked run's views are aligned to
+        # the ground truth through its tracked poses ("aligned" as well)
+        "heldout_pose_rule": heldout_rule(p),
         # with pose refinement: the same views at their given poses as they are (the strict figure), and under
         # each rule of pose_refine.heldout_poses ("heldout" is the configured one's)
         "heldout_given_poses": (getattr(p, "pose_rule_scores", None) or {}).get("given"),
@@ -100,6 +104,13 @@ def _heldout_pose_origin(p) -> str:
     from ..eval.tracked_heldout import heldout_pose_label
 
     return heldout_pose_label(p.pose_name, getattr(p, "heldout_tracking", None) is not None)
+def heldout_rule(p) -> str:
+    """The held-out pose rule of ``metrics["heldout"]`` for pipeline ``p`` (see :func:`collect_metrics`)."""
+    if p.pose_source is not None:
+        return "aligned" if getattr(p, "accuracy", None) else "tracked"
+    return p.rec.pose_refine.cfg.heldout_poses if p.rec.pose_refine.moved else "given"
+
+
 
 
 def write_results(p, metrics: dict) -> None:

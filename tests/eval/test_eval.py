@@ -286,8 +286,22 @@ def test_compare_table_lists_folders(tmp_path):
     lines = table.splitlines()
     assert "full" in lines[0] and "no_sched" in lines[0]
     row = {ln.split("  ")[0].strip(): ln.split() for ln in lines[2:]}
-    assert "21.52" in row["PSNR [dB]"] and "20.10" in row["PSNR [dB]"]
+    assert "21.52" in row["PSNR [dB] (paper's rule)"] and "20.10" in row["PSNR [dB] (paper's rule)"]
     assert "0.320" in row["LPIPS"] and "-" in row["LPIPS"]
     assert "65.4" in table and "328100" in table
+    # a pose-refined run: the paper's rule (aligned) leads, carried is labelled as the map's refined frame
+    d = tmp_path / "refined"
+    d.mkdir()
+    (d / "metrics.json").write_text(json.dumps({
+        "heldout": {"psnr": 22.5}, "heldout_pose_rule": "carried", "heldout_given_poses": {"psnr": 20.25},
+        "heldout_by_pose_rule": {"aligned": {"psnr": 20.75}, "carried": {"psnr": 22.5}, "given": {"psnr": 20.25}}}))
+    lines = compare_results([d]).splitlines()
+    row = {ln.split("  ")[0].strip(): ln.split() for ln in lines[2:]}
+    assert "20.75" in row["PSNR [dB] (paper's rule)"]
+    assert "22.50" in row["PSNR in the map's refined frame (carried) [dB]"]
+    assert "20.25" in row["PSNR at given poses [dB]"]
+    assert [ln.split("  ")[0] for ln in lines[4:7]] == ["PSNR [dB] (paper's rule)",
+                                                       "PSNR in the map's refined frame (carried) [dB]",
+                                                       "PSNR at given poses [dB]"]
     with pytest.raises(FileNotFoundError, match="metrics.json"):
         compare_results([tmp_path / "nope"])
