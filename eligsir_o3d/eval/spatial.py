@@ -151,8 +151,10 @@ def compare_spatial(dir_a, dir_b, out_dir=None, stem: str = "spatial_delta") -> 
     ``out_dir`` (default: ``dir_a``). Raises ValueError when the folders hold different sequences or splits."""
     ma, ca = _read_run(dir_a)
     mb, cb = _read_run(dir_b)
-    for key in ("dataset", "frames_total", "frames_heldout"):
-        if ma.get(key) != mb.get(key):
+    same = {"dataset": lambda m: Path(str(m.get("dataset"))).name,  # the runs may name it from different folders
+            "frames_total": lambda m: m.get("frames_total"), "frames_heldout": lambda m: m.get("frames_heldout")}
+    for key, get in same.items():
+        if get(ma) != get(mb):
             raise ValueError(f"{dir_a} and {dir_b} are not runs of the same sequence and split: "
                              f"{key} {ma.get(key)!r} vs {mb.get(key)!r}")
     result = {"a": str(dir_a), "b": str(dir_b), **cell_deltas(ca, cb)}
