@@ -105,14 +105,16 @@ def plot_deltas(result: dict, path: Path, label_a: str = "full", label_b: str = 
         keys = np.asarray(result["keys"], dtype=np.int64).reshape(-1, 3)
         size, up = result["cell_size"], result["up_axis"]
         qa, qb, d = (np.asarray(result[k], dtype=np.float64) for k in ("q_a", "q_b", "delta"))
-        lo, hi = float(np.percentile(np.r_[qa, qb], 2)), float(np.percentile(np.r_[qa, qb], 98))
-        span = max(1.0, float(np.abs(d).max()))
-        panels = [(qa, "RdYlGn", lo, hi, f"{label_a}: mean {s['mean_a']:.2f}, median {s['median_a']:.2f} dB"),
-                  (qb, "RdYlGn", lo, hi, f"{label_b}: mean {s['mean_b']:.2f}, median {s['median_b']:.2f} dB"),
-                  (d, "RdBu", -span, span, f"delta = {label_a} - {label_b}: {s['improved_10db']} cells > +10 dB, "
-                                           f"{s['improved_5db']} > +5, {s['worse']} worse")]
-        for ax, (v, cmap, vmin, vmax, title) in zip(axes, panels):
-            grid, ext, (ia, ib) = _columns(keys, v, up)
+        grids = [_columns(keys, v, up) for v in (qa, qb, d)]
+        shown = np.concatenate([g[np.isfinite(g)] for g, _, _ in grids[:2]])
+        lo, hi = float(np.percentile(shown, 2)), float(np.percentile(shown, 98))  # of the column means shown
+        span = max(1.0, float(np.nanmax(np.abs(grids[2][0]))))
+        titles = [f"{label_a}\nmean {s['mean_a']:.2f}, median {s['median_a']:.2f} dB",
+                  f"{label_b}\nmean {s['mean_b']:.2f}, median {s['median_b']:.2f} dB",
+                  f"delta = {label_a} - {label_b}\n{s['improved_10db']} cells > +10 dB, {s['improved_5db']} > +5, "
+                  f"{s['worse']} worse"]
+        for ax, (grid, ext, (ia, ib)), title, (cmap, vmin, vmax) in zip(
+                axes, grids, titles, [("RdYlGn", lo, hi), ("RdYlGn", lo, hi), ("RdBu", -span, span)]):
             extent = tuple(float(x) * size for x in ext)
             im = ax.imshow(grid, origin="lower", extent=extent, cmap=cmap, vmin=vmin, vmax=vmax,
                            interpolation="nearest")
@@ -122,7 +124,7 @@ def plot_deltas(result: dict, path: Path, label_a: str = "full", label_b: str = 
             ax.set_ylabel(f"{AXES[ib]} [m]")
             ax.set_aspect("equal")
     fig.suptitle(f"Per-cell final PSNR over {result['n_common']} cells evaluable in both runs "
-                 f"({result['cell_size']:g} m cells, top-down)", fontsize=11)
+                 f"({result['cell_size']:g} m cells, top-down; a pixel is the mean of its column of cells)", fontsize=11)
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -149,8 +151,10 @@ def compare_spatial(dir_a, dir_b, out_dir=None, stem: str = "spatial_delta") -> 
     ``out_dir`` (default: ``dir_a``). Raises ValueError when the folders hold different sequences or splits."""
     ma, ca = _read_run(dir_a)
     mb, cb = _read_run(dir_b)
-    for key in ("dataset", "frames_total", "frames_heldout"):
-        if ma.get(key) != mb.get(key):
+    same = {"dataset": lambda m: Path(str(m.get("dataset"))).name,  # the runs may name it from different folders
+            "frames_total": lambda m: m.get("frames_total"), "frames_heldout": lambda m: m.get("frames_heldout")}
+    for key, get in same.items():
+        if get(ma) != get(mb):
             raise ValueError(f"{dir_a} and {dir_b} are not runs of the same sequence and split: "
                              f"{key} {ma.get(key)!r} vs {mb.get(key)!r}")
     result = {"a": str(dir_a), "b": str(dir_b), **cell_deltas(ca, cb)}
