@@ -105,7 +105,7 @@ class Config:
         cfg.ablate = tuple(ABLATION_RENAMED.get(a, a) for a in cfg.ablate)
         unknown = [a for a in cfg.ablate if a not in ABLATIONS]
         if unknown:
-            raise ValueError(f"unknown ablation(s) {unknown}; choose from {', '.join(ABLATIONS)}")
+            raise ValueError(f"config key ablate: unknown ablation(s) {unknown}; choose from {', '.join(ABLATIONS)}")
         cfg.ablate = tuple(cfg.ablate)
         check_clock_config(cfg.clock)
         check_values(cfg)  # NaN, negative counts, an empty map budget, a background that is not RGB
@@ -131,8 +131,8 @@ class Config:
     def load(cls, path: str | Path) -> "Config":
         path = Path(path)
         try:
-            data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
+            data = json.loads(path.read_text(encoding="utf-8-sig"))
+        except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
             raise ConfigError(f"{path}: not a readable JSON config file ({e})") from None
         return cls.from_dict(data, str(path))
 
@@ -240,6 +240,18 @@ def _walk(data: dict, path: list[str], create: bool = False):
 
 
 def apply_override(cfg: Config, item: str) -> None:
+    """``--set KEY=VALUE`` on ``cfg`` (see :func:`_apply_override`); its error is one line even when the item
+    holds a line break (shown escaped)."""
+    try:
+        _apply_override(cfg, item)
+    except ValueError as e:
+        text = str(e)
+        if "\n" in text or "\r" in text:
+            raise type(e)(text.replace("\r", "\\r").replace("\n", "\\n")) from None
+        raise
+
+
+def _apply_override(cfg: Config, item: str) -> None:
     """Apply ``a.b.c=value`` to ``cfg`` in place; the value is parsed as JSON when it can be (``16``, ``true``,
     ``[0.25, 1]``), else taken as a string. An unknown key is a ValueError naming the nearest valid one."""
     key, eq, raw = item.partition("=")
