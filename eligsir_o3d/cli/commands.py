@@ -80,7 +80,7 @@ def live(
             source = SequenceReplay(open_sequence(replay), max_frames=frames)
         s = run_live(source, out, cfg, pose=pose, max_frames=frames, seconds=seconds)
     except (ValueError, OSError, RuntimeError) as e:
-        _fail(str(e))
+        _fail(str(e), getattr(e, "exit_code", 2))  # 4: OUT in use by another run (or its lock file is a link)
     typer.echo(f"{s['source']}: captured {s['captured']}, integrated {s['integrated']}, dropped {s['dropped']}, "
                f"tracking lost {s['lost']}; {s['gaussians']} Gaussians, {s['updates']} updates in {s['wall_s']:.1f} s")
     typer.echo(f"results in {out.resolve()}")

@@ -150,15 +150,26 @@ class SequenceReplay(FrameSource):
 
 def run_live(source: FrameSource, out: str | Path, config=None, *, pose: str = "odometry", max_frames: int | None = None,
              seconds: float | None = None, queue_size: int = 4, drain_s: float = 2.0) -> dict:
-    """Map ``source`` in real time into ``out`` (see the module docstring). Returns the summary in live.json."""
+    """Map ``source`` in real time into ``out`` (see the module docstring). Returns the summary in live.json.
+    The folder is held with the run lock (:mod:`.lock`: one run per folder, never written through a link) for the
+    whole run, and every file is written atomically."""
+    from .lock import RunLock
+
+    out = Path(out)
+    with RunLock(out):
+        return _run_live(source, out, config, pose=pose, max_frames=max_frames, seconds=seconds,
+                         queue_size=queue_size, drain_s=drain_s)
+
+
+def _run_live(source: FrameSource, out: Path, config, *, pose: str, max_frames: int | None, seconds: float | None,
+              queue_size: int, drain_s: float) -> dict:
     from ..config import Config
+    from ..io.atomic import atomic_write_text
     from ..core.frame import Frame, FrameError
     from ..pose import TrackingLost, get_pose_source, write_tum_trajectory
     from ..reconstructor import Reconstructor
 
     config = config or Config()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     source.start()
     config.depth_scale = float(source.depth_scale)
     rec = Reconstructor(source.camera, config.device, config)
@@ -236,10 +247,10 @@ def run_live(source: FrameSource, out: str | Path, config=None, *, pose: str = "
     rec.save_ply(out / "map.ply")
     if stamps:
         write_tum_trajectory(out / "trajectory.txt", stamps, poses)
-    (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+    atomic_write_text(out / "config.json", json.dumps(config.to_dict(), indent=2))
     summary = {"source": source.name, **stats, "gaussians": len(rec.gmap), "updates": rec.stats.updates,
                "wall_s": time.perf_counter() - wall0, "tracking_ms_per_frame": tracker.ms_per_frame,
                "camera": {"width": source.camera.width, "height": source.camera.height, "fx": source.camera.fx,
                           "fy": source.camera.fy, "cx": source.camera.cx, "cy": source.camera.cy}}
-    (out / "live.json").write_text(json.dumps(summary, indent=1))
+    atomic_write_text(out / "live.json", json.dumps(summary, indent=1))
     return summary
