@@ -102,7 +102,7 @@ class Config:
             raise ValueError(f"device {cfg.device!r} is not a device name ('cpu', 'cuda', 'cuda:0', ...)") from None
         cfg.device = str(device)
         cfg.renderer = resolve_backend(cfg.renderer, device)
-        cfg.ablate = tuple(ABLATION_RENAMED.get(a, a) for a in cfg.ablate)
+        cfg.ablate = tuple(ABLATION_RENAMED.get(a, a) if isinstance(a, str) else a for a in cfg.ablate)
         unknown = [a for a in cfg.ablate if a not in ABLATIONS]
         if unknown:
             raise ValueError(f"config key ablate: unknown ablation(s) {unknown}; choose from {', '.join(ABLATIONS)}")
@@ -134,7 +134,14 @@ class Config:
             data = json.loads(path.read_text(encoding="utf-8-sig"))
         except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
             raise ConfigError(f"{path}: not a readable JSON config file ({e})") from None
-        return cls.from_dict(data, str(path))
+        cfg = cls.from_dict(data, str(path))
+        from .config_checks import check_values
+
+        try:  # values no run can use (NaN, negative counts): named with the file here, not later
+            check_values(cfg)
+        except ValueError as e:
+            raise ConfigError(f"{path}: {e}") from None
+        return cfg
 
 
 def _build(tp, data: Any, where: str, prefix: str):
@@ -225,7 +232,7 @@ def _migrate(data: dict) -> dict:
         elif target[nlast] != value:
             log.warning("config: %s (an older name) = %r ignored in favour of %s = %r", old, value, new, target[nlast])
     if isinstance(data.get("ablate"), (list, tuple)):
-        data["ablate"] = [ABLATION_RENAMED.get(a, a) for a in data["ablate"]]
+        data["ablate"] = [ABLATION_RENAMED.get(a, a) if isinstance(a, str) else a for a in data["ablate"]]
     return data
 
 

@@ -267,3 +267,23 @@ def test_fuzz_cli_export_and_config(work, data):
         assert r.output.startswith("error: ") and len(r.output.strip().splitlines()) == 1, r.output
         assert str(p) in r.output, r.output
     _count("cli-export", r.exit_code == 0)
+
+
+def test_fuzz_findings_of_the_long_run(tmp_path):
+    """Inputs the random long run found (benchmarks/fuzz_long.py): kept as fixed cases."""
+    from eligsir_o3d import Config
+
+    for ablate in ([[]], [None]):
+        d = Config().to_dict()
+        d["ablate"] = ablate
+        p = tmp_path / "config.json"
+        p.write_text(json.dumps(d))
+        with pytest.raises(ValueError) as e:
+            Config.load(p).resolve()
+        _refusal(e.value, "ablate")
+    d = Config().to_dict()
+    d["max_gaussians"] = -5
+    p.write_text(json.dumps(d))
+    with pytest.raises(ValueError) as e:
+        Config.load(p)
+    _refusal(e.value, str(p))
