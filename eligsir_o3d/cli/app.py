@@ -214,11 +214,13 @@ def map_cmd(
 def _live_view(host: str, port: int):
     from ..visual.live import LiveView
 
+    from .commands import show_urls
+
     try:
         live = LiveView(host, port)
-    except RuntimeError as e:
+    except (ValueError, RuntimeError, OSError) as e:
         _fail(str(e))
-    typer.echo(f"live view at {live.url}")
+    show_urls(live.viewer if hasattr(live, "viewer") else live, host, "live view")
     return live
 
 

@@ -109,8 +109,18 @@ def view(
         viewer = open_map_viewer(map_ply, host, port, trajectory, mesh, point_cloud, max_cameras)
     except (ValueError, OSError, RuntimeError) as e:
         _fail(str(e))
-    typer.echo(f"viewer at {viewer.url}  (Ctrl-C to stop)")
+    show_urls(viewer, host, "viewer")
     _serve_until_interrupted(viewer)
+
+
+def show_urls(viewer, host: str, what: str) -> None:
+    """Print where ``viewer`` is served; for a wildcard host every address, and that it is on the network."""
+    from ..visual.bind_check import NETWORK_WARNING, WILDCARD
+
+    urls = getattr(viewer, "urls", None) or [viewer.url]
+    typer.echo(f"{what} at {'  '.join(urls)}  (Ctrl-C to stop)")
+    if host in WILDCARD:
+        typer.secho(NETWORK_WARNING.format(host=host or "0.0.0.0"), fg=typer.colors.YELLOW, err=True)
 
 
 def _serve_until_interrupted(viewer) -> None:
@@ -122,7 +132,10 @@ def _serve_until_interrupted(viewer) -> None:
     except KeyboardInterrupt:
         pass
     finally:
-        viewer.close()
+        try:
+            viewer.close()
+        except (RuntimeError, OSError):  # Ctrl-C ends the command cleanly, whatever state the server is in
+            pass
 
 
 def render(
