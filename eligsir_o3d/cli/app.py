@@ -200,6 +200,12 @@ def map_cmd(
         if view:
             opts.view = _live_view(view_host, view_port)
         m = run_mapping(path, out, cfg, opts)
+    except KeyboardInterrupt:
+        if opts is not None and opts.view is not None:
+            opts.view.close()
+        hint = ("continue with the same command and --resume" if (Path(out) / "checkpoint.pt").is_file() else
+                "no checkpoint was written (--checkpoint-every N makes one): run again with --overwrite")
+        _fail(f"interrupted; {hint} (--out {out})", 130)
     except (ValueError, OSError, RuntimeError) as e:
         if opts is not None and opts.view is not None:
             opts.view.close()
