@@ -358,6 +358,15 @@ for _name, _command in COMMANDS.items():  # live, calibrate-color, view, render,
     app.command(_name)(_command)
 
 
+def _register_calibrate() -> None:
+    from .calibrate_cmd import calibrate_cmd
+
+    app.command("calibrate")(calibrate_cmd)
+
+
+_register_calibrate()
+
+
 def main() -> None:
     app()
 
