@@ -106,10 +106,10 @@ class Config:
             raise ValueError(f"device {cfg.device!r} is not a device name ('cpu', 'cuda', 'cuda:0', ...)") from None
         cfg.device = str(device)
         cfg.renderer = resolve_backend(cfg.renderer, device)
-        cfg.ablate = tuple(ABLATION_RENAMED.get(a, a) for a in cfg.ablate)
+        cfg.ablate = tuple(ABLATION_RENAMED.get(a, a) if isinstance(a, str) else a for a in cfg.ablate)
         unknown = [a for a in cfg.ablate if a not in ABLATIONS]
         if unknown:
-            raise ValueError(f"unknown ablation(s) {unknown}; choose from {', '.join(ABLATIONS)}")
+            raise ValueError(f"config key ablate: unknown ablation(s) {unknown}; choose from {', '.join(ABLATIONS)}")
         cfg.ablate = tuple(cfg.ablate)
         check_clock_config(cfg.clock)
         check_values(cfg)  # NaN, negative counts, an empty map budget, a background that is not RGB
@@ -135,10 +135,17 @@ class Config:
     def load(cls, path: str | Path) -> "Config":
         path = Path(path)
         try:
-            data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
+            data = json.loads(path.read_text(encoding="utf-8-sig"))
+        except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
             raise ConfigError(f"{path}: not a readable JSON config file ({e})") from None
-        return cls.from_dict(data, str(path))
+        cfg = cls.from_dict(data, str(path))
+        from .config_checks import check_values
+
+        try:  # values no run can use (NaN, negative counts): named with the file here, not later
+            check_values(cfg)
+        except ValueError as e:
+            raise ConfigError(f"{path}: {e}") from None
+        return cfg
 
 
 def _build(tp, data: Any, where: str, prefix: str):
@@ -229,7 +236,7 @@ def _migrate(data: dict) -> dict:
         elif target[nlast] != value:
             log.warning("config: %s (an older name) = %r ignored in favour of %s = %r", old, value, new, target[nlast])
     if isinstance(data.get("ablate"), (list, tuple)):
-        data["ablate"] = [ABLATION_RENAMED.get(a, a) for a in data["ablate"]]
+        data["ablate"] = [ABLATION_RENAMED.get(a, a) if isinstance(a, str) else a for a in data["ablate"]]
     return data
 
 
@@ -244,6 +251,18 @@ def _walk(data: dict, path: list[str], create: bool = False):
 
 
 def apply_override(cfg: Config, item: str) -> None:
+    """``--set KEY=VALUE`` on ``cfg`` (see :func:`_apply_override`); its error is one line even when the item
+    holds a line break (shown escaped)."""
+    try:
+        _apply_override(cfg, item)
+    except ValueError as e:
+        text = str(e)
+        if "\n" in text or "\r" in text:
+            raise type(e)(text.replace("\r", "\\r").replace("\n", "\\n")) from None
+        raise
+
+
+def _apply_override(cfg: Config, item: str) -> None:
     """Apply ``a.b.c=value`` to ``cfg`` in place; the value is parsed as JSON when it can be (``16``, ``true``,
     ``[0.25, 1]``), else taken as a string. An unknown key is a ValueError naming the nearest valid one."""
     key, eq, raw = item.partition("=")

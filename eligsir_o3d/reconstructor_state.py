@@ -87,7 +87,19 @@ class ReconstructorState:
 
     def load_state_dict(self, state: dict) -> None:
         """Restore :meth:`state_dict`'s output into this Reconstructor (built with the same config and policies).
-        Raises ValueError when a policy class differs or the view policy does not restore its retained views."""
+        Raises ValueError when a policy class differs or the view policy does not restore its retained views.
+        Transactional: a state that fails half-way (a malformed policy state, a missing key) leaves this
+        Reconstructor as it was (a copy of its own state is put back) and the error is raised."""
+        import copy
+
+        backup = copy.deepcopy(self.state_dict())
+        try:
+            self._load_state_dict(state)
+        except BaseException:
+            self._load_state_dict(backup)
+            raise
+
+    def _load_state_dict(self, state: dict) -> None:
         for name, policy in self._policies():
             saved = state["policies"][name]
             if type(policy).__name__ != saved["class"]:

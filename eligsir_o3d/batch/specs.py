@@ -75,9 +75,9 @@ def read_manifest(path: str | Path) -> list[SequenceSpec]:
     """The sequences listed in a manifest file (see the module docstring); errors name the file and line."""
     path = Path(path)
     try:
-        text = path.read_text()
-    except OSError as e:
-        raise BatchError(f"{path}: cannot read the manifest ({e.strerror or e})") from None
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as e:
+        raise BatchError(f"{path}: cannot read the manifest ({getattr(e, 'strerror', None) or e})") from None
     parser, specs = _line_parser(), []
     for no, line in enumerate(text.splitlines(), 1):
         where = f"{path}:{no}"

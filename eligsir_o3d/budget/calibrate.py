@@ -8,7 +8,8 @@ Reconstructor (same camera, device, renderer and policies; the caller's map is u
 
 :func:`cached_cost_model` keeps one fit per machine (host, CPU, device name, renderer, torch and package
 versions) as JSON under the user's cache directory (``$XDG_CACHE_HOME/eligsir_o3d``, default ``~/.cache``):
-the first run on a machine calibrates (seconds), later ones reuse it. Delete the file to recalibrate.
+the first run on a machine calibrates (seconds), later ones reuse it while its recorded conditions allow
+(:mod:`.conditions`: not taken on a busy machine, not stale); ``eligsir calibrate [--force]`` shows / redoes it.
 """
 
 from __future__ import annotations
@@ -143,20 +144,46 @@ def _timing_config(config):
     return cfg
 
 
-def cached_cost_model(rec, frames=None, **kw) -> tuple[CostModel, dict]:
-    """The cached fit for ``rec``'s machine, device and renderer, calibrating (and caching) it on first use.
-    Returns (model, info) where info names the cache file and whether it was just calibrated."""
+def read_cached(path: Path) -> dict | None:
+    """The cache file's record, or None (absent or damaged)."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def cached_cost_model(rec, frames=None, force: bool = False, **kw) -> tuple[CostModel, dict]:
+    """The cached fit for ``rec``'s machine, device and renderer, calibrating (and caching) it on first use, when
+    ``force``, or when the cached one's conditions make it unusable (:mod:`.conditions`). Returns (model, info)
+    where info names the cache file, whether it was just calibrated and the conditions."""
+    import logging
+
+    from . import conditions
+
+    log = logging.getLogger("eligsir_o3d")
     key = machine_key(rec.device, rec.config.renderer, rec.config.pose_refine.enabled)
     path = cache_path(key)
-    if path.is_file():
-        try:
-            data = json.loads(path.read_text())
-            if data.get("key") == key:
-                return CostModel.from_dict(data["model"], str(path)), {"source": "calibrated", "cache": str(path),
-                                                                        "fresh": False, **data.get("report", {})}
-        except (OSError, ValueError, KeyError, TypeError):
-            pass  # a damaged cache file is replaced below
+    data = None if force else read_cached(path)
+    if data is not None and data.get("key") == key:
+        why = conditions.unusable_reason(data.get("conditions"))
+        if why is None:
+            try:
+                return CostModel.from_dict(data["model"], str(path)), {
+                    "source": "calibrated", "cache": str(path), "fresh": False,
+                    "conditions": data.get("conditions"), **data.get("report", {})}
+            except (ValueError, KeyError, TypeError):
+                pass  # a damaged cache file is replaced below
+        else:
+            log.warning("cost model %s is not reused: %s; calibrating again", path, why)
+    before = conditions.measure()
     model, report = calibrate(rec, frames, **kw)
-    atomic_write_text(path, json.dumps({"key": key, "model": model.to_dict(), "report": report,
+    after = conditions.measure()
+    cond = {**before, "busy": before["busy"] or after["busy"], "load_1m_after": after["load_1m"]}
+    if cond["busy"]:
+        log.warning("the cost model was calibrated on a busy machine (%s): this run's budget may be too small; the "
+                    "fit will not be reused (later runs calibrate again; --cost-model shipped is load-free)",
+                    cond["busy"])
+    atomic_write_text(path, json.dumps({"key": key, "model": model.to_dict(), "report": report, "conditions": cond,
                                         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}, indent=2))
-    return model, {"source": "calibrated", "cache": str(path), "fresh": True, **report}
+    return model, {"source": "calibrated", "cache": str(path), "fresh": True, "conditions": cond, **report}

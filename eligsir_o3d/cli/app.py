@@ -58,6 +58,12 @@ def map_cmd(**kw) -> None:
         if kw["view"]:
             opts.view = _live_view(kw["view_host"], kw["view_port"])
         m = run_mapping(path, out, cfg, opts)
+    except KeyboardInterrupt:
+        if opts is not None and opts.view is not None:
+            opts.view.close()
+        hint = ("continue with the same command and --resume" if (Path(out) / "checkpoint.pt").is_file() else
+                "no checkpoint was written (--checkpoint-every N makes one): run again with --overwrite")
+        _fail(f"interrupted; {hint} (--out {out})", 130)
     except (ValueError, OSError, RuntimeError) as e:
         if opts is not None and opts.view is not None:
             opts.view.close()
@@ -72,11 +78,13 @@ def map_cmd(**kw) -> None:
 def _live_view(host: str, port: int):
     from ..visual.live import LiveView
 
+    from .commands import show_urls
+
     try:
         live = LiveView(host, port)
-    except RuntimeError as e:
+    except (ValueError, RuntimeError, OSError) as e:
         _fail(str(e))
-    typer.echo(f"live view at {live.url}")
+    show_urls(live.viewer if hasattr(live, "viewer") else live, host, "live view")
     return live
 
 
@@ -231,6 +239,15 @@ def eval_cmd(
 
 for _name, _command in COMMANDS.items():  # live, calibrate-color, view, render, batch (cli_commands.py)
     app.command(_name)(_command)
+
+
+def _register_calibrate() -> None:
+    from .calibrate_cmd import calibrate_cmd
+
+    app.command("calibrate")(calibrate_cmd)
+
+
+_register_calibrate()
 
 
 def main() -> None:

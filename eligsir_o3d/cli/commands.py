@@ -82,7 +82,7 @@ def live(
             source = SequenceReplay(open_sequence(replay), max_frames=frames)
         s = run_live(source, out, cfg, pose=pose, max_frames=frames, seconds=seconds)
     except (ValueError, OSError, RuntimeError) as e:
-        _fail(str(e))
+        _fail(str(e), getattr(e, "exit_code", 2))  # 4: OUT in use by another run (or its lock file is a link)
     typer.echo(f"{s['source']}: captured {s['captured']}, integrated {s['integrated']}, dropped {s['dropped']}, "
                f"tracking lost {s['lost']}; {s['gaussians']} Gaussians, {s['updates']} updates in {s['wall_s']:.1f} s")
     typer.echo(f"results in {out.resolve()}")
@@ -111,8 +111,18 @@ def view(
         viewer = open_map_viewer(map_ply, host, port, trajectory, mesh, point_cloud, max_cameras)
     except (ValueError, OSError, RuntimeError) as e:
         _fail(str(e))
-    typer.echo(f"viewer at {viewer.url}  (Ctrl-C to stop)")
+    show_urls(viewer, host, "viewer")
     _serve_until_interrupted(viewer)
+
+
+def show_urls(viewer, host: str, what: str) -> None:
+    """Print where ``viewer`` is served; for a wildcard host every address, and that it is on the network."""
+    from ..visual.bind_check import NETWORK_WARNING, WILDCARD
+
+    urls = getattr(viewer, "urls", None) or [viewer.url]
+    typer.echo(f"{what} at {'  '.join(urls)}  (Ctrl-C to stop)")
+    if host in WILDCARD:
+        typer.secho(NETWORK_WARNING.format(host=host or "0.0.0.0"), fg=typer.colors.YELLOW, err=True)
 
 
 def _serve_until_interrupted(viewer) -> None:
@@ -124,7 +134,10 @@ def _serve_until_interrupted(viewer) -> None:
     except KeyboardInterrupt:
         pass
     finally:
-        viewer.close()
+        try:
+            viewer.close()
+        except (RuntimeError, OSError):  # Ctrl-C ends the command cleanly, whatever state the server is in
+            pass
 
 
 def render(

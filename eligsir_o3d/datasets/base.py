@@ -207,7 +207,7 @@ def read_table(path: Path, columns: int | tuple[int, ...], *, text_fields: int =
     """
     allowed = (columns,) if isinstance(columns, int) else tuple(columns)
     try:
-        text = Path(path).read_text()
+        text = Path(path).read_text(encoding="utf-8-sig")  # a UTF-8 byte-order mark (Windows editors) is no field
     except (OSError, UnicodeDecodeError) as e:
         raise DatasetError(f"cannot read {path}: {e}") from None
     rows = []
@@ -269,8 +269,8 @@ def read_matrix_file(path: Path) -> np.ndarray:
 def read_intrinsics_json(path: Path) -> tuple[Camera, float | None]:
     """``intrinsics.json``: {width, height, fx, fy, cx, cy[, depth_scale]} -> (Camera, depth_scale or None)."""
     try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as e:
+        data = json.loads(Path(path).read_text(encoding="utf-8-sig"))
+    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
         raise DatasetError(f"cannot read intrinsics {path}: {e}") from None
     if isinstance(data, dict) and isinstance(data.get("camera"), dict):
         data = data["camera"]

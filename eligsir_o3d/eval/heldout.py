@@ -52,8 +52,8 @@ class HeldoutEvaluator:
     def __init__(self, heldout_frames: list[Frame], cell_size: float = 0.5, min_samples: int = 300,
                  min_views: int = 2, quality_threshold: float = 20.0, sample_stride: int = 4, *,
                  min_source_views: int = 2, source_stride: int | None = None, checkpoint_ssim: bool = True):
-        if not heldout_frames:
-            raise ValueError("HeldoutEvaluator needs at least one held-out frame")
+        # no held-out frame (a recording shorter than the held-out period, --holdout-every 0): the run is evaluated
+        # on nothing, and every held-out figure is None ("no held-out figure"), not an error
         self.eval_seconds = 0.0
         self.frames = list(heldout_frames)
         self.quality_threshold = float(quality_threshold)
@@ -110,6 +110,9 @@ class HeldoutEvaluator:
                 v["depth_rmse_2m_m"] = _finite_or_none(math.sqrt(sse2 / n2) if n2 else float("nan"))
                 sse_all, n_all, sse_near, n_near = sse_all + sse, n_all + n, sse_near + sse2, n_near + n2
                 views.append(v)
+        if not views:
+            return views, colors, {"psnr": None, "ssim": None, "lpips": None, "depth_rmse_m": None,
+                                   "depth_rmse_2m_m": None, "missing_views": 0}
         agg = {
             "psnr": float(np.mean([v["psnr"] for v in views])),
             "ssim": float(np.mean([v["ssim"] for v in views])) if with_ssim else None,

@@ -48,7 +48,15 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu", lrs=None, ada
 
     path = Path(path)
     if not path.is_file():
-        raise PlyError(f"{path}: no such file")
+        import stat
+
+        try:
+            mode = path.stat().st_mode
+        except OSError:
+            raise PlyError(f"{path}: no such file") from None
+        kind = "a directory" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else \
+            "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file"
+        raise PlyError(f"{path}: {kind}, not a PLY file")
     _check_vertex_count(path)
     try:
         ply = PlyData.read(str(path), mmap=False)

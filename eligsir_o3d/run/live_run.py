@@ -173,31 +173,42 @@ def _capture(source: FrameSource, queue: deque, lock: threading.Lock, stats: dic
 def _write_outputs(out: Path, rec, config, source: FrameSource, tracker, stats: dict, stamps: list, poses: list,
                    wall0: float) -> dict:
     """map.ply, trajectory.txt, config.json (``config`` as given) and live.json (the summary, returned)."""
+    from ..io.atomic import atomic_write_text
     from ..pose import write_tum_trajectory
 
     rec.save_ply(out / "map.ply")
     if stamps:
         write_tum_trajectory(out / "trajectory.txt", stamps, poses)
-    (out / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+    atomic_write_text(out / "config.json", json.dumps(config.to_dict(), indent=2))
     summary = {"source": source.name, **stats, "gaussians": len(rec.gmap), "updates": rec.stats.updates,
                "wall_s": time.perf_counter() - wall0, "tracking_ms_per_frame": tracker.ms_per_frame,
                "camera": {"width": source.camera.width, "height": source.camera.height, "fx": source.camera.fx,
                           "fy": source.camera.fy, "cx": source.camera.cx, "cy": source.camera.cy}}
-    (out / "live.json").write_text(json.dumps(summary, indent=1))
+    atomic_write_text(out / "live.json", json.dumps(summary, indent=1))
     return summary
 
 
 def run_live(source: FrameSource, out: str | Path, config=None, *, pose: str = "odometry", max_frames: int | None = None,
              seconds: float | None = None, queue_size: int = 4, drain_s: float = 2.0) -> dict:
-    """Map ``source`` in real time into ``out`` (see the module docstring). Returns the summary in live.json."""
+    """Map ``source`` in real time into ``out`` (see the module docstring). Returns the summary in live.json.
+    The folder is held with the run lock (:mod:`.lock`: one run per folder, never written through a link) for the
+    whole run, and every file is written atomically."""
+    from .lock import RunLock
+
+    out = Path(out)
+    with RunLock(out):
+        return _run_live(source, out, config, pose=pose, max_frames=max_frames, seconds=seconds,
+                         queue_size=queue_size, drain_s=drain_s)
+
+
+def _run_live(source: FrameSource, out: Path, config, *, pose: str, max_frames: int | None, seconds: float | None,
+              queue_size: int, drain_s: float) -> dict:
     from ..config import Config
     from ..core.frame import Frame, FrameError
     from ..pose import TrackingLost, get_pose_source
     from ..reconstructor import Reconstructor
 
     config = config or Config()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     source.start()
     config.depth_scale = float(source.depth_scale)
     rec = Reconstructor(source.camera, config.device, config)

@@ -82,7 +82,14 @@ class RunLock:
     def acquire(self) -> None:
         import fcntl
 
-        self.folder.mkdir(parents=True, exist_ok=True)
+        from ..io.atomic import write_failed
+
+        try:  # a folder that cannot be created or written (read-only, permissions): a write failure, exit 3
+            self.folder.mkdir(parents=True, exist_ok=True)
+            if not os.access(self.folder, os.W_OK | os.X_OK):
+                raise PermissionError(13, "Permission denied (the folder is not writable)")
+        except OSError as e:
+            raise write_failed(self.path, e) from None
         for _ in range(10):  # the file may be replaced between open and flock: then try the new one
             fd = self._open()
             try:

@@ -44,7 +44,9 @@ def heldout_indices(n: int, every: int, listfile: str | None = None) -> list[int
         if bad:
             raise ValueError(f"{listfile}: held-out indices {bad[:5]} outside 0..{n - 1}")
         return idx
-    if every <= 0:
+    if every < 0:
+        raise ValueError(f"--holdout-every must be >= 0 (0: no held-out frames), got {every}")
+    if every == 0:
         return []
     return [i for i in range(n) if i % every == every // 2]
 
@@ -141,6 +143,9 @@ class MappingPipeline:
         self.skipped = list(getattr(seq, "skipped_frames", ()))  # frames the reader left out (e.g. invalid poses)
         self.pose_name = pose_source_name(self.opts.pose, seq)  # what metrics.json names
         self.pose_source = prepare_pose_source(self.opts.pose, seq, self.source)
+        if not self.held:
+            log.warning("%s: no held-out frame (%d frames, --holdout-every %d): mapping all of them; there is no "
+                        "held-out figure", self.path, self.n, self.opts.holdout_every)
         log.info("loading %d held-out views", len(self.held))
         self.heldout_frames, self.heldout_skipped = read_heldout(seq, self.held, self.config.depth_max,
                                                                  self.config.clock.on_bad_frame)  # unreadable: dropped

@@ -55,7 +55,10 @@ class MapViewer:
     """One viser server showing one map. Every ``set_*`` replaces what it set before (safe to call repeatedly)."""
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8080, title: str = "eligsir map"):
+        from .bind_check import check_bind
+
         viser = import_viser()
+        check_bind(host, port)  # a bad port/host is one line here, not a thread traceback and a hang
         self.host = host
         self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
         self.port = int(self.server.get_port())
@@ -72,8 +75,18 @@ class MapViewer:
         host = "127.0.0.1" if self.host in ("0.0.0.0", "") else ("[::1]" if self.host == "::" else self.host)
         return f"http://{host}:{self.port}"
 
+    @property
+    def urls(self) -> list[str]:
+        """Every URL it is served at (for --host 0.0.0.0: this machine's addresses too)."""
+        from .bind_check import served_urls
+
+        return served_urls(self.host, self.port)
+
     def close(self) -> None:
-        self.server.stop()
+        try:
+            self.server.stop()
+        except RuntimeError:  # a server whose thread never started: nothing to stop
+            pass
 
     # ---- layers ----------------------------------------------------------------------------------------
     def _layer(self, label: str, handle) -> None:
