@@ -11,7 +11,7 @@ import pytest
 
 from eligsir_o3d.visual.bind_check import NETWORK_WARNING, check_bind, served_urls
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.parametrize("host, port, said", [("127.0.0.1", 70000, "--port 70000: not a port number"),

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 
 from eligsir_o3d.cli.app import app
 
-MICRO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "replica_office0_micro4"
+MICRO = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "replica_office0_micro4"
 FAST = ["--updates-per-frame", "1", "--set", "clock.drain_updates=2", "--eval-every", "0", "--renderer", "torch",
         "--no-pictures", "-q"]
 
