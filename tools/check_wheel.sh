@@ -53,9 +53,9 @@ if [ -n "${TORCH_INDEX:-}" ]; then
 else
   "$WORK/venv/bin/python" -m pip install -q "torch==${TORCH_VERSION:-2.13.0}"
 fi
-torch_before=$("$WORK/venv/bin/python" -c "import torch; print(torch.__version__)")
+torch_before=$("$WORK/venv/bin/python" -c "import importlib.metadata as m; print(m.version('torch'))")
 "$WORK/venv/bin/python" -m pip install -q "$wheel"
-torch_after=$("$WORK/venv/bin/python" -c "import torch; print(torch.__version__)")
+torch_after=$("$WORK/venv/bin/python" -c "import importlib.metadata as m; print(m.version('torch'))")
 [ "$torch_before" = "$torch_after" ] || { echo "check_wheel: the wheel moved torch $torch_before -> $torch_after"; exit 1; }
 t2=$(date +%s)
 
