@@ -12,7 +12,7 @@ Dry runs (``pip install --dry-run --report -``, nothing is installed), made with
   the release that fits, while the user's command upgrades torch to fit the newest torchvision (lpips -> torchvision).
 
 The registry is reached over the network: the module skips, saying why, where it cannot be reached. Slow (the
-resolves take minutes on the 2-core CI machine), so marked ``slow``; README's ``pytest -q`` runs it.
+resolves take minutes on the 2-core CI machine), so marked ``slow``: deselected by default, run by .ci/run.
 """
 
 from __future__ import annotations
