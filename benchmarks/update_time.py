@@ -89,7 +89,7 @@ def _out_of_view(pts, cols, n: int, frames, seed: int):
     import numpy as np
     import torch
 
-    from eligsir_o3d.culling import in_view
+    from eligsir_o3d.render.culling import in_view
 
     g = torch.Generator().manual_seed(seed + 1)
     shifts = torch.tensor([[x, y, z] for x in (-60, 0, 60) for y in (-60, 0, 60) for z in (-60, 0, 60)

@@ -20,7 +20,7 @@ import torch
 from .core.camera import Camera, check_pose
 from .budget.stages import StageTimes
 from .budget.cost import priced_gaussians
-from .culling import InView
+from .render.culling import InView
 from .config import Config
 from .core.frame import Frame, FrameError
 from .core.gaussians import GaussianMap

@@ -69,7 +69,7 @@ class MapContext:
         optim = getattr(self._owner.config, "optim", None)
         if not getattr(optim, "cull", False):
             return len(self.gmap)
-        from ..culling import in_view
+        from ..render.culling import in_view
 
         return int(in_view(self.gmap.params["means"], self.gmap.params["scales"], camera, T_world_cam).numel())
 

@@ -20,7 +20,7 @@ import math
 
 import numba
 
-from .render._cpu_kernels import HALF, LOG2E, ONE, SIG_CLAMP, ZERO, _exp2_neg, _jit
+from ._cpu_kernels import HALF, LOG2E, ONE, SIG_CLAMP, ZERO, _exp2_neg, _jit
 
 CHUNK = 16384  # rows per task of frustum_rows
 

@@ -7,7 +7,7 @@ import torch
 
 from eligsir_o3d import Config, Reconstructor
 from eligsir_o3d.core.camera import Camera
-from eligsir_o3d.culling import InView, in_view
+from eligsir_o3d.render.culling import InView, in_view
 from eligsir_o3d.core.frame import Frame
 from eligsir_o3d.core.gaussians import PARAM_NAMES, GaussianMap
 from eligsir_o3d.render import get_renderer
@@ -75,8 +75,10 @@ def test_compiled_view_test_keeps_the_torch_bound_and_little_more():
 
 
 def test_row_adam_of_a_view_is_exact_adam_per_row():
-    """A row stepped in k of the updates ends where torch's Adam ends after those k steps of its gradients."""
+    """With ``row_bias_correction``, a row stepped in k of the updates ends where torch's Adam ends after those k
+    steps of its gradients."""
     gm = _map(50)
+    gm.adam.row_bias_correction = True
     rng = torch.Generator().manual_seed(5)
     rows_seen = {r: [] for r in range(len(gm))}
     start = gm.params["sh0"].detach().clone()
