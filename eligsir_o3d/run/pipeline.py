@@ -21,6 +21,7 @@ import numpy as np
 from ..config import Config
 from ..core.frame import Frame
 from ..pose.refine import HELDOUT_POSE_RULES
+from .cost_source import CALIBRATION_FRAMES, run_cost_model  # noqa: F401 (CALIBRATION_FRAMES: its old home)
 from .frame_faults import BAD_FRAME_ERRORS, frame_fault
 from .lock import RunLock
 from .options import RunOptions
@@ -33,7 +34,6 @@ __all__ = ["MappingPipeline", "RunOptions", "heldout_indices", "read_run", "run_
 log = logging.getLogger("eligsir_o3d")
 
 
-CALIBRATION_FRAMES = 12  # consecutive source frames that eligsir map times to fit the cost model
 
 
 def heldout_indices(n: int, every: int, listfile: str | None = None) -> list[int]:
@@ -166,45 +166,12 @@ class MappingPipeline:
             self.rec = Reconstructor(self.seq.camera, self.config.device, self.config, pose_source=self.pose_source,
                                      offline_frames=offline)
         self.config = self.rec.config
-        self.cost_model_source = self._cost_model()
+        self.cost_model_source = run_cost_model(self.rec, self.seq, self.source, self.path,
+                                                offline=self.opts.offline_reference)
         self.clock = get_clock(self.config, offline=self.opts.offline_reference)
         self.rec.callbacks.append(self._maybe_checkpoint)
         if self.opts.view is not None:
             self.opts.view.attach(self.rec)  # a callback like evaluation's: its time is excluded from mapping
-
-    def _cost_model(self) -> dict:
-        """Calibrate the cost model here when the config asks for it (then the config records the fitted terms, so
-        the results folder reruns with the same budget); which model the budget used, for metrics.json."""
-        from ..budget import CostModel
-
-        c = self.config.clock
-        if c.mode != "cost" or self.opts.offline_reference:
-            return {"source": None}
-        if c.cost_source == "calibrate":
-            # consecutive frames, as a stream delivers them: frames picked far apart are each mostly new space,
-            # and their seeding made the fitted per-frame cost 2-3x what a stream pays (less budget than real)
-            frames = self._calibration_frames()
-            model, info = self.rec.calibrate(frames, n_frames=len(frames))
-            c.cost, c.cost_source = model, "config"
-            log.info("cost model: calibrated for this machine (%s)", info.get("cache"))
-            return info
-        return {"source": "shipped" if c.cost == CostModel() else "config"}
-
-    def _calibration_frames(self) -> list[Frame]:
-        """The first :data:`CALIBRATION_FRAMES` readable source frames. A bad frame follows the one rule
-        (``clock.on_bad_frame``): skipped with a warning (the stream reports it again when it reaches it), or the
-        run stops."""
-        frames = []
-        for i in self.source:
-            if len(frames) == CALIBRATION_FRAMES:
-                break
-            try:
-                frames.append(self.seq.frame(i, depth_max=self.config.depth_max))
-            except BAD_FRAME_ERRORS as e:
-                frame_fault(i, e, self.config.clock.on_bad_frame, "cost-model calibration: not timing")
-        if not frames:
-            raise ValueError(f"{self.path}: no source frame can be read to calibrate the cost model")
-        return frames
 
     def _resume(self, ck_path: Path):
         from ..io.checkpoint import read_checkpoint
