@@ -250,7 +250,7 @@ def test_cpu_kernels_for_avx2_match_reference():
     import sys
     from pathlib import Path
     root = Path(__file__).resolve().parents[2]
-    code = ("import sys; sys.path.insert(0, 'tests'); import test_render_agreement as t; "
+    code = ("import sys; sys.path.insert(0, 'tests/render'); import test_render_agreement as t; "
             "from eligsir_o3d.render._cpu_kernels import target_features, default_block; "
             "name, feats = target_features(); assert name == 'haswell' and '+avx512f' not in feats, (name, feats); "
             "[t.test_cpu_matches_reference(t.CAMERAS[1], 0, b) for b in t._blocks()]; "
