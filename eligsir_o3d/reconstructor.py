@@ -140,6 +140,9 @@ class Reconstructor(ReconstructorState):
         """``steps`` post-mapping updates (the paper's +N PM), at ``scale`` (default: config.optim.refine_scale)."""
         self.optimize(int(steps), scale=self.config.optim.refine_scale if scale is None else scale)
 
+    def _adam_step(self) -> None:  # the view's rows (culled) or the whole map; timed as update.adam
+        self.view.adam_step() if self.view is not None else self.gmap.step()
+
     def _step(self, scale: float | None) -> None:
         t0 = time.perf_counter()
         frame = self.views.select(self.rng)
@@ -157,7 +160,7 @@ class Reconstructor(ReconstructorState):
         self.gmap.zero_grad()
         if loss.requires_grad:  # an empty view (every row out of it) leaves nothing to differentiate
             loss.backward()
-        self.view.adam_step() if self.view is not None else self.gmap.step()
+        self._adam_step()
         posed = self.pose_refine.posed(frame)  # the pose the view was rendered at (before its correction steps)
         self.pose_refine.step()
         self.growth.post_step(posed, out, depth, cam, self.ctx)

@@ -87,7 +87,7 @@ DETAIL = (
     ("growth.voxels", "lookup", "growth.voxel_hash"),
     ("growth", "_insert", "growth.insert"),
     ("growth", "post_step", "update.mcmc"),
-    ("gmap", "step", "update.adam"),
+    ("", "_adam_step", "update.adam"),  # the Reconstructor's own: the culled rows' step or the map's
     ("renderer", "render", "render"),
 )
 
@@ -98,7 +98,7 @@ def detail(rec, timing: StageTimes | None = None) -> StageTimes:
     timing = timing or rec.timing
     for path, attr, name in DETAIL:
         obj = rec
-        for part in path.split("."):
+        for part in filter(None, path.split(".")):  # "" is the Reconstructor itself
             obj = getattr(obj, part, None)
             if obj is None:
                 break

@@ -6,9 +6,11 @@
 - ``--resume`` where the folder holds results but no ``checkpoint.pt`` (a finished run, maybe of another sequence)
   is refused: there is nothing to continue, and mapping from scratch would overwrite it. An empty or new folder
   starts from frame 0 (a batch retry of an attempt that died before its first checkpoint).
-- On overwrite, every file an earlier ``eligsir map`` wrote there is removed before mapping, so what the new run
-  does not write (``heldout/*.png`` and ``flythrough.mp4`` under ``--no-pictures``, plots under ``--no-plots``, a
-  stale checkpoint) cannot sit beside the new map. Files eligsir does not write are left alone.
+- On overwrite, every file an earlier ``eligsir map`` wrote there and the new run did not write again is removed once
+  the new run has written its results, so what the new run does not write (``heldout/*.png`` and ``flythrough.mp4``
+  under ``--no-pictures``, plots under ``--no-plots``, a stale checkpoint) cannot sit beside the new map. Until then
+  the earlier files stay: a run that fails (a full disk, Ctrl-C) leaves every earlier file as it was, and the files
+  it does write replace theirs atomically. Files eligsir does not write are left alone.
 - :func:`fresh_folder`: the folder a run without ``--out`` takes: ``runs/map``, else ``runs/map-2``, ``-3``, ...
 
 Refusals are :class:`FolderInUse` (a ``ValueError``: one line, exit 2).
@@ -42,15 +44,16 @@ def held_results(folder: str | Path) -> list[str]:
     return [m for m in MARKERS if (folder / m).is_file() or (folder / m).is_symlink()]
 
 
-def check_folder(folder: str | Path, resume: bool, overwrite: bool) -> None:
-    """Refuse (:class:`FolderInUse`) or prepare ``folder`` for a new run, per the module docstring."""
+def check_folder(folder: str | Path, resume: bool, overwrite: bool) -> dict:
+    """Refuse (:class:`FolderInUse`) ``folder`` for a new run, per the module docstring; returns the earlier run's
+    files (path -> modification time) that :func:`clear_stale` removes after the new run unless it rewrote them."""
     folder = Path(folder)
     found = held_results(folder)
     if not found:
-        return
+        return {}
     if resume:
         if (folder / "checkpoint.pt").is_file():
-            return  # the checkpoint decides (sequence, config, split)
+            return {}  # the checkpoint decides (sequence, config, split)
         if not overwrite:
             raise FolderInUse(f"--resume: {folder} has no checkpoint.pt to continue (it holds the results of a "
                               f"finished run: {', '.join(found)}); map into a new --out, or pass --overwrite to "
@@ -58,33 +61,39 @@ def check_folder(folder: str | Path, resume: bool, overwrite: bool) -> None:
     elif not overwrite:
         raise FolderInUse(f"{folder} already holds the results of another run ({', '.join(found)}); pass --overwrite "
                           f"to replace them, --resume to continue an interrupted run, or choose another --out")
-    clear_results(folder)
+    return earlier_results(folder)
 
 
-def clear_results(folder: Path) -> list[str]:
-    """Remove what an earlier eligsir map wrote in ``folder`` (links are removed, not followed); returns names."""
-    removed = []
-    for name in RESULT_FILES:
-        p = folder / name
-        if p.is_symlink() or p.is_file():
-            p.unlink()
-            removed.append(name)
+def earlier_results(folder: Path) -> dict:
+    """What an earlier eligsir map wrote in ``folder``: path -> its modification time (links as links)."""
+    paths = [folder / name for name in RESULT_FILES]
     for name in RESULT_DIRS:
         d = folder / name
-        if d.is_symlink():
-            d.unlink()
-            removed.append(name)
-        elif d.is_dir():
-            for f in d.iterdir():  # only our pictures; anything else keeps the folder
-                if (f.is_file() or f.is_symlink()) and f.suffix.lower() in (".png", ".jpg", ".json"):
-                    f.unlink()
+        if d.is_dir() and not d.is_symlink():  # only our pictures; anything else stays
+            paths += [f for f in d.iterdir() if f.suffix.lower() in (".png", ".jpg", ".json")]
+        paths.append(d)
+    return {p: p.lstat().st_mtime_ns for p in paths if p.is_symlink() or p.is_file()
+            or (p.name in RESULT_DIRS and p.is_dir())}
+
+
+def clear_stale(earlier: dict) -> list[str]:
+    """Remove the files of ``earlier`` (:func:`earlier_results`) that the new run did not write again (same
+    modification time; links are removed, not followed) and the picture folder if that leaves it empty."""
+    removed = []
+    for p, mtime in earlier.items():
+        if p.is_symlink() or p.is_file():
+            if p.lstat().st_mtime_ns == mtime:
+                p.unlink()
+                removed.append(p.name)
+    for p in earlier:
+        if p.name in RESULT_DIRS and p.is_dir() and not p.is_symlink():
             try:
-                d.rmdir()
+                p.rmdir()  # only when empty
+                removed.append(p.name + "/")
             except OSError:
                 pass
-            removed.append(name + "/")
     if removed:
-        log.warning("--overwrite: removed the earlier run's %s from %s", ", ".join(removed), folder)
+        log.warning("--overwrite: removed the earlier run's %s (not written by this run)", ", ".join(removed))
     return removed
 
 

@@ -103,11 +103,13 @@ class MappingPipeline:
         self.checkpoints = PeriodicCheckpoints(self.out / "checkpoint.pt", self.opts.checkpoint_every)
 
     def run(self) -> dict:
-        from .folder_guard import check_folder
+        from .folder_guard import check_folder, clear_stale
 
         with RunLock(self.out, force=self.opts.force_unlock):  # one run per results folder
-            check_folder(self.out, self.opts.resume, self.opts.overwrite)  # never two runs' results mixed
-            return self._run()
+            earlier = check_folder(self.out, self.opts.resume, self.opts.overwrite)  # never two runs' results mixed
+            metrics = self._run()
+            clear_stale(earlier)  # what the earlier run wrote and this one did not
+            return metrics
 
     def _run(self) -> dict:
         self.open()  # the sequence, the held-out split, the pose source, the evaluator

@@ -90,8 +90,9 @@ def test_peak_memory_stays_bounded_on_a_huge_png(tmp_path):
 def test_the_cost_model_calibration_follows_the_bad_frame_rule(tmp_path, rule, caplog):
     from eligsir_o3d import Config
     from eligsir_o3d.budget import CostModel
+    from eligsir_o3d.run.cost_source import run_cost_model
     from eligsir_o3d.run.pipeline import CALIBRATION_FRAMES, MappingPipeline, RunOptions
-    from tests.test_heldout_faults import kitchen_copy
+    from tests.run.test_heldout_faults import kitchen_copy
 
     root = kitchen_copy(tmp_path / "kitchen", 24)
     bad = root / "rgb" / "000001.jpg"  # a source frame among the first CALIBRATION_FRAMES
@@ -103,12 +104,12 @@ def test_the_cost_model_calibration_follows_the_bad_frame_rule(tmp_path, rule, c
     p = MappingPipeline(str(root), tmp_path / "out", cfg, RunOptions(max_frames=24, progress=False, holdout_every=8))
     p.open()
     timed = []
-    p.rec = SimpleNamespace(calibrate=lambda frames, n_frames: (timed.extend(f.index for f in frames)
+    p.rec = SimpleNamespace(config=p.config, calibrate=lambda frames, n_frames: (timed.extend(f.index for f in frames)
                                                                  or (CostModel(), {"cache": "test"})))
     if rule == "stop":
         with pytest.raises(DatasetError, match="frame 1: colour file .*000001.jpg is truncated"):
-            p._cost_model()
+            run_cost_model(p.rec, p.seq, p.source, p.path, offline=False)
         return
-    p._cost_model()
+    run_cost_model(p.rec, p.seq, p.source, p.path, offline=False)
     assert 1 not in timed and len(timed) == CALIBRATION_FRAMES and timed[0] == 0
     assert "cost-model calibration: not timing frame 1: colour file" in caplog.text

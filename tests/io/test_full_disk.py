@@ -147,7 +147,7 @@ def test_a_full_disk_at_each_final_output_keeps_the_old_file_writes_the_rest_and
             p.unlink()
     disk_full(str(out / stage))
     pictures = [] if stage.startswith("heldout") else ["--no-pictures"]  # (faster) the old ones stay as they are
-    r = CliRunner().invoke(app, MAP_ARGS + pictures + ["--out", str(out)])
+    r = CliRunner().invoke(app, MAP_ARGS + pictures + ["--out", str(out), "--overwrite"])
     assert r.exit_code == 3, r.output
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and "Traceback" not in r.output, r.output  # one line, no traceback
@@ -174,7 +174,7 @@ def test_a_flythrough_that_cannot_be_written_whole_keeps_the_old_one(tmp_path, m
     from eligsir_o3d.visual.video import VideoWriter, _commit_video
 
     def video(n):
-        w = VideoWriter(tmp_path / "flythrough.mp4", 24)
+        w = VideoWriter(tmp_path / "flythrough.mp4", 24, codec="mp4v")  # OpenCV's writer: the case it guards
         for k in range(n):
             w.write(np.full((48, 64, 3), 20 * k, np.uint8))
         return w
