@@ -64,13 +64,16 @@ class RegionalQuality:
         return keys, pix, depth.reshape(-1)[pix]
 
     def _build(self, frames: list) -> None:
+        # Deduplicated per view first (a view's samples touch few cells), so only one view's points exist at a
+        # time; the union of the views' cells, deduplicated again, gives the same cells in the same (code) order.
         per_view, shapes = [], []
         for f in frames:  # one view's depth decoded at a time
             depth = f.depth
-            per_view.append(self._cell_keys(f, self.sample_stride, depth)[0])
+            view_keys, view_inverse = unique_keys(self._cell_keys(f, self.sample_stride, depth)[0])
+            per_view.append((view_keys, view_inverse.to(_small_int(view_keys.shape[0]))))
             shapes.append(tuple(int(x) for x in depth.shape))
             del depth
-        all_keys = torch.cat(per_view) if per_view else torch.zeros(0, 3, dtype=torch.int32)
+        all_keys = torch.cat([k for k, _ in per_view]) if per_view else torch.zeros(0, 3, dtype=torch.int32)
         keys, inverse = unique_keys(all_keys)  # dedupe before the hash-map insert (duplicates break it)
         del all_keys
         self.keys = keys  # [C, 3] int32
@@ -82,14 +85,14 @@ class RegionalQuality:
         # Samples grouped by view: the cell id of each sample, in the order of the view's valid strided pixels.
         # No pixel indices and no colour are copied: both come from the view's own images when it is evaluated
         # (sample_pixels(depth, stride) gives the pixels back), so a sample costs 2 bytes (4 beyond 32,767 cells).
-        cell_dtype = torch.int16 if n_cells <= torch.iinfo(torch.int16).max else torch.int32
+        cell_dtype = _small_int(n_cells)
         self.samples: list[dict] = []
         n_samples = torch.zeros(n_cells, dtype=torch.long)
         n_views = torch.zeros(n_cells, dtype=torch.long)
         start = 0
-        for f, k, shape in zip(frames, per_view, shapes):
-            cell = inverse[start:start + k.shape[0]]
-            start += k.shape[0]
+        for f, (view_keys, view_inverse), shape in zip(frames, per_view, shapes):
+            cell = inverse[start:start + view_keys.shape[0]][view_inverse.long()]  # [M_v] global cell ids
+            start += view_keys.shape[0]
             self.samples.append({"cell": cell.to(cell_dtype), "index": int(f.index), "shape": shape})
             n_samples += torch.bincount(cell, minlength=n_cells)
             n_views[torch.unique(cell)] += 1
@@ -231,6 +234,11 @@ class RegionalQuality:
             "measurable": self.measurable.tolist(),
             "t_vis": self.t_vis.tolist(),
         }
+
+
+def _small_int(n: int) -> torch.dtype:
+    """The smallest signed integer dtype that holds ids 0 .. n - 1 (int16, else int32)."""
+    return torch.int16 if n <= torch.iinfo(torch.int16).max else torch.int32
 
 
 def sample_pixels(depth: torch.Tensor, stride: int) -> torch.Tensor:
