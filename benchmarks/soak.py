@@ -268,7 +268,7 @@ class RSSSampler:
 
 
 def kitchen(frames: int = 1000, sample_every: int = 50, path: str = KITCHEN, pictures: bool = False,
-            slack_mb: float = 64.0, eval_every: int = 0, out=print) -> dict:
+            slack_mb: float = 64.0, eval_every: int = 0, holdout_every: int = 8, out=print) -> dict:
     """The real-time replay of ``path`` (``eligsir map path --realtime --max-frames frames --eval-every N``), RSS
     sampled."""
     from eligsir_o3d.run.pipeline import MappingPipeline, RunOptions
@@ -277,7 +277,7 @@ def kitchen(frames: int = 1000, sample_every: int = 50, path: str = KITCHEN, pic
     cfg.clock.mode = "realtime"
     sampler = RSSSampler(sample_every, out)
     opts = RunOptions(max_frames=frames, view=sampler, progress=False, plots=pictures, pictures=pictures,
-                      eval_every=eval_every)
+                      eval_every=eval_every, holdout_every=holdout_every)
     out(caps_line(cfg))
     reset_peak_rss()  # this run's peak, also inside a longer process
     with tempfile.TemporaryDirectory(prefix="soak_kitchen_") as tmp:
@@ -288,7 +288,7 @@ def kitchen(frames: int = 1000, sample_every: int = 50, path: str = KITCHEN, pic
     peak = max([peak_rss_mb()] + [s["peak_rss_mb"] for s in sampler.samples])
     budget = (sampler.start_rss_mb or 0.0) + caps["gaussians_mb"] + caps["views_mb"] + slack_mb
     res = {"frames": frames, "peak_rss_mb": peak, "start_rss_mb": sampler.start_rss_mb,
-           "peak_before_stream_mb": sampler.start_peak_mb, "peak_mapping_mb": sampler.mapping_peak_mb,
+           "peak_before_stream_mb": sampler.start_peak_mb, "heldout_views": len(pipe.heldout_frames), "peak_mapping_mb": sampler.mapping_peak_mb,
            "budget_mb": budget,
            "dropped_frames": m["dropped_frames"], "frames_released": m["frames_released"], "updates": m["updates"],
            "gaussians": m["gaussians"], "retained_views": m["policies"]["views"].get("retained"),
@@ -296,7 +296,7 @@ def kitchen(frames: int = 1000, sample_every: int = 50, path: str = KITCHEN, pic
            "ok": peak <= budget}
     out(f"kitchen: {m['frames_released']} frames released, {m['dropped_frames']} dropped, {m['updates']} updates, "
         f"{m['gaussians']} Gaussians, {res['retained_views']} retained views, held-out PSNR {res['heldout_psnr']:.2f}")
-    out(f"before the stream (sequence opened, held-out views loaded, renderer warm): RSS {sampler.start_rss_mb:.1f} "
+    out(f"before the stream (sequence opened, {res['heldout_views']} held-out views loaded, renderer warm): RSS {sampler.start_rss_mb:.1f} "
         f"MiB, peak {sampler.start_peak_mb:.1f} MiB; peak at the last update (stream and drain) "
         f"{sampler.mapping_peak_mb:.1f} MiB; at the end (final evaluation and writing included) {peak:.1f} MiB")
     out(f"memory: peak RSS {peak:.1f} MiB vs budget {budget:.1f} MiB = RSS at stream start "
@@ -339,13 +339,16 @@ def main(argv=None) -> int:
     k.add_argument("--slack-mb", type=float, default=64.0)
     k.add_argument("--eval-every", type=int, default=0, help="held-out checkpoints every N updates (default 0: only "
                    "the final evaluation; each checkpoint renders every held-out view, which the replay waits for)")
+    k.add_argument("--holdout-every", type=int, default=8, help="held-out split period (default 8: 125 views of "
+                   "1,000 frames; 40: 25 views), to compare the memory the evaluation split takes")
     k.add_argument("--json", type=Path)
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] not in ("synthetic", "kitchen", "-h", "--help"):
         argv = ["synthetic", *argv]  # the synthetic soak is the default mode
     args = ap.parse_args(argv)
     if args.mode == "kitchen":
-        res = kitchen(args.frames, args.sample_every, args.path, args.pictures, args.slack_mb, args.eval_every)
+        res = kitchen(args.frames, args.sample_every, args.path, args.pictures, args.slack_mb, args.eval_every,
+                      args.holdout_every)
     else:
         if args.frames < 1 or args.report_every < 1:
             ap.error("--frames and --report-every must be at least 1")

@@ -139,5 +139,10 @@ class Frame:
         self._pyramid[key] = out
         return out
 
+    def decoded(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(colour [H, W, 3], depth [H, W]) float32: the images themselves (a held-out view stored compactly,
+        :class:`~eligsir_o3d.eval.heldout_view.HeldoutView`, decodes them here)."""
+        return self.color, self.depth
+
     def drop_cache(self) -> None:
         self._pyramid.clear()

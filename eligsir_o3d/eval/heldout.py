@@ -81,37 +81,49 @@ class HeldoutEvaluator:
             return self.regional.observe_source(frame)
 
     # --- rendering and per-view scores ---------------------------------------------------------------------------
-    def _score_views(self, render_fn: Callable, with_lpips: bool, with_ssim: bool) -> tuple[list[dict], list, dict]:
-        views, colors = [], []
+    def _score_views(self, render_fn: Callable, with_lpips: bool, with_ssim: bool,
+                     regional: bool = False) -> tuple[list[dict], dict | None, dict]:
+        """(per-view scores, regional summary or None, aggregate). One view at a time: its reference images are
+        decoded (a :class:`~eligsir_o3d.eval.heldout_view.HeldoutView` is stored compactly), scored, its render
+        added to the regional accumulators, and all of it dropped before the next view is rendered."""
+        views = []
         sse_all = n_all = sse_near = n_near = 0.0
+        acc = self.regional.begin() if regional else None
         with torch.no_grad():
-            for f in self.frames:
+            for k, f in enumerate(self.frames):
                 out = render_fn(f)
                 color = None if out is None else getattr(out, "color", None)
                 depth = None if out is None else getattr(out, "depth", None)
+                del out
                 color = None if color is None else color.detach().to("cpu", torch.float32)
                 depth = None if depth is None else depth.detach().to("cpu", torch.float32)
-                colors.append(color)
+                ref_color, ref_depth = f.decoded()  # float32 [H, W, 3] and [H, W], for this view only
                 v = {"index": int(f.index), "timestamp": float(f.timestamp), "missing": color is None}
                 if color is None:
                     v["psnr"] = MISSING["psnr"]
                     v["ssim"] = MISSING["ssim"] if with_ssim else None
                     v["lpips"] = MISSING["lpips"] if with_lpips and lpips_available() else None
                 else:
-                    if color.shape != f.color.shape:
+                    if color.shape != ref_color.shape:
                         raise ValueError(f"held-out view {f.index}: render is {tuple(color.shape)}, "
-                                         f"reference is {tuple(f.color.shape)}")
-                    v["psnr"] = psnr(color, f.color)
-                    v["ssim"] = ssim(color, f.color) if with_ssim else None
-                    v["lpips"] = lpips_or_none(color, f.color) if with_lpips else None
-                sse, n = depth_errors(depth, f.depth)
-                sse2, n2 = depth_errors(depth, f.depth, NEAR_DEPTH_M)
+                                         f"reference is {tuple(ref_color.shape)}")
+                    v["psnr"] = psnr(color, ref_color)
+                    v["ssim"] = ssim(color, ref_color) if with_ssim else None
+                    v["lpips"] = lpips_or_none(color, ref_color) if with_lpips else None
+                sse, n = depth_errors(depth, ref_depth)
+                sse2, n2 = depth_errors(depth, ref_depth, NEAR_DEPTH_M)
                 v["depth_rmse_m"] = _finite_or_none(math.sqrt(sse / n) if n else float("nan"))
                 v["depth_rmse_2m_m"] = _finite_or_none(math.sqrt(sse2 / n2) if n2 else float("nan"))
                 sse_all, n_all, sse_near, n_near = sse_all + sse, n_all + n, sse_near + sse2, n_near + n2
+                if acc is not None:
+                    s_c, n_c = self.regional.accumulate(k, color, ref_color, ref_depth)
+                    acc[0].add_(s_c)
+                    acc[1].add_(n_c)
                 views.append(v)
+                del color, depth, ref_color, ref_depth
+        reg = self.regional.finish(*acc) if acc is not None else None
         if not views:
-            return views, colors, {"psnr": None, "ssim": None, "lpips": None, "depth_rmse_m": None,
+            return views, reg, {"psnr": None, "ssim": None, "lpips": None, "depth_rmse_m": None,
                                    "depth_rmse_2m_m": None, "missing_views": 0}
         agg = {
             "psnr": float(np.mean([v["psnr"] for v in views])),
@@ -123,12 +135,12 @@ class HeldoutEvaluator:
             "depth_rmse_2m_m": math.sqrt(sse_near / n_near) if n_near else None,
             "missing_views": sum(v["missing"] for v in views),
         }
-        return views, colors, agg
+        return views, reg, agg
 
     def scores(self, render_fn: Callable) -> dict:
         """Mean held-out PSNR and SSIM of ``render_fn`` (no curve record, no regional quality)."""
         with self.timed():
-            _, _, agg = self._score_views(render_fn, with_lpips=False, with_ssim=True)
+            _, _, agg = self._score_views(render_fn, with_lpips=False, with_ssim=True)  # no regional update
         return {"psnr": agg["psnr"], "ssim": agg["ssim"]}
 
     # --- during mapping ------------------------------------------------------------------------------------------
@@ -147,8 +159,8 @@ class HeldoutEvaluator:
         """
         before = self.eval_seconds
         with self.timed():
-            _, colors, agg = self._score_views(render_fn, with_lpips=False, with_ssim=self.checkpoint_ssim)
-            reg = self.regional.evaluate(colors)
+            _, reg, agg = self._score_views(render_fn, with_lpips=False, with_ssim=self.checkpoint_ssim,
+                                            regional=True)
         rec = {
             "t_s": float(t_s), "progress": float(progress), "updates": int(updates),
             "psnr": agg["psnr"], "ssim": agg["ssim"], "depth_rmse_m": agg["depth_rmse_m"],
@@ -178,8 +190,7 @@ class HeldoutEvaluator:
         cells (the table for the top-down plot) and eval_seconds (total, this call included).
         """
         with self.timed():
-            views, colors, agg = self._score_views(render_fn, with_lpips=True, with_ssim=True)
-            reg = self.regional.evaluate(colors)
+            views, reg, agg = self._score_views(render_fn, with_lpips=True, with_ssim=True, regional=True)
         return {
             "psnr": agg["psnr"], "ssim": agg["ssim"], "lpips": agg["lpips"],
             "depth_rmse_m": agg["depth_rmse_m"], "depth_rmse_2m_m": agg["depth_rmse_2m_m"],

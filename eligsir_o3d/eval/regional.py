@@ -52,36 +52,51 @@ class RegionalQuality:
         self.checkpoints = 0  # number of checkpoints evaluated so far
 
     # --- Omega_c: built once from the held-out frames ------------------------------------------------------------
-    def _cell_keys(self, frame: Frame, stride: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Int32 cell keys [M, 3], flat pixel indices [M] and reference depths [M] of a frame's valid depth."""
-        pts_cam, pix = frame.camera.backproject(frame.depth, stride)  # [M, 3], [M]
+    def _cell_keys(self, frame: Frame, stride: int, depth: torch.Tensor | None = None
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Int32 cell keys [M, 3], flat pixel indices [M] and reference depths [M] of a frame's valid depth
+        (``depth``: the frame's [H, W] depth when already decoded)."""
+        depth = frame.depth if depth is None else depth
+        pts_cam, pix = frame.camera.backproject(depth, stride)  # [M, 3], [M]
         T = torch.as_tensor(frame.T_world_cam, dtype=torch.float64)
         pts_world = pts_cam.double() @ T[:3, :3].T + T[:3, 3]
         keys = torch.floor(pts_world / self.cell_size).to(torch.int32)
-        return keys, pix, frame.depth.reshape(-1)[pix]
+        return keys, pix, depth.reshape(-1)[pix]
 
-    def _build(self, frames: list[Frame]) -> None:
-        per_view = [self._cell_keys(f, self.sample_stride) for f in frames]
-        all_keys = torch.cat([k for k, _, _ in per_view]) if per_view else torch.zeros(0, 3, dtype=torch.int32)
+    def _build(self, frames: list) -> None:
+        # Deduplicated per view first (a view's samples touch few cells), so only one view's points exist at a
+        # time; the union of the views' cells, deduplicated again, gives the same cells in the same (code) order.
+        per_view, shapes = [], []
+        for f in frames:  # one view's depth decoded at a time
+            depth = f.depth
+            view_keys, view_inverse = unique_keys(self._cell_keys(f, self.sample_stride, depth)[0])
+            per_view.append((view_keys, view_inverse.to(_small_int(view_keys.shape[0]))))
+            shapes.append(tuple(int(x) for x in depth.shape))
+            del depth
+        all_keys = torch.cat([k for k, _ in per_view]) if per_view else torch.zeros(0, 3, dtype=torch.int32)
         keys, inverse = unique_keys(all_keys)  # dedupe before the hash-map insert (duplicates break it)
+        del all_keys
         self.keys = keys  # [C, 3] int32
         n_cells = keys.shape[0]
         self.hashmap = o3c.HashMap(max(n_cells, 1), key_dtype=o3c.int32, key_element_shape=(3,),
                                    value_dtype=o3c.int32, value_element_shape=(1,), device=o3c.Device("CPU:0"))
         if n_cells:
             self.hashmap.insert(o3c.Tensor(keys.numpy()), o3c.Tensor(np.arange(n_cells, dtype=np.int32)[:, None]))
-        # Samples grouped by view: (flat pixel index, cell id, reference RGB, reference depth).
+        # Samples grouped by view: the cell id of each sample, in the order of the view's valid strided pixels.
+        # No pixel indices and no colour are copied: both come from the view's own images when it is evaluated
+        # (sample_pixels(depth, stride) gives the pixels back), so a sample costs 2 bytes (4 beyond 32,767 cells).
+        cell_dtype = _small_int(n_cells)
         self.samples: list[dict] = []
         n_samples = torch.zeros(n_cells, dtype=torch.long)
         n_views = torch.zeros(n_cells, dtype=torch.long)
         start = 0
-        for f, (k, pix, z) in zip(frames, per_view):
-            cell = inverse[start:start + k.shape[0]]
-            start += k.shape[0]
-            self.samples.append({"pix": pix, "cell": cell, "ref_depth": z, "index": int(f.index),
-                                 "ref_rgb": f.color.reshape(-1, 3)[pix].float(), "shape": tuple(f.depth.shape)})
+        for f, (view_keys, view_inverse), shape in zip(frames, per_view, shapes):
+            cell = inverse[start:start + view_keys.shape[0]][view_inverse.long()]  # [M_v] global cell ids
+            start += view_keys.shape[0]
+            self.samples.append({"cell": cell.to(cell_dtype), "index": int(f.index), "shape": shape})
             n_samples += torch.bincount(cell, minlength=n_cells)
             n_views[torch.unique(cell)] += 1
+        self.views = list(frames)  # the caller's objects (no copy): their images are read when evaluated
         self.n_samples, self.n_views = n_samples, n_views  # [C]
         self.measurable = (n_samples >= self.min_samples) & (n_views >= self.min_views)  # [C] bool, fixed
         # Eligibility state: distinct source views seen per cell (saturating at 2) and t_vis (-1 = not yet).
@@ -89,6 +104,11 @@ class RegionalQuality:
         self.n_source_views = torch.zeros(n_cells, dtype=torch.long)
         self.t_vis = torch.full((n_cells,), -1, dtype=torch.long)
         self.q = torch.full((n_cells,), float("nan"), dtype=torch.float64)  # latest cell PSNR [C]
+
+    def samples_nbytes(self, view: int) -> int:
+        """Bytes the regional samples of held-out view ``view`` hold (its cell ids)."""
+        c = self.samples[view]["cell"]
+        return int(c.numel() * c.element_size())
 
     def cell_ids(self, keys: torch.Tensor) -> torch.Tensor:
         """Dense cell ids [M] of Int32 keys [M, 3]; -1 where the cell holds no held-out sample."""
@@ -130,24 +150,51 @@ class RegionalQuality:
         self.t_vis[newly] = self.checkpoints
 
     # --- one checkpoint ------------------------------------------------------------------------------------------
-    def accumulate(self, view: int, color) -> tuple[torch.Tensor, torch.Tensor]:
+    def accumulate(self, view: int, color, ref_color: torch.Tensor | None = None,
+                   ref_depth: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Per-cell (sum of squared errors, number of sample-channels) of held-out view ``view`` rendered as ``color``.
 
-        ``color`` [H, W, 3] or None (missing render: squared error 1.0 for every sample).
+        ``color`` [H, W, 3] or None (missing render: squared error 1.0 for every sample). ``ref_color`` [H, W, 3]
+        and ``ref_depth`` [H, W]: the view's own images when the caller has them decoded already (else read here).
         """
         s = self.samples[view]
         n_cells = self.keys.shape[0]
+        cell = s["cell"].long()
         if color is None:
-            se = torch.ones(s["pix"].shape[0], dtype=torch.float64)
+            se = torch.ones(cell.shape[0], dtype=torch.float64)
         else:
             pred = torch.as_tensor(color).detach().to("cpu", torch.float32)
             if tuple(pred.shape[:2]) != s["shape"]:
                 raise ValueError(f"held-out view {s['index']}: render is {tuple(pred.shape[:2])}, "
                                  f"reference is {s['shape']}")
-            picked = pred.reshape(-1, 3)[s["pix"]]  # [M_v, 3]
-            se = squared_errors(picked[:, None], s["ref_rgb"][:, None])[:, 0].sum(-1).double() / 3.0
-        sums = torch.zeros(n_cells, dtype=torch.float64).index_add_(0, s["cell"], se)
-        return sums, torch.bincount(s["cell"], minlength=n_cells)
+            f = self.views[view]
+            ref_depth = f.depth if ref_depth is None else ref_depth
+            ref_color = f.color if ref_color is None else ref_color
+            pix = sample_pixels(ref_depth, self.sample_stride)
+            if pix.shape[0] != cell.shape[0]:
+                raise ValueError(f"held-out view {s['index']}: its depth changed since the samples were built "
+                                 f"({pix.shape[0]} valid sample pixels, {cell.shape[0]} samples)")
+            picked = pred.reshape(-1, 3)[pix]  # [M_v, 3]
+            ref = ref_color.reshape(-1, 3)[pix].float()
+            se = squared_errors(picked[:, None], ref[:, None])[:, 0].sum(-1).double() / 3.0
+        sums = torch.zeros(n_cells, dtype=torch.float64).index_add_(0, cell, se)
+        return sums, torch.bincount(cell, minlength=n_cells)
+
+    def begin(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Zeroed per-cell accumulators (sums float64 [C], counts long [C]) of one checkpoint: add each view's
+        :meth:`accumulate` into them, then :meth:`finish`. Views can so be scored one at a time, their renders
+        dropped as soon as they are scored."""
+        n_cells = self.keys.shape[0]
+        return torch.zeros(n_cells, dtype=torch.float64), torch.zeros(n_cells, dtype=torch.long)
+
+    def finish(self, sums: torch.Tensor, counts: torch.Tensor) -> dict:
+        """Close one checkpoint from the accumulated per-cell sums and counts: update eligibility, then q_c, CVQ
+        and CUC@Q (see :meth:`summary`)."""
+        self._update_eligibility()
+        self.checkpoints += 1
+        e = sums / counts.clamp_min(1)  # e_c: mean over samples of the per-sample RGB mean squared error
+        self.q = torch.where(counts > 0, -10.0 * torch.log10(e.clamp_min(EPS)), torch.full_like(e, float("nan")))
+        return self.summary()
 
     def evaluate(self, colors: list) -> dict:
         """Close one checkpoint: update eligibility, then compute q_c, CVQ and CUC@Q from held-out renders.
@@ -156,18 +203,12 @@ class RegionalQuality:
         """
         if len(colors) != len(self.samples):
             raise ValueError(f"expected {len(self.samples)} held-out renders, got {len(colors)}")
-        self._update_eligibility()
-        self.checkpoints += 1
-        n_cells = self.keys.shape[0]
-        sums = torch.zeros(n_cells, dtype=torch.float64)
-        counts = torch.zeros(n_cells, dtype=torch.long)
+        sums, counts = self.begin()
         for v, color in enumerate(colors):
             s, c = self.accumulate(v, color)
             sums += s
             counts += c
-        e = sums / counts.clamp_min(1)  # e_c: mean over samples of the per-sample RGB mean squared error
-        self.q = torch.where(counts > 0, -10.0 * torch.log10(e.clamp_min(EPS)), torch.full_like(e, float("nan")))
-        return self.summary()
+        return self.finish(sums, counts)
 
     def summary(self) -> dict:
         """CVQ and CUC@Q over M(t) from the latest evaluation (None when M(t) is empty)."""
@@ -193,6 +234,20 @@ class RegionalQuality:
             "measurable": self.measurable.tolist(),
             "t_vis": self.t_vis.tolist(),
         }
+
+
+def _small_int(n: int) -> torch.dtype:
+    """The smallest signed integer dtype that holds ids 0 .. n - 1 (int16, else int32)."""
+    return torch.int16 if n <= torch.iinfo(torch.int16).max else torch.int32
+
+
+def sample_pixels(depth: torch.Tensor, stride: int) -> torch.Tensor:
+    """Flat pixel indices [M] (long) of the valid (> 0) pixels of ``depth`` [H, W] on the ``stride`` grid, in the
+    order of :meth:`Camera.backproject <eligsir_o3d.core.camera.Camera.backproject>` (row-major)."""
+    w = depth.shape[1]
+    grid = depth[::stride, ::stride]
+    v, u = torch.nonzero(grid > 0, as_tuple=True)
+    return (v * stride) * w + u * stride
 
 
 def cvq_auc(progress: list[float], cvq: list[float | None]) -> float | None:
