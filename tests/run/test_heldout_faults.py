@@ -79,7 +79,7 @@ def test_bad_heldout_and_source_frames_are_reported_and_the_run_completes(tmp_pa
 
 
 def _write_room(root: Path, n: int = 10) -> None:
-    from test_bad_input import _write_folder
+    from tests.core.test_bad_input import _write_folder
 
     _write_folder(root, n)
 
