@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
+import hashlib
 import json
 import os
 import re
@@ -111,16 +113,31 @@ def expand_inputs(inputs) -> list[SequenceSpec]:
             specs.append(SequenceSpec(path=str(item), where=str(item)))
     if not specs:
         raise BatchError("no sequences given")
-    seen: dict[str, int] = {}
-    for s in specs:
-        base = s.name or Path(s.path.rstrip("/")).name or "sequence"
-        base = re.sub(r"[^A-Za-z0-9._-]+", "_", base).strip("._") or "sequence"
-        if s.name is not None and base in seen:
-            raise BatchError(f"{s.where}: the name {s.name!r} is used twice")
-        n = seen.get(base, 0) + 1
-        seen[base] = n
-        s.name = base if n == 1 else f"{base}-{n}"
+    bases = [re.sub(r"[^A-Za-z0-9._-]+", "_", s.name or Path(s.path.rstrip("/")).name or "sequence").strip("._")
+             or "sequence" for s in specs]
+    named: set[str] = set()
+    for s, base in zip(specs, bases):
+        if s.name is not None:
+            if base in named:
+                raise BatchError(f"{s.where}: the name {s.name!r} is used twice")
+            named.add(base)
+    for s, base in zip(specs, bases):
+        if s.name is None:  # a name shared with another spec gets its own suffix, whatever the inputs' order
+            s.name = base if bases.count(base) == 1 else f"{base}-{_spec_key(s)}"
+        else:
+            s.name = base
+    if len({s.name for s in specs}) < len(specs):
+        dup = next(s for s in specs if [t.name for t in specs].count(s.name) > 1)
+        raise BatchError(f"{dup.where}: the sequence {dup.path!r} is listed twice with the same options")
     return specs
+
+
+def _spec_key(spec: SequenceSpec) -> str:
+    """Six hex digits of what a spec maps (its resolved path and options): the same spec, the same folder name."""
+    fields = {k: v for k, v in dataclasses.asdict(spec).items() if k not in ("name", "where")}
+    if fields["path"] != "synthetic":
+        fields["path"] = str(Path(fields["path"]).resolve())
+    return hashlib.sha1(json.dumps(fields, sort_keys=True, default=str).encode()).hexdigest()[:6]
 
 
 @dataclass

@@ -34,10 +34,15 @@ def test_manifest_options_names_and_relative_paths(tmp_path):
     m.write_text("# sequences\nrooms/a --max-frames 12 --pose odometry\n\nsynthetic --name room --speed 0.5  # x\n"
                  f"'{tmp_path}/rooms/a' --config fast.json\n")
     specs = expand_inputs([m, "synthetic"])
-    assert [s.name for s in specs] == ["a", "room", "a-2", "synthetic"]
+    names = [s.name for s in specs]
+    assert names[1:4:2] == ["room", "synthetic"] and names[0] != names[2]
+    assert all(re.fullmatch(r"a-[0-9a-f]{6}", n) for n in (names[0], names[2])), names  # the two "a"s: own suffixes
     assert specs[0].path == str(tmp_path / "rooms" / "a") and specs[0].max_frames == 12 and specs[0].pose == "odometry"
     assert specs[1].path == "synthetic" and specs[1].speed == 0.5
     assert specs[2].config == str(tmp_path / "fast.json")
+    # reordering the inputs (issue 31 item 11) keeps every sequence's folder name: nothing finished is remapped
+    again = expand_inputs(["synthetic", *reversed(read_manifest(m))])
+    assert {(s.path, s.config, s.name) for s in again} == {(s.path, s.config, s.name) for s in specs}
     assert specs[0].where == f"{m}:2"
 
 
