@@ -133,10 +133,16 @@ def adam_rows_step(items) -> None:
     :func:`_adam_rows_scaled`."""
     if not items:
         return
+    _adam_rows_scaled(*adam_item_arrays(items))
+
+
+def adam_item_arrays(items) -> tuple:
+    """The flat numpy views the row-Adam kernels take, of items as :func:`adam_rows_step` describes: (params,
+    grads, exp_avgs, exp_avg_sqs, hyper [n, 4], a_rows, b_rows, widths [n] row widths)."""
     f = lambda t: t.detach().contiguous().view(-1).numpy()  # noqa: E731
     ps = tuple(it[0].detach().view(-1).numpy() for it in items)
     ms = tuple(it[2].view(-1).numpy() for it in items)
     vs = tuple(it[3].view(-1).numpy() for it in items)
     widths = np.array([it[0].numel() // max(it[0].shape[0], 1) for it in items], np.int64)
-    _adam_rows_scaled(ps, tuple(f(it[1]) for it in items), ms, vs, np.array([it[6] for it in items], np.float32),
-                      tuple(f(it[4]) for it in items), tuple(f(it[5]) for it in items), widths)
+    return (ps, tuple(f(it[1]) for it in items), ms, vs, np.array([it[6] for it in items], np.float32),
+            tuple(f(it[4]) for it in items), tuple(f(it[5]) for it in items), widths)

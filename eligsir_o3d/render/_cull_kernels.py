@@ -131,10 +131,6 @@ def adam_rows_at(items, rows: np.ndarray) -> None:
     map [N, ...], grad_rows [M, ...] the selected rows' gradients, a_rows/b_rows [M] float32."""
     if not items or rows.shape[0] == 0:
         return
-    f = lambda t: t.detach().contiguous().view(-1).numpy()  # noqa: E731
-    ps = tuple(it[0].detach().view(-1).numpy() for it in items)
-    ms = tuple(it[2].view(-1).numpy() for it in items)
-    vs = tuple(it[3].view(-1).numpy() for it in items)
-    widths = np.array([it[0].numel() // max(it[0].shape[0], 1) for it in items], np.int64)
-    _adam_at(ps, tuple(f(it[1]) for it in items), ms, vs, np.array([it[6] for it in items], np.float32),
-             tuple(f(it[4]) for it in items), tuple(f(it[5]) for it in items), widths, rows)
+    from ..optim.update_kernels import adam_item_arrays
+
+    _adam_at(*adam_item_arrays(items), rows)
