@@ -9,7 +9,6 @@ and the results folder (:mod:`.results`). :class:`MappingPipeline` reads as its 
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
@@ -27,6 +26,7 @@ from .lock import RunLock
 from .options import RunOptions
 from .outputs import Outputs, PeriodicCheckpoints
 from .poses import pose_source_name, prepare_pose_source, trajectory_accuracy_of
+from .results import read_run  # noqa: F401 (its old home: run.json is read where it is written)
 from .resume import apply_new_settings, check_resume, run_record
 
 __all__ = ["MappingPipeline", "RunOptions", "heldout_indices", "read_run", "run_mapping"]
@@ -49,30 +49,6 @@ def heldout_indices(n: int, every: int, listfile: str | None = None) -> list[int
     if every == 0:
         return []
     return [i for i in range(n) if i % every == every // 2]
-
-
-def read_run(folder: str | Path):
-    """(sequence path, Config, RunOptions) recorded in a results folder, to run it again."""
-    import json
-
-    from .results import RUN_FILE
-
-    folder = Path(folder)
-    run_file, cfg_file = folder / RUN_FILE, folder / "config.json"
-    for f in (run_file, cfg_file):
-        if not f.is_file():
-            raise ValueError(f"{folder}: no {f.name}: not a results folder written by this version of eligsir map")
-    try:
-        run = json.loads(run_file.read_text())
-        options = dict(run["options"])
-        sequence = str(run["sequence"])
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise ValueError(f"{run_file}: not a valid run record ({e})") from None
-    known = {f.name for f in dataclasses.fields(RunOptions)}
-    unknown = sorted(set(options) - known)
-    if unknown:
-        raise ValueError(f"{run_file}: unknown run option(s) {unknown}")
-    return sequence, Config.load(cfg_file), RunOptions(**options)
 
 
 def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, opts: RunOptions | None = None,
@@ -322,10 +298,21 @@ class MappingPipeline:
 
     # ---- write ---------------------------------------------------------------------------------------------
     def write(self) -> dict:
-        from .results import collect_metrics, write_results
+        from .results import RunResult, collect_metrics, write_results
 
-        metrics = collect_metrics(self)
-        write_results(self, metrics)
+        tracking = self.heldout_tracking
+        result = RunResult(
+            out=self.out, sequence=self.path, opts=self.opts, rec=self.rec, report=self.report, clock=self.clock.name,
+            frames_total=self.n, frames_heldout=len(self.held), frames_source=len(self.source),
+            map_state=self.map_state, pose_name=self.pose_name, tracked=self.pose_source is not None,
+            cost_model_source=self.cost_model_source, final=self.final, accuracy=self.accuracy,
+            pose_rule_scores=self.pose_rule_scores, heldout_untracked=None if tracking is None else tracking.untracked,
+            curve=self.evaluator.curve, wall_s=self.wall_s, eval_s=self.evaluator.eval_seconds,
+            decode_s=self.decode_s, acquisition_s=self.seq_acquisition_s(), skipped=self.skipped,
+            heldout_skipped=self.heldout_skipped, trajectory=self.trajectory, heldout_frames=self.heldout_frames,
+            render_heldout=self._render, outputs=self.outputs, checkpoint_failures=self.checkpoints.failures)
+        metrics = collect_metrics(result)
+        write_results(result, metrics)
         return metrics
 
 

@@ -20,49 +20,89 @@ from pathlib import Path
 
 import numpy as np
 
-RUN_FILE = "run.json"  # read back by pipeline.read_run
+from .options import RunOptions
+
+RUN_FILE = "run.json"  # read back by read_run
 CELLS_FILE = "cells.json"
 FIDELITY_TRACE_FILE = "fidelity_trace.csv"
 VIEWS_TRACE_FILE = "views_trace.csv"  # the view policy's admissions, promotions, demotions (scheduling.views_trace)
 REFINED_TRAJECTORY_FILE = "trajectory_refined.txt"  # pose refinement: the mapped frames in the map's frame
 
 
-def collect_metrics(p) -> dict:
-    """metrics.json of a finished :class:`~eligsir_o3d.run.pipeline.MappingPipeline` ``p``."""
-    from ..budget.memory import peak_rss_mb
+@dataclasses.dataclass
+class RunResult:
+    """What a finished run hands the results writer (:func:`collect_metrics`, :func:`write_results`): exactly what
+    the results folder holds. :meth:`~eligsir_o3d.run.pipeline.MappingPipeline.write` builds it."""
 
-    rec, final, acc, report = p.rec, p.final, p.accuracy, p.report
-    realtime = p.clock.name == "realtime"
-    acq = acquisition_time(p.seq, p.n)
+    out: Path  # the results folder
+    sequence: str  # the sequence path as given
+    opts: RunOptions  # run.json records them
+    rec: object  # the Reconstructor: its map, config, camera, stats, policies and pose refinement
+    report: object  # the clock's report: elapsed_s (modelled), released, integrated, dropped, skipped_bad
+    clock: str  # the clock's name ("realtime": mapping time is the wall-clock time)
+    frames_total: int
+    frames_heldout: int
+    frames_source: int
+    map_state: str  # "ME", "+N PM", "offline-reference"
+    pose_name: str  # the pose source metrics.json names
+    tracked: bool  # poses came from a pose source (tracking), not from the recording
+    cost_model_source: dict  # where the cost model came from ({} without one)
+    final: dict  # the evaluator's final metrics of the evaluated map state (HeldoutEvaluator.final)
+    accuracy: dict  # the tracked trajectory's accuracy against the ground truth ({} when not tracked or no truth)
+    pose_rule_scores: dict | None  # a pose-refined map: the held-out figure under each held-out pose rule
+    heldout_untracked: list | None  # held-out views tracked by the pose source ({"index", "reason"} each it could
+    #                                 not track); None when the held-out views had their poses
+    curve: list  # the evaluation checkpoints
+    wall_s: float  # the mapper's wall-clock time (s), evaluation, decoding and checkpoint I/O excluded
+    eval_s: float  # evaluation time (s)
+    decode_s: float  # decoding time (s)
+    acquisition_s: float  # the sequence's acquisition time (s), acquisition_time(seq, frames_total)
+    skipped: list  # unreadable source frames
+    heldout_skipped: list  # unreadable held-out frames
+    trajectory: dict  # source index -> (timestamp, [4, 4] T_world_cam) of the mapped frames
+    heldout_frames: list  # the held-out Frames (result pictures)
+    render_heldout: object  # Frame -> render of the map at the held-out view's (evaluation) pose
+    outputs: object  # the run's Outputs (a failed write is listed, the others go on)
+    checkpoint_failures: list  # failed periodic checkpoints, {"next_source", "error"} each
+
+
+def collect_metrics(r: RunResult) -> dict:
+    """metrics.json of a finished run."""
+    from ..budget.memory import peak_rss_mb
+    from ..eval.tracked_heldout import heldout_pose_label
+
+    rec, final, acc, report = r.rec, r.final, r.accuracy, r.report
+    realtime = r.clock == "realtime"
+    acq = r.acquisition_s
     if realtime:
-        mapping_s = p.wall_s  # the mapper's elapsed wall-clock time: tracking included; decoding, evaluation excluded
+        mapping_s = r.wall_s  # the mapper's elapsed wall-clock time: tracking included; decoding, evaluation excluded
     else:
-        mapping_s = rec.stats.mapping_s + (rec.stats.tracking_s if p.pose_source is not None else 0.0)
+        mapping_s = rec.stats.mapping_s + (rec.stats.tracking_s if r.tracked else 0.0)
     metrics = {
-        "dataset": p.path,
-        "frames_total": p.n,
-        "frames_heldout": len(p.held),
-        "frames_source": len(p.source),
+        "dataset": r.sequence,
+        "frames_total": r.frames_total,
+        "frames_heldout": r.frames_heldout,
+        "frames_source": r.frames_source,
         "device": str(rec.device),
         "renderer": rec.config.renderer,
-        "map_state": p.map_state,
-        "pose_source": p.pose_name,
-        "clock": p.clock.name,
-        "cost_model": {**p.cost_model_source, "terms": rec.config.clock.cost.to_dict()}
-        if p.cost_model_source.get("source") else None,
+        "map_state": r.map_state,
+        "pose_source": r.pose_name,
+        "clock": r.clock,
+        "cost_model": {**r.cost_model_source, "terms": rec.config.clock.cost.to_dict()}
+        if r.cost_model_source.get("source") else None,
         "heldout": {k: final.get(k) for k in ("psnr", "ssim", "lpips", "depth_rmse_m", "depth_rmse_2m_m")},
         # where the held-out views' poses came from: the ground truth, or (a recording without poses) the run's pose
         # source, which tracked them without admitting them into the map; views it could not track are left out
-        "heldout_pose_origin": _heldout_pose_origin(p),
-        "heldout_untracked": list(p.heldout_tracking.untracked) if getattr(p, "heldout_tracking", None) else [],
+        "heldout_pose_origin": heldout_pose_label(r.pose_name, r.heldout_untracked is not None),
+        "heldout_untracked": list(r.heldout_untracked or []),
         # the rule "heldout" used: with pose refinement pose_refine.heldout_poses ("aligned", the paper's rule, by
         # default); without it "given" (the map's frame is the given one); a tracked run's views are aligned to
         # the ground truth through its tracked poses ("aligned" as well)
-        "heldout_pose_rule": heldout_rule(p),
+        "heldout_pose_rule": heldout_rule(r),
         # with pose refinement: the same views at their given poses as they are (the strict figure), and under
         # each rule of pose_refine.heldout_poses ("heldout" is the configured one's)
-        "heldout_given_poses": (getattr(p, "pose_rule_scores", None) or {}).get("given"),
-        "heldout_by_pose_rule": getattr(p, "pose_rule_scores", None),
+        "heldout_given_poses": (r.pose_rule_scores or {}).get("given"),
+        "heldout_by_pose_rule": r.pose_rule_scores,
         "pose_refine": rec.pose_refine.summary() if rec.pose_refine.active else None,
         "cvq_auc": final.get("cvq_auc"),
         "cvq_final": final.get("cvq_final"),
@@ -71,10 +111,10 @@ def collect_metrics(p) -> dict:
         "tracking_time_s": rec.stats.tracking_s,
         "ate_rmse_m": acc.get("ate_rmse_m"),
         "rpe_trans_m": acc.get("rpe_trans_m"),
-        "wall_time_s": p.wall_s,
+        "wall_time_s": r.wall_s,
         "modelled_time_s": None if realtime else report.elapsed_s,
-        "eval_time_s": p.evaluator.eval_seconds,
-        "decode_time_s": p.decode_s,
+        "eval_time_s": r.eval_s,
+        "decode_time_s": r.decode_s,
         "acquisition_time_s": acq,
         "rtf": mapping_s / acq if acq > 0 else None,
         "updates": rec.stats.updates,
@@ -85,10 +125,10 @@ def collect_metrics(p) -> dict:
         "policies": rec.policy_counters(),
         "stage_times": rec.timing.summary(max(1, report.integrated)),  # where the mapper's wall time went
         "dropped_frames": report.dropped,
-        "skipped_frames": p.skipped + list(report.skipped_bad),
-        "heldout_skipped": list(getattr(p, "heldout_skipped", [])),  # unreadable held-out frames: index, file, reason
+        "skipped_frames": list(r.skipped) + list(report.skipped_bad),
+        "heldout_skipped": list(r.heldout_skipped),  # unreadable held-out frames: index, file, reason
         "peak_rss_mb": peak_rss_mb(),
-        "curve": p.evaluator.curve,
+        "curve": r.curve,
         "per_view": final.get("per_view"),
         # the side files written beside metrics.json (write_results): the cell table and the fidelity trace
         "files": {k: f for k, f, present in (("cells", CELLS_FILE, final.get("cells") is not None),
@@ -100,21 +140,15 @@ def collect_metrics(p) -> dict:
     return metrics
 
 
-def _heldout_pose_origin(p) -> str:
-    from ..eval.tracked_heldout import heldout_pose_label
-
-    return heldout_pose_label(p.pose_name, getattr(p, "heldout_tracking", None) is not None)
-def heldout_rule(p) -> str:
-    """The held-out pose rule of ``metrics["heldout"]`` for pipeline ``p`` (see :func:`collect_metrics`)."""
-    if p.pose_source is not None:
-        return "aligned" if getattr(p, "accuracy", None) else "tracked"
-    return p.rec.pose_refine.cfg.heldout_poses if p.rec.pose_refine.moved else "given"
+def heldout_rule(r: RunResult) -> str:
+    """The held-out pose rule of ``metrics["heldout"]`` (see :func:`collect_metrics`)."""
+    if r.tracked:
+        return "aligned" if r.accuracy else "tracked"
+    return r.rec.pose_refine.cfg.heldout_poses if r.rec.pose_refine.moved else "given"
 
 
-
-
-def write_results(p, metrics: dict) -> None:
-    """Write the results folder of pipeline ``p`` (see the module docstring). Every file is written atomically; a
+def write_results(r: RunResult, metrics: dict) -> None:
+    """Write the results folder of run ``r`` (see the module docstring). Every file is written atomically; a
     file that cannot be written (full disk, I/O error) does not stop the others (:mod:`.safe_outputs`): metrics.json
     lists it, and a :class:`~.atomic_io.WriteFailed` naming it is raised at the end."""
     from ..io.atomic import atomic_write_text
@@ -122,11 +156,11 @@ def write_results(p, metrics: dict) -> None:
     from ..pose.trajectory import write_tum_trajectory
     from ..export_splats import parse_formats, write_web_formats
 
-    out, rec, outputs = p.out, p.rec, p.outputs
+    out, rec, outputs = r.out, r.rec, r.outputs
     outputs.stage(out / "map.ply", rec.save_ply, out / "map.ply")
-    for fmt in parse_formats(getattr(p.opts, "formats", "ply"))[1:]:  # map.spz / map.splat beside map.ply
+    for fmt in parse_formats(r.opts.formats)[1:]:  # map.spz / map.splat beside map.ply
         outputs.stage(out / f"map.{fmt}", write_web_formats, out / "map.ply", **{fmt: out / f"map.{fmt}"})
-    items = sorted(p.trajectory.items())
+    items = sorted(r.trajectory.items())
     outputs.stage(out / "trajectory.txt", write_tum_trajectory, out / "trajectory.txt",
                   [ts for _, (ts, _) in items], [T for _, (_, T) in items])
     if rec.pose_refine.moved:  # the mapped frames' poses in the map's refined frame
@@ -134,27 +168,27 @@ def write_results(p, metrics: dict) -> None:
         outputs.stage(out / REFINED_TRAJECTORY_FILE, write_tum_trajectory, out / REFINED_TRAJECTORY_FILE,
                       [ts for _, (ts, _) in items], moved)
     outputs.stage(out / "config.json", rec.config.save, out / "config.json")
-    if p.opts.pictures:
+    if r.opts.pictures:
         from ..visual.run_pictures import write_result_pictures
 
-        metrics["pictures"] = outputs.stage(out / "heldout", write_result_pictures, out, rec, p.heldout_frames,
-                                            p.trajectory, render_heldout=p._render)
+        metrics["pictures"] = outputs.stage(out / "heldout", write_result_pictures, out, rec, r.heldout_frames,
+                                            r.trajectory, render_heldout=r.render_heldout)
     cam = rec.camera
-    run = {"sequence": p.path, "options": {f.name: getattr(p.opts, f.name) for f in dataclasses.fields(p.opts)
+    run = {"sequence": r.sequence, "options": {f.name: getattr(r.opts, f.name) for f in dataclasses.fields(r.opts)
                                            if f.name not in ("resume", "progress", "view", "force_unlock",
                                                                              "overwrite")},
            "camera": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                       "cy": cam.cy}}
     outputs.stage(out / RUN_FILE, atomic_write_text, out / RUN_FILE, json.dumps(jsonable(run), indent=2))
     views_trace = rec.views.trace_rows() if hasattr(rec.views, "trace_rows") else None
-    outputs.stage(out / CELLS_FILE, write_side_files, out, p.final.get("cells"), getattr(rec.fidelity, "trace", None),
+    outputs.stage(out / CELLS_FILE, write_side_files, out, r.final.get("cells"), getattr(rec.fidelity, "trace", None),
                   views_trace)
-    metrics["checkpoint_failures"] = p.checkpoints.failures
+    metrics["checkpoint_failures"] = r.checkpoint_failures
     metrics["write_failures"] = outputs.messages()  # what failed before metrics.json
     outputs.stage(out / "metrics.json", atomic_write_text, out / "metrics.json",
                   json.dumps(jsonable(metrics), indent=1))
-    if p.opts.plots:
-        outputs.stage(out, write_plots, metrics, out, cells=p.final.get("cells"))
+    if r.opts.plots:
+        outputs.stage(out, write_plots, metrics, out, cells=r.final.get("cells"))
     outputs.finish(metrics)
 
 
@@ -175,6 +209,29 @@ def write_side_files(out: Path, cells: dict | None, trace: list[dict] | None,
             w.writeheader()
             w.writerows({k: "" if v is None else v for k, v in jsonable(row).items()} for row in rows)
             atomic_write_text(out / name, buf.getvalue())
+
+
+def read_run(folder: str | Path):
+    """(sequence path, Config, RunOptions) recorded in a results folder (its run.json and config.json), to run it
+    again."""
+    from ..config import Config
+
+    folder = Path(folder)
+    run_file, cfg_file = folder / RUN_FILE, folder / "config.json"
+    for f in (run_file, cfg_file):
+        if not f.is_file():
+            raise ValueError(f"{folder}: no {f.name}: not a results folder written by this version of eligsir map")
+    try:
+        run = json.loads(run_file.read_text())
+        options = dict(run["options"])
+        sequence = str(run["sequence"])
+    except (json.JSONDecodeError, KeyError, TypeError) as e:
+        raise ValueError(f"{run_file}: not a valid run record ({e})") from None
+    known = {f.name for f in dataclasses.fields(RunOptions)}
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise ValueError(f"{run_file}: unknown run option(s) {unknown}")
+    return sequence, Config.load(cfg_file), RunOptions(**options)
 
 
 def _side_file(folder, key: str, default: str) -> Path:
