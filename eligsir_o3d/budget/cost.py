@@ -27,7 +27,7 @@ class CostModel:
     grow with N; blending grows with pixels times the Gaussians overlapping each pixel). One integrated frame
     (admission render, growth): ``frame_s + gaussian_s * gaussians``.
 
-    Defaults ("shipped"): ``python benchmarks/cost_model.py --frames 300`` on the project's reference machine (2
+    Defaults ("shipped"): ``python benchmarks/budget/cost_model.py --frames 300`` on the project's reference machine (2
     cores, the ``cpu`` renderer on 2 threads, an otherwise idle machine, the default policies mapping the first 300
     frames of 7-Scenes redkitchen, 0.8k-7.3k Gaussians): an 80x60 update ~5 ms, 160x120 ~8 ms, 320x240 ~21 ms,
     640x480 ~70 ms; median predicted/measured 0.99 (refitted 2026-11-29 after the update kernels of issue 16 made
@@ -91,7 +91,7 @@ class CostModel:
     @classmethod
     def load(cls, path: str | Path) -> "CostModel":
         """A cost model from a JSON file: its terms, or a config file holding them under ``clock.cost`` (as
-        ``benchmarks/cost_model.py --json`` and the calibration cache write)."""
+        ``benchmarks/budget/cost_model.py --json`` and the calibration cache write)."""
         path = Path(path)
         try:
             data = json.loads(path.read_text())

@@ -7,7 +7,7 @@ The Reconstructor times its own stages with one :class:`StageTimes` (``rec.timin
 
 :func:`detail` adds sub-stages (the support render, the voxel hash, view bookkeeping, scheduling, MCMC) by
 wrapping bound methods of one Reconstructor's policies, so the policies carry no timing code; benchmarks use it
-(``benchmarks/realtime_load.py --breakdown``). Nested stages are reported as they are: a sub-stage's seconds are
+(``benchmarks/budget/realtime_load.py --breakdown``). Nested stages are reported as they are: a sub-stage's seconds are
 also in its parent's.
 """
 

@@ -10,7 +10,7 @@ scales the stored gradient. Per channel c, with the five windowed moments mu_x, 
     dL/dx = G^T(dL/dmu_x) + 2 x G^T(dL/dE[x^2]) + y G^T(dL/dE[xy])
 
 where G^T is the transposed (scatter) window. Every pass runs in parallel over image rows. Tested against the
-torch formulation (value and autograd gradient, float64) in tests/test_optim.py.
+torch formulation (value and autograd gradient, float64) in tests/optim/test_optim.py.
 """
 
 from __future__ import annotations

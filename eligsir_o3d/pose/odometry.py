@@ -10,7 +10,7 @@ VGA input), which measured both faster and more accurate than full resolution. W
 
 ``mode="frame"`` is plain frame-to-frame odometry (Hybrid: photometric + geometric), kept for comparison.
 
-First 300 frames of 7scenes_redkitchen_jpg1000, 2-core CPU, ``python benchmarks/poses.py`` (ATE after rigid
+First 300 frames of 7scenes_redkitchen_jpg1000, 2-core CPU, ``python benchmarks/quality/poses.py`` (ATE after rigid
 alignment / RPE per frame pair / wall ms per frame at load ~2):
 
 ==========================================================  =======  =======  ========
@@ -116,7 +116,7 @@ class OdometrySource(PoseSource):
         # Open3D 0.20's VoxelBlockGrid.ray_cast places surfaces half a voxel off from where integrate() put them
         # (a single fused synthetic frame ray-cast at its own pose: median depth error -9 to +18 mm at 2 cm voxels,
         # depending on the view; 0.3-1.8 mm after this shift; extract_point_cloud/mesh are unbiased). Ray-casting
-        # with the world shifted by -voxel/2 on every axis undoes it. tests/test_pose.py checks it.
+        # with the world shifted by -voxel/2 on every axis undoes it. tests/pose/test_pose.py checks it.
         self._raycast_shift = np.eye(4)
         self._raycast_shift[:3, 3] = -0.5 * self.voxel_size
         self.min_model_fraction, self.min_valid_fraction = float(min_model_fraction), float(min_valid_fraction)

@@ -47,7 +47,7 @@ def _check_rule(rule: str) -> str:
 @dataclass
 class PoseRefineConfig:
     # off by default (issue 32): where the truth is known (the synthetic room, a known pose error added, scored at
-    # the true poses: benchmarks/pose_truth.py) and at the paper's rule on the SUN3D study room and the 7-Scenes
+    # the true poses: benchmarks/quality/pose_truth.py) and at the paper's rule on the SUN3D study room and the 7-Scenes
     # kitchen, maps refined this way scored below maps at the given poses
     enabled: bool = False
     # the best of the settings measured in issue 16 on the 7-Scenes kitchen and the SUN3D study room, with held-out

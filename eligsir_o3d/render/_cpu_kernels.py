@@ -253,7 +253,7 @@ def run(kernel, *args) -> None:
 
 # ------------------------------------------------------------------------------------ block shape per target ----
 
-# Pixels per block -> (width, height). One shape serves every target measured (benchmarks/cpu_targets.py): 16
+# Pixels per block -> (width, height). One shape serves every target measured (benchmarks/speed/cpu_targets.py): 16
 # float32 lanes are one AVX-512 register and two AVX2 or four SSE/NEON registers, and LLVM vectorises the 16-pixel
 # loop at each target's width. 8-pixel blocks (4x2) were measured 3-6x slower on every target: LLVM unrolls an
 # 8-trip loop fully before its loop vectoriser sees it and the unrolled body stays scalar. The shape is a

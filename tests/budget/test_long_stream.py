@@ -1,5 +1,5 @@
 """Long streams: nothing the mapper keeps grows with the number of frames beyond a configured bound, and the soak
-benchmark (benchmarks/soak.py) that checks it on 20,000 frames still runs and reports a bounded run."""
+benchmark (benchmarks/budget/soak.py) that checks it on 20,000 frames still runs and reports a bounded run."""
 
 import importlib.util
 from pathlib import Path
@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _soak_module():
-    spec = importlib.util.spec_from_file_location("soak", ROOT / "benchmarks" / "soak.py")
+    spec = importlib.util.spec_from_file_location("soak", ROOT / "benchmarks" / "budget" / "soak.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod

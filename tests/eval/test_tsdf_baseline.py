@@ -1,4 +1,4 @@
-"""benchmarks/tsdf_baseline.py on the synthetic room: the TSDF peer reads the run's own split and poses, covers
+"""benchmarks/quality/tsdf_baseline.py on the synthetic room: the TSDF peer reads the run's own split and poses, covers
 the views it was fused from, scores higher on its covered pixels than on the whole image, and the Gaussian map is
 scored at the same given poses as the pipeline's own evaluation."""
 
@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _baseline():
-    spec = importlib.util.spec_from_file_location("tsdf_baseline", ROOT / "benchmarks" / "tsdf_baseline.py")
+    spec = importlib.util.spec_from_file_location("tsdf_baseline", ROOT / "benchmarks" / "quality" / "tsdf_baseline.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod

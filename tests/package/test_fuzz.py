@@ -8,7 +8,7 @@ intrinsics.json, --set values, config files, batch manifests, image headers. For
 - memory stays bounded (peak RSS of the whole run grows by less than :data:`RSS_BUDGET_MIB`).
 
 The default run is derandomised (a fixed seed) and sized to take well under a minute;
-``ELIGSIR_FUZZ_EXAMPLES=N`` and ``ELIGSIR_FUZZ_RANDOM=1`` make it longer and random (benchmarks/fuzz_long.py).
+``ELIGSIR_FUZZ_EXAMPLES=N`` and ``ELIGSIR_FUZZ_RANDOM=1`` make it longer and random (benchmarks/reliability/fuzz_long.py).
 """
 
 import json
@@ -29,7 +29,7 @@ RANDOM = os.environ.get("ELIGSIR_FUZZ_RANDOM") == "1"
 RSS_BUDGET_MIB = 600
 FUZZ = settings(max_examples=EXAMPLES, derandomize=not RANDOM, deadline=None, database=None,
                 suppress_health_check=list(HealthCheck))
-COUNTS: dict[str, list[int]] = {}  # target -> [accepted, refused]; printed by benchmarks/fuzz_long.py
+COUNTS: dict[str, list[int]] = {}  # target -> [accepted, refused]; printed by benchmarks/reliability/fuzz_long.py
 
 
 def _count(target: str, ok: bool) -> None:
@@ -270,7 +270,7 @@ def test_fuzz_cli_export_and_config(work, data):
 
 
 def test_fuzz_findings_of_the_long_run(tmp_path):
-    """Inputs the random long run found (benchmarks/fuzz_long.py): kept as fixed cases."""
+    """Inputs the random long run found (benchmarks/reliability/fuzz_long.py): kept as fixed cases."""
     from eligsir_o3d import Config
 
     for ablate in ([[]], [None]):

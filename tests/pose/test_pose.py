@@ -5,7 +5,7 @@ Tolerances (stated, measured on the synthetic room at 160x120, 1.2 cm and ~0.5 d
   a 2 cm-voxel TSDF of 160x120 frames is coarse at 3-4 m); frame-to-frame point-to-plane < 1 cm (measured 0.4 cm);
   frame-to-frame Hybrid at 320x240 over 12 frames < 1.2 cm (measured 0.6 cm; at 160x120 its photometric term
   drifts 0.3 deg per frame on this texture). On real 7-Scenes frames frame-to-model is the most accurate
-  (benchmarks/poses.py).
+  (benchmarks/quality/poses.py).
 - kiss-icp drifts ~1 cm per frame on this planar, narrow-field-of-view room (point-to-point ICP slides along the
   walls), so it is tested on 30 real 7-Scenes frames instead: ATE < 2 cm (measured ~0.6 cm); skipped without the data.
 - pycolmap on 10 real SUN3D frames (every 5th, 640x480, ~5 s): all registered, ATE < 3 cm (measured 1.6-1.8 cm

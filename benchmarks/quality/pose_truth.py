@@ -7,8 +7,8 @@ held-out views are scored at their TRUE poses after one rigid alignment of the m
 the truth: the paper's rule, at the true poses. Refinement on and off, side by side, for each seed; the same run
 with the exact poses is the ceiling.
 
-    python benchmarks/pose_truth.py                       # 60 frames at 320x240, refinement on/off, seeds 0 1
-    python benchmarks/pose_truth.py --frames 40 --seeds 0 --rot-deg 0.5 --trans-mm 10 --json
+    python benchmarks/quality/pose_truth.py                       # 60 frames at 320x240, refinement on/off, seeds 0 1
+    python benchmarks/quality/pose_truth.py --frames 40 --seeds 0 --rot-deg 0.5 --trans-mm 10 --json
 """
 
 from __future__ import annotations
@@ -24,8 +24,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def perturbed_poses(poses: list[np.ndarray], rot_deg: float, trans_mm: float, seed: int) -> list[np.ndarray]:

@@ -1,8 +1,8 @@
 """Repeatability on a device: the same frames mapped twice, and once resumed from a checkpoint halfway.
 
-    python benchmarks/repeatability.py --device cuda:0 --renderer gsplat --frames 40
-    python benchmarks/repeatability.py --device cpu --renderer cpu --frames 12 --data synthetic   # self-check
-    python benchmarks/repeatability.py --device cpu --renderer cpu --scale 0.25 --perturb 1e-7   # emulated drift
+    python benchmarks/reliability/repeatability.py --device cuda:0 --renderer gsplat --frames 40
+    python benchmarks/reliability/repeatability.py --device cpu --renderer cpu --frames 12 --data synthetic   # self-check
+    python benchmarks/reliability/repeatability.py --device cpu --renderer cpu --scale 0.25 --perturb 1e-7   # emulated drift
 
 Every run uses the same seed, the same update count per frame and a fixed supervision scale (the fidelity policy
 ablated, so that no clock enters), so on the CPU the three maps are bit-identical and the script prints zeros. On
@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -24,8 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
 import eligsir_o3d as eo3d  # noqa: E402
 from eligsir_o3d.datasets import open_sequence  # noqa: E402

@@ -36,8 +36,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch (NOTES-apis.
 
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
 VOXEL_SIZE = 0.01  # metres: 1 cm voxels
 TRUNC_VOXELS = 8.0  # truncation in voxels (Open3D's default trunc_voxel_multiplier)

@@ -1,7 +1,7 @@
 """Resume experiment (issue 6): a mapping process killed with SIGKILL mid-sequence resumes from its last
 checkpoint and must finish like an uninterrupted run; then the mesh and point cloud of the map, and a PNG of the mesh.
 
-    python benchmarks/resume_experiment.py --data ../shared/data/7scenes_redkitchen_jpg1000 --frames 300 \
+    python benchmarks/reliability/resume_experiment.py --data ../shared/data/7scenes_redkitchen_jpg1000 --frames 300 \
         --out runs/resume_7scenes [--updates 4] [--every 50] [--kill-at 170]
 
 Three processes map the same source frames (every 8th frame, offset 4, held out) with the deterministic budget

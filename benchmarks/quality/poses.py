@@ -9,10 +9,10 @@ The first frame is anchored at its ground-truth pose (``gt_pose`` on the first c
 ATE is computed after alignment anyway. Each source runs in its own process order, one after the other, so the
 times are comparable only on an otherwise idle machine: the 1-minute load average is printed with every row.
 
-    python benchmarks/poses.py                         # all sources, table
-    python benchmarks/poses.py --sources odometry kiss-icp --frames 100
-    python benchmarks/poses.py --sources colmap --out runs/poses   # also trajectories (TUM) and plots (PNG)
-    python benchmarks/poses.py --json
+    python benchmarks/quality/poses.py                         # all sources, table
+    python benchmarks/quality/poses.py --sources odometry kiss-icp --frames 100
+    python benchmarks/quality/poses.py --sources colmap --out runs/poses   # also trajectories (TUM) and plots (PNG)
+    python benchmarks/quality/poses.py --json
 """
 
 from __future__ import annotations
@@ -20,14 +20,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
 from eligsir_o3d.datasets import open_sequence  # noqa: E402
 from eligsir_o3d.pose import TrackingLost, get_pose_source, plot_trajectories, trajectory_accuracy  # noqa: E402

@@ -1,6 +1,6 @@
 """Two 1-CPU batch tasks side by side vs one after the other, on a local Ray (eligsir_o3d.batch.map_many).
 
-    python benchmarks/batch_parallel.py [--frames 32] [--reps 3] [--out /tmp/batch_parallel]
+    python benchmarks/platforms/batch_parallel.py [--frames 32] [--reps 3] [--out /tmp/batch_parallel]
 
 Each rep maps the same two sequences (the first --frames frames of 7-Scenes and of SUN3D, the fixed-updates
 budget, so the work does not depend on load) three ways, in alternating order within one process:
@@ -23,7 +23,7 @@ import ray
 
 from eligsir_o3d.batch import map_many
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / ".." / "shared" / "data"
 
 

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # GPU check: on a machine with a CUDA GPU, get the gsplat path running and measure it, in one go.
 #
-#   bash benchmarks/gpu_check.sh [OUT_DIR]            # default OUT_DIR: $OUT, else runs/gpu_check
+#   bash benchmarks/platforms/gpu_check.sh [OUT_DIR]            # default OUT_DIR: $OUT, else runs/gpu_check
 #
 # Steps (each bounded by a timeout, each logged to OUT_DIR; a failing step is reported and the next one runs):
 #   1. an interpreter with torch + CUDA and this package's dependencies (see "What it needs" below);
@@ -10,9 +10,9 @@
 #   4. the CUDA tests (pytest -m cuda: gsplat against the torch reference on the stand-in's scenes, SH degrees 1-3,
 #      empty map, no_grad, a Reconstructor end to end, the MCMC step without host round trips);
 #   5. the renderer benchmark's GPU rows (torch reference and gsplat on CUDA, 7-Scenes Gaussians);
-#   6. host round trips per mapping update (benchmarks/cuda_syncs.py);
+#   6. host round trips per mapping update (benchmarks/speed/cuda_syncs.py);
 #   7. a MAP_FRAMES-frame map of the 7-Scenes kitchen with --renderer gsplat (the deterministic budget clock);
-#   8. repeatability: the same frames mapped twice and once resumed (benchmarks/repeatability.py).
+#   8. repeatability: the same frames mapped twice and once resumed (benchmarks/reliability/repeatability.py).
 #
 # What it needs: a Python whose torch sees the GPU (PY=..., else .venv/bin/python, else python3). Missing Python
 # packages are installed with pip when PyPI is reachable (tools/setup.sh --test builds a .venv when no usable
@@ -24,7 +24,7 @@
 # Knobs: MAP_FRAMES (200), REPEAT_FRAMES (40), SKIP_REPEAT=1, MAP_TORCH=1 (also map with the torch renderer),
 # MAX_JOBS (nvcc jobs, default: all cores), STEP_TIMEOUT (seconds per step, 900).
 set -uo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 OUT=${1:-${OUT:-runs/gpu_check}}
 mkdir -p "$OUT"
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
@@ -119,16 +119,16 @@ for d in ../shared/data/7scenes_redkitchen_jpg1000 shared/data/7scenes_redkitche
 done
 log "5. renderer benchmark on CUDA"
 if [ -d ../shared/data/7scenes_redkitchen_jpg1000 ]; then
-  step render_bench "$PY" benchmarks/render.py --device cuda --json --gaussians 20000 100000 300000 \
+  step render_bench "$PY" benchmarks/speed/render.py --device cuda --json --gaussians 20000 100000 300000 \
     --scales 0.25 0.5 1.0 --max-ref-seconds 2
 else
-  echo "skipped: benchmarks/render.py reads ../shared/data/7scenes_redkitchen_jpg1000, not found"
+  echo "skipped: benchmarks/speed/render.py reads ../shared/data/7scenes_redkitchen_jpg1000, not found"
 fi
 
 # ---- 6. host round trips per update --------------------------------------------------------------------------------
 log "6. host round trips per mapping update"
 RENDERER=torch; [ "$GSPLAT" = 1 ] && RENDERER=gsplat
-step cuda_syncs "$PY" benchmarks/cuda_syncs.py --data "${DATA:-synthetic}" --renderer $RENDERER
+step cuda_syncs "$PY" benchmarks/speed/cuda_syncs.py --data "${DATA:-synthetic}" --renderer $RENDERER
 
 # ---- 7. a map on CUDA ----------------------------------------------------------------------------------------------
 log "7. $MAP_FRAMES-frame map, --renderer $RENDERER (data: ${DATA:-synthetic})"
@@ -150,7 +150,7 @@ run_map $RENDERER
 # ---- 8. repeatability ----------------------------------------------------------------------------------------------
 if [ "${SKIP_REPEAT:-0}" != 1 ]; then
   log "8. repeatability: two runs and a resumed one, $REPEAT_FRAMES frames"
-  step repeatability "$PY" benchmarks/repeatability.py --device cuda:0 --renderer $RENDERER \
+  step repeatability "$PY" benchmarks/reliability/repeatability.py --device cuda:0 --renderer $RENDERER \
     --frames "$REPEAT_FRAMES" --data "${DATA:-synthetic}"
 fi
 

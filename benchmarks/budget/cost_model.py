@@ -15,8 +15,8 @@ and fits the constants:
 - ``CostModel.fit`` (non-negative least squares on relative error: every sample weighs the same whatever its
   size) gives the constants; it prints them, the median and 90th-percentile error of the fit, and how the current defaults compare.
 
-    python benchmarks/cost_model.py                     # table + fitted constants
-    python benchmarks/cost_model.py --json runs/cost.json
+    python benchmarks/budget/cost_model.py                     # table + fitted constants
+    python benchmarks/budget/cost_model.py --json runs/cost.json
     eligsir map ... --cost-model runs/cost.json         # use them (or --config: a file with only {"clock": {"cost": ...}})
 
 Time measurements are wall clock: run it on an otherwise idle machine (the 1-minute load average is printed).
@@ -32,8 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
 from eligsir_o3d import Config, Reconstructor  # noqa: E402
 from eligsir_o3d.budget import CostModel  # noqa: E402

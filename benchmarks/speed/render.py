@@ -10,9 +10,9 @@ x86-64 machine, ``generic`` baseline SSE2; the script then compiles for that CPU
 would add the host's). The loss of the backward pass is an L1 colour + depth loss against the frame, so every output
 carries gradient.
 
-    python benchmarks/render.py                       # table
-    python benchmarks/render.py --json                # one JSON object per line
-    python benchmarks/render.py --gaussians 20000 --scales 0.25 --backends torch cpu
+    python benchmarks/speed/render.py                       # table
+    python benchmarks/speed/render.py --json                # one JSON object per line
+    python benchmarks/speed/render.py --gaussians 20000 --scales 0.25 --backends torch cpu
 
 Peak memory: on the CPU, the rise of the process's peak RSS (``/proc/self/status`` VmHWM, reset through
 ``/proc/self/clear_refs`` before each configuration) over its RSS before; on CUDA, ``torch.cuda.max_memory_allocated``.
@@ -39,8 +39,7 @@ if os.environ.get("NUMBA_CPU_NAME") and "NUMBA_CPU_FEATURES" not in os.environ:
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
 from eligsir_o3d.core.camera import Camera, pose_from_tum  # noqa: E402
 from eligsir_o3d.render import available_backends, get_renderer  # noqa: E402
@@ -90,7 +89,7 @@ def load_scene(n: int, frames=(0, 15, 30), seed: int = 0):
     return params, color0, depth0, poses[frames[0]]
 
 
-def _resize(img: np.ndarray, w: int, h: int) -> torch.Tensor:
+def resize(img: np.ndarray, w: int, h: int) -> torch.Tensor:
     import cv2
     interp = cv2.INTER_AREA if img.ndim == 3 else cv2.INTER_NEAREST
     return torch.from_numpy(cv2.resize(img, (w, h), interpolation=interp))
@@ -216,7 +215,7 @@ def main(argv=None):
         ref_prev = None  # (pixels, seconds) of the reference at the previous resolution
         for s in sorted(args.scales):
             cam = BASE.scaled(s)
-            rgb, dep = _resize(color0, cam.width, cam.height), _resize(depth0, cam.width, cam.height)
+            rgb, dep = resize(color0, cam.width, cam.height), resize(depth0, cam.width, cam.height)
             ref_fb = None
             for b in backends:
                 row = {"backend": b, "width": cam.width, "height": cam.height, "gaussians": n}

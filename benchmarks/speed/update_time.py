@@ -33,7 +33,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 KITCHEN = ROOT.parent / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 VIEW_FRAMES = tuple(range(0, 200, 10))
 NEAR_FRAMES = tuple(range(0, 25, 5))  # --in-view: views (and the in-view map's points) from nearby frames
@@ -111,7 +111,6 @@ def _out_of_view(pts, cols, n: int, frames, seed: int):
 def write_maps(sizes: list[int], out: Path, data: Path, seed: int = 0, in_view: int | None = None) -> list[Path]:
     """One PLY per size: kitchen depth back-projected (frames of VIEW_FRAMES), ``n`` points at random; with
     ``in_view``, those ``in_view`` points plus ``n - in_view`` out of every view (:func:`_out_of_view`)."""
-    sys.path.insert(0, str(ROOT))
     import numpy as np
     import open3d as o3d
     import torch

@@ -1,18 +1,18 @@
 #!/usr/bin/env bash
 # Linux aarch64, checked under emulation (issue 29): an arm64 Debian root (debootstrap + qemu-user-static through
 # binfmt_misc), PyPI's aarch64 wheels of our dependencies, then on the emulated CPU
-#   1. the ISA the cpu renderer's kernels are compiled for (benchmarks/render.py's `numba_target` line),
+#   1. the ISA the cpu renderer's kernels are compiled for (benchmarks/speed/render.py's `numba_target` line),
 #   2. the renderer agreement tests (cpu backend vs the torch reference, images and gradients),
 #   3. a 12-frame map of the synthetic room (`eligsir demo --frames 12`), whose held-out PSNR is compared with the
 #      same command run natively on this x86-64 machine.
 # No speed is measured or claimed: qemu translates every instruction. Needs root (debootstrap, chroot, mounts), the
 # Debian archive and PyPI. Slow: the first run builds the root (~10 min on 2 busy cores), numba's compile and the
 # tests run 10-50x slower than natively.
-#   bash benchmarks/aarch64_check.sh [WORKDIR]     (default /tmp/eligsir_arm64; the root is kept and reused)
+#   bash benchmarks/platforms/aarch64_check.sh [WORKDIR]     (default /tmp/eligsir_arm64; the root is kept and reused)
 # Env: X86_PYTHON (the native interpreter for the x86-64 run; default .venv/bin/python), TORCH_ARM (default 2.9.1:
 # PyPI's aarch64 torch 2.9.1 is a CPU build), FRAMES (12).
 set -euo pipefail
-ROOT="$(cd "$(dirname "$0")/.." && pwd)"
+ROOT="$(cd "$(dirname "$0")/../.." && pwd)"
 WORK="${1:-/tmp/eligsir_arm64}"; mkdir -p "$WORK"; WORK="$(cd "$WORK" && pwd)"
 FS="$WORK/rootfs"; FRAMES=${FRAMES:-12}; TORCH_ARM=${TORCH_ARM:-2.9.1}
 X86_PYTHON=${X86_PYTHON:-$ROOT/.venv/bin/python}
@@ -86,7 +86,7 @@ print(\"aarch64_check: machine\", platform.machine(), \"| torch\", torch.__versi
       \"| open3d\", open3d.__version__, \"| numba_target\", target_summary())'"
 
 # 2. the renderer agreement tests
-arm "python -m pytest -q -p no:cacheprovider tests/test_render_agreement.py" 2>&1 | tail -15 | tee "$WORK/agreement.log"
+arm "python -m pytest -q -p no:cacheprovider tests/render/test_render_agreement.py" 2>&1 | tail -15 | tee "$WORK/agreement.log"
 grep -q -E "^[0-9]+ passed" "$WORK/agreement.log" && ! grep -q -E "[0-9]+ failed|error" "$WORK/agreement.log" ||
   { say "agreement tests did not pass"; exit 1; }
 t2=$(date +%s); say "agreement tests took $((t2 - t1)) s (emulated)"

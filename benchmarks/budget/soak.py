@@ -1,8 +1,8 @@
 """Soak test: does memory stay within the configured caps, and per-frame latency flat, over a long stream?
 
-    python benchmarks/soak.py synthetic --frames 20000 --report-every 1000 --resolution 96x72
-    python benchmarks/soak.py synthetic                          # quick: 2,000 frames at 64x48
-    python benchmarks/soak.py kitchen --frames 1000 --sample-every 50     # eligsir map ... --realtime
+    python benchmarks/budget/soak.py synthetic --frames 20000 --report-every 1000 --resolution 96x72
+    python benchmarks/budget/soak.py synthetic                          # quick: 2,000 frames at 64x48
+    python benchmarks/budget/soak.py kitchen --frames 1000 --sample-every 50     # eligsir map ... --realtime
 
 ``synthetic``: a stream of ``--frames`` frames through ``Reconstructor.integrate`` (``--updates`` updates each),
 ray-cast from the embedded synthetic room along an orbit that circles the room every ``--loop`` frames, with the
@@ -53,8 +53,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch: spinning Op
 
 import numpy as np  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
 import eligsir_o3d as eo3d  # noqa: E402
 from eligsir_o3d.budget import CostModel  # noqa: E402

@@ -4,9 +4,9 @@ renderer is artificially slowed 1x, 2x and 4x, with the load-scaled fixed work (
 side in one process. For each: dropped source frames, updates, held-out PSNR, and where the mapper's time went
 (``stage_times``: admission, growth, update, ...).
 
-    python benchmarks/realtime_load.py                           # 2 modes x 3 slow-downs, table on stdout
-    python benchmarks/realtime_load.py --slow 1 --breakdown      # with sub-stages (support render, voxel hash, ...)
-    python benchmarks/realtime_load.py --json /tmp/load.json --max-frames 300 --speed 0.1   # a loaded machine
+    python benchmarks/budget/realtime_load.py                           # 2 modes x 3 slow-downs, table on stdout
+    python benchmarks/budget/realtime_load.py --slow 1 --breakdown      # with sub-stages (support render, voxel hash, ...)
+    python benchmarks/budget/realtime_load.py --json /tmp/load.json --max-frames 300 --speed 0.1   # a loaded machine
 
 The slowed renderer (:class:`SlowedRenderer`) is a test double around the real backend: after every render it
 sleeps ``(factor - 1)`` times the render's measured wall time, and as long again in the backward pass through it,
@@ -31,8 +31,7 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
 from eligsir_o3d import Config  # noqa: E402
 from eligsir_o3d.run.pipeline import RunOptions, run_mapping  # noqa: E402

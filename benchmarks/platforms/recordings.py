@@ -5,8 +5,8 @@ pose topic) as a RealSense-layout bag (when Open3D reads it back), a ROS 1 bag, 
 ScanNet ``.sens``, runs ``eligsir map`` (deterministic budget clock, ground-truth poses, every 8th frame held out)
 on each and on the folder, and prints the held-out PSNR of each against the folder's.
 
-    python benchmarks/recordings.py --frames 200 --work /tmp/recordings
-    python benchmarks/recordings.py --rss 1000     # peak RSS reading 100 vs 1000 frames of a bag (subprocesses)
+    python benchmarks/platforms/recordings.py --frames 200 --work /tmp/recordings
+    python benchmarks/platforms/recordings.py --rss 1000     # peak RSS reading 100 vs 1000 frames of a bag (subprocesses)
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SEVEN = ROOT / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 
 

@@ -4,11 +4,11 @@ numba compiles for the CPU named by ``NUMBA_CPU_NAME`` with the features in ``NU
 feature string means "the named CPU's own features" (without it numba adds the *host's* features, so
 ``NUMBA_CPU_NAME=haswell`` alone still emits AVX-512 on an AVX-512 host). One worker process per target
 (``host``, ``haswell`` = AVX2, ``generic`` = baseline x86-64 SSE2, or any LLVM CPU name) loads the same scene
-(``benchmarks/render.py``'s) and the workers run in turn, round after round (A, B, C, A, B, C, ...), so that the
+(``benchmarks/speed/render.py``'s) and the workers run in turn, round after round (A, B, C, A, B, C, ...), so that the
 load of a shared machine drifts over all of them alike. Each round times, per target:
 
 - ``fwd`` / ``fwdbwd``: the cpu renderer's forward and forward + backward (L1 colour + depth loss), as
-  ``benchmarks/render.py`` does;
+  ``benchmarks/speed/render.py`` does;
 - ``comp_fwd`` / ``comp_bwd``: the compositing kernels alone; ``proj_fwd`` / ``proj_bwd``: the projection kernels;
 - ``dssim``: the D-SSIM kernel on the frame's colour at that size;
 - ``update`` (``--update``): one whole mapping update at 1/4 scale (select, render, L1 + D-SSIM loss, backward,
@@ -18,8 +18,8 @@ Times are the main thread's CPU time with numba and torch on one thread (``--thr
 work that holds up on a shared machine), or the wall clock with ``--threads N``; the table gives the median over
 rounds.
 
-    python benchmarks/cpu_targets.py --targets host haswell generic --rounds 7
-    python benchmarks/cpu_targets.py --update --rounds 9 --targets host haswell
+    python benchmarks/speed/cpu_targets.py --targets host haswell generic --rounds 7
+    python benchmarks/speed/cpu_targets.py --update --rounds 9 --targets host haswell
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(os.environ.get("ELIGSIR_BENCH_ROOT") or Path(__file__).resolve().parents[1])
+ROOT = Path(os.environ.get("ELIGSIR_BENCH_ROOT") or Path(__file__).resolve().parents[2])
 
 TARGET_ENV = {"host": {}, "haswell": {"NUMBA_CPU_NAME": "haswell", "NUMBA_CPU_FEATURES": ""},
               "generic": {"NUMBA_CPU_NAME": "generic"}}
@@ -56,12 +56,10 @@ def _label(t: str) -> str:
 
 def worker(threads: int, gaussians: list[int], scales: list[float], reps: int, update: bool,
            blocks: list[int]) -> None:
-    sys.path.insert(0, str(ROOT))
-    sys.path.insert(0, str(ROOT / "benchmarks"))
     import numba
     import numpy as np
     import torch
-    from render import BASE, _resize, load_scene
+    from benchmarks.speed.render import BASE, load_scene, resize  # PYTHONPATH=the target's root (target_env)
 
     from eligsir_o3d.render import cpu_backend as cb
     from eligsir_o3d.render.cpu_backend import CpuRenderer, bin_tiles_csr, project_cpu, warmup
@@ -79,8 +77,8 @@ def worker(threads: int, gaussians: list[int], scales: list[float], reps: int, u
         params, color0, depth0, T0 = load_scene(n)
         for s in scales:
             cam = BASE.scaled(s)
-            cases.append((n, s, params, cam, T0, _resize(color0, cam.width, cam.height),
-                          _resize(depth0, cam.width, cam.height)))
+            cases.append((n, s, params, cam, T0, resize(color0, cam.width, cam.height),
+                          resize(depth0, cam.width, cam.height)))
     if not blocks:
         blocks = [k.default_block()] if hasattr(k, "default_block") else [16]
     rec = None
@@ -172,7 +170,6 @@ def worker(threads: int, gaussians: list[int], scales: list[float], reps: int, u
 
 
 def _update_setup():
-    sys.path.insert(0, str(ROOT))
     from eligsir_o3d import Config, Reconstructor
     from eligsir_o3d.datasets import open_sequence
     seq = open_sequence(ROOT.parent / "shared" / "data" / "7scenes_redkitchen_jpg1000")

@@ -1,6 +1,6 @@
 """Host round trips of one mapping update on CUDA: every operation that makes the host wait for the GPU, by source line.
 
-    python benchmarks/cuda_syncs.py --data ../shared/data/7scenes_redkitchen_jpg1000 --frames 12 --updates 20
+    python benchmarks/speed/cuda_syncs.py --data ../shared/data/7scenes_redkitchen_jpg1000 --frames 12 --updates 20
 
 Maps ``--frames`` frames (so the views, microcells and MCMC state are warm), then runs ``--updates`` more updates
 under ``torch.cuda.set_sync_debug_mode("warn")``, which warns at every synchronising call (``.item()``, ``.cpu()``,
@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import traceback
 import warnings
 from collections import Counter
@@ -20,8 +19,7 @@ from pathlib import Path
 
 import torch
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+ROOT = Path(__file__).resolve().parents[2]
 
 import eligsir_o3d as eo3d  # noqa: E402
 from eligsir_o3d.datasets import open_sequence  # noqa: E402

@@ -1,7 +1,7 @@
-"""The long fuzz run (issue 31): the property tests of tests/test_fuzz.py with many random examples.
+"""The long fuzz run (issue 31): the property tests of tests/package/test_fuzz.py with many random examples.
 
-    python benchmarks/fuzz_long.py --examples 2000          # ~10-20 minutes on a quiet 2-core machine
-    python benchmarks/fuzz_long.py --examples 200 --seeded  # the default suite's fixed seed, more examples
+    python benchmarks/reliability/fuzz_long.py --examples 2000          # ~10-20 minutes on a quiet 2-core machine
+    python benchmarks/reliability/fuzz_long.py --examples 200 --seeded  # the default suite's fixed seed, more examples
 
 Prints, per target (PLY, trajectory, intrinsics, --set, config, manifest, image headers, CLI export), how many
 generated inputs were accepted and how many refused with one line; exits non-zero when any property failed.
@@ -15,7 +15,7 @@ import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def main(argv=None) -> int:
@@ -26,12 +26,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     os.environ["ELIGSIR_FUZZ_EXAMPLES"] = str(args.examples)
     os.environ["ELIGSIR_FUZZ_RANDOM"] = "0" if args.seeded else "1"
-    sys.path.insert(0, str(ROOT))
     import pytest
 
     t0 = time.perf_counter()
     extra = ["-k", args.k] if args.k else []
-    code = pytest.main([str(ROOT / "tests" / "test_fuzz.py"), "-q", "-p", "no:cacheprovider", *extra])
+    code = pytest.main([str(ROOT / "tests" / "package" / "test_fuzz.py"), "-q", "-p", "no:cacheprovider", *extra])
     wall = time.perf_counter() - t0
     mod = next((m for name, m in sys.modules.items() if name.endswith("test_fuzz") and hasattr(m, "COUNTS")), None)
     counts = getattr(mod, "COUNTS", {})

@@ -1,0 +1,1 @@
+"""Budget: the cost model, real time under load, memory and latency over a long stream."""

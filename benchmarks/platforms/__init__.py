@@ -1,0 +1,1 @@
+"""Platforms: CUDA and aarch64 machines, recording containers, batch tasks on a local Ray."""

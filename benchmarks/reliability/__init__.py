@@ -1,0 +1,1 @@
+"""Reliability: repeatability, resumption after SIGKILL, the long fuzz run."""
