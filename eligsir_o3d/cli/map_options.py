@@ -11,16 +11,21 @@ from typing import List, Optional
 
 import typer
 
+from ..config import ABLATION_RENAMED
 from ..run.options import COST_MODEL_RULE
+from ..scheduling import ABLATIONS
 from .commands import Renderer
 
 INPUT, POSE, BUDGET, EVAL, OUTPUT, MAPPER = "Input", "Pose", "Budget", "Evaluation", "Output", "Mapper"
 
 
-class Mechanism(str, Enum):
-    views = "views"
-    fidelity = "fidelity"
-    growth = "growth"
+def ablation(value: str) -> str:
+    """One ``--ablate`` value, one of :data:`~eligsir_o3d.scheduling.ABLATIONS`. A first-release spelling
+    (``config.ABLATION_RENAMED``: ``scheduling``) passes through to :func:`~eligsir_o3d.run.options.to_config`, which
+    refuses it with one line naming the new one (as it does for ``eligsir batch``'s ``ablate``)."""
+    if value in ABLATIONS or value in ABLATION_RENAMED:
+        return value
+    raise ValueError(f"{value!r} is not one of {', '.join(map(repr, ABLATIONS))}.")
 
 
 class BadFrame(str, Enum):
@@ -116,8 +121,9 @@ MAPPER_OPTIONS = [
     ("device", Optional[str], _opt(None, "'cpu', 'cuda:0' or 'CUDA:0' (default: the config's, cpu).", MAPPER)),
     ("renderer", Optional[Renderer], _opt(None, "auto: gsplat on CUDA, else the compiled cpu rasteriser (default: "
                                           "the config's, auto).", MAPPER)),
-    ("ablate", List[Mechanism], _opt([], "Swap a mechanism for its plain policy (repeatable; default: the config's, "
-                                     "none).", MAPPER)),
+    ("ablate", List[str], _opt([], "Swap a mechanism for its plain policy (repeatable; default: the config's, "
+                               "none).", MAPPER, parser=ablation,
+                               metavar="[" + "|".join(ABLATIONS) + "]")),
     ("seed", Optional[int], _opt(None, "Random seed (default: the config's, 0).", MAPPER)),
 ]
 PANELS = [INPUT_OPTIONS, POSE_OPTIONS, BUDGET_OPTIONS, EVAL_OPTIONS, OUTPUT_OPTIONS, MAPPER_OPTIONS]
@@ -142,7 +148,7 @@ def map_options(kw: dict):
 
     value = lambda v: v.value if isinstance(v, Enum) else v  # noqa: E731
     o = MapOptions(**{k: value(v) for k, v in kw.items() if k not in CLI_ONLY and k != "ablate"})
-    o.ablate = tuple(a.value for a in kw["ablate"])
+    o.ablate = tuple(kw["ablate"])
     o.config = str(kw["config"]) if kw["config"] else None
     o.overrides = list(kw["set_"])
     o.progress = not kw["quiet"]
