@@ -181,6 +181,8 @@ def common_auc(metrics: dict, p0: float) -> float | None:
 
 
 SPREAD_COLUMNS = ("psnr", "cvq_auc", "cuc20")  # shown with +- the seeds' sd
+
+
 def spatial_figures(out: Path, variants: list[str], seeds: list[int] | None, results: dict) -> dict[str, dict]:
     """Per ablation variant: the cell-by-cell comparison with the full run of each seed (``OUT/spatial-<variant>
     [-s<seed>]``) and its figures' mean and sd over the seeds (``eligsir_o3d.eval.spatial.spatial_table``)."""
@@ -211,41 +213,6 @@ def format_table(rows: dict[str, dict]) -> str:
                 cells.append(fmt.format(int(round(v)) if fmt == "{:d}" else float(v)))
         lines.append(f"| {LABELS.get(variant, variant)} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
-
-
-def plot_fidelity_trace(results: dict[str, dict], path: Path, trace: list[dict]) -> Path | None:
-    """Backlog, chosen scale and cumulative supervised pixels over updates (the paper's Fig. 6); ``trace``: the
-    full variant's fidelity trace (its results folder's fidelity_trace.csv)."""
-    if not trace:
-        return None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    u = [d["update"] for d in trace]
-    fig, axes = plt.subplots(3, 1, figsize=(7, 6.5), sharex=True)
-    axes[0].plot(u, [d["backlog"] for d in trace], lw=0.6, color="0.6", label="backlog")
-    axes[0].plot(u, [d["backlog_ema"] for d in trace], lw=1.2, color="tab:red", label="smoothed")
-    axes[0].set_ylabel("backlog [frames]")
-    axes[0].legend(loc="upper right", fontsize=8)
-    axes[1].step(u, [d["scale"] for d in trace], where="post", color="tab:blue")
-    axes[1].set_yscale("log", base=2)
-    axes[1].set_yticks([0.125, 0.25, 0.5, 1.0], ["1/8", "1/4", "1/2", "1"])
-    axes[1].set_ylabel("supervision scale")
-    axes[2].plot(u, [d["supervised_mpix"] for d in trace], color="tab:blue", label="EliGSiR")
-    fixed = (results.get("fidelity") or {}).get("curve") or []
-    pts = [(r["updates"], r["supervised_mpix"]) for r in fixed if r.get("supervised_mpix") is not None]
-    if pts:
-        axes[2].plot(*zip(*pts), "--", color="tab:orange", label="w/o adaptive fidelity")
-    axes[2].set_ylabel("supervised pixels [MPix]")
-    axes[2].set_xlabel("optimisation update")
-    axes[2].legend(loc="upper left", fontsize=8)
-    fig.suptitle("Load-Adaptive Fidelity: backlog, scale and cumulative supervision")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
 
 
 def mean_row(rows: list[dict]) -> dict:
@@ -340,11 +307,13 @@ def main(argv=None) -> int:
     (out / "table.json").write_text(json.dumps({"command": cmd, "rows": rows, "criteria": checks, "spatial": spatial,
                                                 "runs": {f"{v}" + ("" if s is None else f"-s{s}"): r
                                                          for (v, s), r in per_run.items()}}, indent=1))
+    from eligsir_o3d.eval.plots import fidelity_trace_plot
     from eligsir_o3d.run.results import read_fidelity_trace
 
     first = ("full", seeds[0] if seeds else None)
     trace = read_fidelity_trace(run_dir(out, *first)) if first in results else []
-    fig = plot_fidelity_trace({v: results.get((v, first[1])) for v in variants}, out / "fidelity_trace.png", trace)
+    fixed_curve = (results.get(("fidelity", first[1])) or {}).get("curve")  # fixed native resolution, same seed
+    fig = fidelity_trace_plot(trace, out / "fidelity_trace.png", fixed_curve)
     print(table)
     for c in checks:
         print(c)

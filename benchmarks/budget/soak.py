@@ -59,9 +59,9 @@ import eligsir_o3d as eo3d  # noqa: E402
 from eligsir_o3d.budget import CostModel  # noqa: E402
 from eligsir_o3d.datasets.synthetic import SyntheticRoom, look_at  # noqa: E402
 from eligsir_o3d.core.frame import Frame  # noqa: E402
-from eligsir_o3d.budget.memory import current_rss_mb, map_memory_mb, peak_rss_mb, views_memory_mb  # noqa: E402
+from eligsir_o3d.budget.memory import (cap_allowance_mb, current_rss_mb, map_memory_mb, peak_rss_mb,  # noqa: E402
+                                       reset_peak_rss, retained_views_bound, structure_sizes, views_memory_mb)
 
-MIB = 1024.0 * 1024.0
 KITCHEN = "../shared/data/7scenes_redkitchen_jpg1000"
 
 
@@ -91,56 +91,14 @@ def synthetic_frames(n: int, width: int, height: int, loop: int, fps: float = 30
     return room, frames()
 
 
-def reset_peak_rss() -> bool:
-    """Restart the peak RSS count (Linux: ``/proc/self/clear_refs`` 5 resets the high-water mark that ``getrusage``
-    reports), so a run inside a longer process (a test session) measures its own peak. False where unsupported."""
-    try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return True
-    except OSError:
-        return False
-
-
-# ---- what the caps allow -----------------------------------------------------------------------------------------
-def floats_per_gaussian(sh_degree: int) -> int:
-    """means 3 + scales 3 + quats 4 + opacity 1 + SH 3 * (sh_degree + 1)^2."""
-    return 11 + 3 * (sh_degree + 1) ** 2
-
-
-def cap_allowance_mb(cfg, width: int, height: int) -> dict:
-    """MiB that the configured caps allow the map and the retained views to hold (see the module docstring)."""
-    per_gaussian = floats_per_gaussian(cfg.sh_degree) * 4 * 4 * 2  # bytes: 4 copies, x2 transient
-    views = max_views(cfg)
-    return {"gaussians_mb": cfg.max_gaussians * per_gaussian / MIB,
-            "views_mb": views * width * height * 16 * (4 / 3) / MIB,
-            "bytes_per_gaussian": per_gaussian, "max_gaussians": cfg.max_gaussians, "max_views": views}
-
-
-def max_views(cfg) -> int:
-    """The retained-view bound of the view policy the config builds (plain policy when views are ablated)."""
-    return cfg.keyframes.max_views if "views" in cfg.ablate else cfg.views.max_views
-
-
+# ---- what the caps allow (eligsir_o3d.budget.memory.cap_allowance_mb) -----------------------------------------------------------------------------------------
 def caps_line(cfg) -> str:
-    return (f"caps: max_gaussians={cfg.max_gaussians} views.max_views={max_views(cfg)} "
+    return (f"caps: max_gaussians={cfg.max_gaussians} views.max_views={retained_views_bound(cfg)} "
             f"views.active_size={cfg.views.active_size} growth.max_seeds_per_frame={cfg.growth.max_seeds_per_frame} "
             f"growth.max_insert_per_frame={cfg.growth.max_insert_per_frame} "
             f"fidelity.trace_max={getattr(cfg.fidelity, 'trace_max', None)} "
             f"evidence voxel {cfg.growth.voxel_size} m, microcell {cfg.views.cells.cell_size} m (bounded by the "
             f"scene's extent, not by a count)")
-
-
-def structure_sizes(rec) -> dict:
-    """Sizes of the policy structures that could grow with the stream."""
-    sizes = {"gaussians": len(rec.gmap), "views": len(rec.views.views)}
-    growth_voxels = getattr(rec.growth, "voxels", None)
-    cells = getattr(rec.views, "cells", None)
-    trace = getattr(rec.fidelity, "trace", None)
-    sizes["evidence_voxels"] = len(growth_voxels) if growth_voxels is not None else None
-    sizes["microcells"] = len(cells) if cells is not None else None
-    sizes["fidelity_trace"] = len(trace) if trace is not None else None
-    return sizes
 
 
 # ---- the synthetic soak ------------------------------------------------------------------------------------------

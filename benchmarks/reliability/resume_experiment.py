@@ -168,7 +168,33 @@ def main() -> None:
         return child(args)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "checkpoint.pt").unlink(missing_ok=True)
+    wall, lines, last_ck = three_runs(args)
 
+    import torch
+
+    a = json.loads((args.out / "reference" / "result.json").read_text())
+    b = json.loads((args.out / "resumed" / "result.json").read_text())
+    pa, pb = torch.load(args.out / "reference" / "params.pt"), torch.load(args.out / "resumed" / "params.pt")
+    identical = pa.keys() == pb.keys() and all(pa[k].shape == pb[k].shape and torch.equal(pa[k], pb[k]) for k in pa)
+    exp, wall["export"] = export_and_pictures(args)
+    geometry = geometry_vs_sensor(args.data, args.frames, args.out / "mesh.ply", args.out / "cloud.ply")
+    results = {
+        "data": args.data, "frames": args.frames, "updates_per_frame": args.updates,
+        "checkpoint_every_source_frames": args.every, "killed_after_source_frames": args.kill_at,
+        "last_checkpoint_before_kill": last_ck, "recomputed_source_frames": args.kill_at - last_ck,
+        "reference": a, "resumed": b, "params_identical": identical,
+        "psnr_difference_db": b["heldout_psnr"] - a["heldout_psnr"],
+        "wall_s": wall, "export": exp, "geometry_vs_heldout_sensor_depth_m": geometry,
+    }
+    (args.out / "results.json").write_text(json.dumps(results, indent=1))
+    md = summary_lines(args, results, sum(line.startswith("checkpoint") for line in lines))
+    (args.out / "summary.md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+
+
+def three_runs(args) -> tuple[dict, list[str], int]:
+    """The reference run, the run SIGKILLed after ``--kill-at`` source frames and its resumption: wall times (s),
+    the killed run's output lines and the source frame of its last checkpoint."""
     t0 = time.perf_counter()
     ref = _spawn(args, args.out / "reference", "--every", "0")
     _finish(ref, args.out / "reference.log")
@@ -193,28 +219,25 @@ def main() -> None:
     res = _spawn(args, args.out / "resumed", "--every", str(args.every), "--resume")
     _finish(res, args.out / "resumed.log")
     resumed_s = time.perf_counter() - t0
+    return {"reference": ref_s, "killed": killed_s, "resume": resumed_s}, lines, last_ck
 
-    import torch
 
-    a = json.loads((args.out / "reference" / "result.json").read_text())
-    b = json.loads((args.out / "resumed" / "result.json").read_text())
-    pa, pb = torch.load(args.out / "reference" / "params.pt"), torch.load(args.out / "resumed" / "params.pt")
-    identical = pa.keys() == pb.keys() and all(pa[k].shape == pb[k].shape and torch.equal(pa[k], pb[k]) for k in pa)
+def export_and_pictures(args) -> tuple[dict, float]:
+    """The resumed map exported to mesh.ply and cloud.ply, and two PNGs of the mesh (a step behind the first camera,
+    an overview from behind and above the cameras); (the export's summary, its wall time in s)."""
+    import open3d as o3d
 
     from eligsir_o3d.core.camera import Camera
+    from eligsir_o3d.datasets.base import read_tum_trajectory
     from eligsir_o3d.export import export_from_ply, look_at
 
     t0 = time.perf_counter()
     exp = export_from_ply(args.out / "resumed" / "map.ply", mesh_path=args.out / "mesh.ply",
                           cloud_path=args.out / "cloud.ply", voxel_size=args.voxel_size, depth_max=4.0)
     export_s = time.perf_counter() - t0
-    from eligsir_o3d.datasets.base import read_tum_trajectory
-
     _, poses = read_tum_trajectory(args.out / "resumed" / "trajectory.txt")
     cam = Camera(**exp["camera"])
     centres = np.stack([T[:3, 3] for T in poses])
-    import open3d as o3d
-
     bbox = o3d.io.read_triangle_mesh(str(args.out / "mesh.ply")).get_axis_aligned_bounding_box()
     centre = bbox.get_center()
     back = poses[0].copy()
@@ -223,44 +246,38 @@ def main() -> None:
     up = -np.asarray(poses[0][:3, 1])  # OpenCV y points down in the image
     eye = centre + 1.5 * (centres.mean(0) - centre) + 1.0 * up  # behind and above the cameras
     render_mesh_png(args.out / "mesh.ply", args.out / "mesh_overview.png", look_at(eye, centre, up=up), cam)
+    return exp, export_s
 
-    geometry = geometry_vs_sensor(args.data, args.frames, args.out / "mesh.ply", args.out / "cloud.ply")
-    results = {
-        "data": args.data, "frames": args.frames, "updates_per_frame": args.updates,
-        "checkpoint_every_source_frames": args.every, "killed_after_source_frames": args.kill_at,
-        "last_checkpoint_before_kill": last_ck, "recomputed_source_frames": args.kill_at - last_ck,
-        "reference": a, "resumed": b, "params_identical": identical,
-        "psnr_difference_db": b["heldout_psnr"] - a["heldout_psnr"],
-        "wall_s": {"reference": ref_s, "killed": killed_s, "resume": resumed_s, "export": export_s},
-        "export": exp, "geometry_vs_heldout_sensor_depth_m": geometry,
-    }
-    (args.out / "results.json").write_text(json.dumps(results, indent=1))
+
+def summary_lines(args, results: dict, written_before_kill: int) -> list[str]:
+    """summary.md, line by line, from results.json's dict."""
+    a, b, exp, geometry = results["reference"], results["resumed"], results["export"], \
+        results["geometry_vs_heldout_sensor_depth_m"]
+    last_ck, wall = results["last_checkpoint_before_kill"], results["wall_s"]
     ck = b["checkpoints"]  # the resumed process's own saves (those of the killed one are in killed.log)
-    written_before_kill = sum(line.startswith("checkpoint") for line in lines)
-    md = [f"# Resume after SIGKILL: {Path(args.data).name}, first {args.frames} frames",
-          "",
-          f"- killed (SIGKILL) after {args.kill_at} source frames; last checkpoint at {last_ck}; "
-          f"{args.kill_at - last_ck} frames recomputed on resume",
-          f"- held-out PSNR: reference {a['heldout_psnr']:.3f} dB, resumed {b['heldout_psnr']:.3f} dB "
-          f"(difference {results['psnr_difference_db']:+.3f} dB); depth RMSE {a['heldout_depth_rmse_m']:.3f} / "
-          f"{b['heldout_depth_rmse_m']:.3f} m",
-          f"- final Gaussian parameters bit-identical: {identical}; frames released {a['frames_released']} / "
-          f"{b['frames_released']}; updates {a['updates']} / {b['updates']}; Gaussians {a['gaussians']} / "
-          f"{b['gaussians']}",
-          f"- checkpoints (views as sequence references): {written_before_kill} written before the kill, "
-          f"{len(ck)} after; {np.mean([c['seconds'] for c in ck]):.3f} s and "
-          f"{np.mean([c['bytes'] for c in ck]) / 1e6:.2f} MB each" if ck else "- no checkpoints",
-          f"- wall time: reference {ref_s:.0f} s, killed run {killed_s:.0f} s, resumed run {resumed_s:.0f} s",
-          f"- export: {exp['views']} views ({exp['view_source']}), mesh {exp['vertices']} vertices / "
-          f"{exp['triangles']} triangles, cloud {exp['points']} points, {export_s:.1f} s",
-          "- exported geometry vs held-out sensor depth (median / p90, cm): mesh->sensor "
-          f"{100 * geometry['mesh_to_sensor']['median']:.1f} / {100 * geometry['mesh_to_sensor']['p90']:.1f}, "
-          f"sensor->mesh {100 * geometry['sensor_to_mesh']['median']:.1f} / "
-          f"{100 * geometry['sensor_to_mesh']['p90']:.1f}, cloud->sensor "
-          f"{100 * geometry['cloud_to_sensor']['median']:.1f} / {100 * geometry['cloud_to_sensor']['p90']:.1f}",
-          f"- peak RSS: reference {a['peak_rss_mb']:.0f} MB, resumed {b['peak_rss_mb']:.0f} MB"]
-    (args.out / "summary.md").write_text("\n".join(md) + "\n")
-    print("\n".join(md))
+    return [f"# Resume after SIGKILL: {Path(args.data).name}, first {args.frames} frames",
+            "",
+            f"- killed (SIGKILL) after {args.kill_at} source frames; last checkpoint at {last_ck}; "
+            f"{args.kill_at - last_ck} frames recomputed on resume",
+            f"- held-out PSNR: reference {a['heldout_psnr']:.3f} dB, resumed {b['heldout_psnr']:.3f} dB "
+            f"(difference {results['psnr_difference_db']:+.3f} dB); depth RMSE {a['heldout_depth_rmse_m']:.3f} / "
+            f"{b['heldout_depth_rmse_m']:.3f} m",
+            f"- final Gaussian parameters bit-identical: {results['params_identical']}; frames released "
+            f"{a['frames_released']} / {b['frames_released']}; updates {a['updates']} / {b['updates']}; Gaussians "
+            f"{a['gaussians']} / {b['gaussians']}",
+            f"- checkpoints (views as sequence references): {written_before_kill} written before the kill, "
+            f"{len(ck)} after; {np.mean([c['seconds'] for c in ck]):.3f} s and "
+            f"{np.mean([c['bytes'] for c in ck]) / 1e6:.2f} MB each" if ck else "- no checkpoints",
+            f"- wall time: reference {wall['reference']:.0f} s, killed run {wall['killed']:.0f} s, resumed run "
+            f"{wall['resume']:.0f} s",
+            f"- export: {exp['views']} views ({exp['view_source']}), mesh {exp['vertices']} vertices / "
+            f"{exp['triangles']} triangles, cloud {exp['points']} points, {wall['export']:.1f} s",
+            "- exported geometry vs held-out sensor depth (median / p90, cm): mesh->sensor "
+            f"{100 * geometry['mesh_to_sensor']['median']:.1f} / {100 * geometry['mesh_to_sensor']['p90']:.1f}, "
+            f"sensor->mesh {100 * geometry['sensor_to_mesh']['median']:.1f} / "
+            f"{100 * geometry['sensor_to_mesh']['p90']:.1f}, cloud->sensor "
+            f"{100 * geometry['cloud_to_sensor']['median']:.1f} / {100 * geometry['cloud_to_sensor']['p90']:.1f}",
+            f"- peak RSS: reference {a['peak_rss_mb']:.0f} MB, resumed {b['peak_rss_mb']:.0f} MB"]
 
 
 if __name__ == "__main__":

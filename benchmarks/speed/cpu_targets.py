@@ -56,37 +56,25 @@ def _label(t: str) -> str:
 
 def worker(threads: int, gaussians: list[int], scales: list[float], reps: int, update: bool,
            blocks: list[int]) -> None:
+    """One target's worker: loads the scenes, prints its info line, then one JSON line of timings per stdin line."""
     import numba
     import numpy as np
     import torch
-    from benchmarks.speed.render import BASE, load_scene, resize  # PYTHONPATH=the target's root (target_env)
 
     from eligsir_o3d.render import cpu_backend as cb
-    from eligsir_o3d.render.cpu_backend import CpuRenderer, bin_tiles_csr, project_cpu, warmup
 
     torch.set_num_threads(threads)
     numba.set_num_threads(threads)
     clock = time.thread_time if threads == 1 else time.perf_counter
-    first_call = warmup()
-    k = cb._kernels()
-    pk = cb._proj_kernels()
-    from eligsir_o3d.optim import dssim_kernels as dk
-    from eligsir_o3d.optim.losses import _window
-    cases = []
-    for n in gaussians:
-        params, color0, depth0, T0 = load_scene(n)
-        for s in scales:
-            cam = BASE.scaled(s)
-            cases.append((n, s, params, cam, T0, resize(color0, cam.width, cam.height),
-                          resize(depth0, cam.width, cam.height)))
+    first_call = cb.warmup()
+    kern = _kernels()
+    cases = _cases(gaussians, scales)
     if not blocks:
-        blocks = [k.default_block()] if hasattr(k, "default_block") else [16]
-    rec = None
-    if update:
-        rec = _update_setup()
+        blocks = [kern.k.default_block()] if hasattr(kern.k, "default_block") else [16]
+    rec = _update_setup() if update else None
     info = {"numba_cpu_name": numba.config.CPU_NAME or "host", "threads": threads, "first_call_s": first_call}
-    if hasattr(k, "default_block"):
-        info["default_block"] = k.default_block()
+    if hasattr(kern.k, "default_block"):
+        info["default_block"] = kern.k.default_block()
     print(json.dumps({"info": info}), flush=True)
 
     def best(fn):
@@ -99,65 +87,10 @@ def worker(threads: int, gaussians: list[int], scales: list[float], reps: int, u
 
     for _line in sys.stdin:
         rows = []
-        for n, s, params, cam, T0, rgb, dep in cases:
-            row = {"gaussians": n, "scale": s}
-            # the kernels alone, on this view's inputs
-            with torch.no_grad():
-                proj = project_cpu(params["means"], params["quats"], params["scales"], cam, T0)
-                offsets, flat, tiles_x = bin_tiles_csr(proj, cam.width, cam.height)
-            f32 = np.float32
-            m, c = proj.means2d.numpy().astype(f32), proj.conics.numpy().astype(f32)
-            o = params["opacities"].numpy().astype(f32)
-            feats = np.concatenate([params["colors"].numpy(), proj.depths.numpy()[:, None]], 1).astype(f32)
-            order = np.argsort(-(offsets[1:] - offsets[:-1]).numpy(), kind="stable")
-            bounds = np.empty((m.shape[0], 3), f32)
-            k.cull_bounds(c, o, bounds)
-            H, W = cam.height, cam.width
-            of, oa, oT, ol = (np.empty((H, W, 4), f32), np.empty((H, W), f32), np.empty((H, W), f32),
-                              np.empty((H, W), np.int32))
-            off, fl = offsets.numpy(), flat.numpy()
-            gf, ga = np.full((H, W, 4), 0.01, f32), np.full((H, W), 0.01, f32)
-            v = np.empty((fl.shape[0], 10), f32)
-            for blk in blocks:
-                sfx = "" if blk == blocks[0] else f"_{blk}"
-                comp = getattr(cb, "_compositors", None) or getattr(k, "compositors", None)  # by code version
-                renderer = CpuRenderer(block=blk) if comp is not None else CpuRenderer()
-                ps = {kk: vv.clone().requires_grad_(True) for kk, vv in params.items()}
-                bg = torch.zeros(3)
-
-                def fwd():
-                    return renderer.render(ps["means"], ps["quats"], ps["scales"], ps["opacities"], ps["colors"],
-                                           cam, T0, background=bg)
-
-                def fwdbwd():
-                    out = fwd()
-                    valid = dep > 0
-                    loss = (out.color - rgb).abs().mean() + 0.1 * (out.depth - dep)[valid].abs().mean()
-                    loss.backward()
-                    for p in ps.values():
-                        p.grad = None
-
-                row["fwd" + sfx] = best(fwd)
-                row["fwdbwd" + sfx] = best(fwdbwd)
-                kf, kb = comp(blk) if comp is not None else (k.composite_forward, k.composite_backward)
-                row["comp_fwd" + sfx] = best(lambda: k.run(kf, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
-                                                           of, oa, oT, ol))
-                row["comp_bwd" + sfx] = best(lambda: k.run(kb, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
-                                                           oT, ol, gf, ga, v))
-            V = cb.world_to_cam(T0, "cpu", torch.float32).double().numpy()
-            camv = np.array([cam.fx, cam.fy, cam.cx, cam.cy, W, H, cb.NEAR, cb.EPS2D])
-            mq, qq, sq = (params[kk].numpy().astype(f32) for kk in ("means", "quats", "scales"))
-            nn = mq.shape[0]
-            o2, o3, o1, orad = np.empty((nn, 2), f32), np.empty((nn, 3), f32), np.empty(nn, f32), np.empty(nn, np.int32)
-            row["proj_fwd"] = best(lambda: pk.project_forward(mq, qq, sq, V, camv, o2, o3, o1, orad))
-            g2, g3, g1 = np.full((nn, 2), 0.1, f32), np.full((nn, 3), 0.1, f32), np.full(nn, 0.1, f32)
-            r3, r4, r3b = np.empty((nn, 3), f32), np.empty((nn, 4), f32), np.empty((nn, 3), f32)
-            row["proj_bwd"] = best(lambda: pk.project_backward(mq, qq, sq, V, camv, g2, g3, g1, r3, r4, r3b))
-            x = np.ascontiguousarray(rgb.permute(2, 0, 1).numpy(), f32)
-            y = np.ascontiguousarray(np.clip(x + 0.05, 0, 1), f32)
-            win = np.asarray(_window(11, 1.5), f32)
-            grad = np.empty_like(x)
-            row["dssim"] = best(lambda: dk.dssim_value_and_grad(x, y, win, grad))
+        for case in cases:
+            row = {"gaussians": case[0], "scale": case[1]}
+            _time_compositing(row, case, blocks, kern, best)
+            _time_projection_and_dssim(row, case, kern, best)
             rows.append(row)
         if rec is not None:
             ts = []
@@ -167,6 +100,107 @@ def worker(threads: int, gaussians: list[int], scales: list[float], reps: int, u
                 ts.append(clock() - t0)
             rows.append({"update_q": float(np.median(ts)), "update_gaussians": len(rec.gmap)})
         print(json.dumps({"rows": rows}), flush=True)
+
+
+def _kernels():
+    """The compiled kernels a worker times (of the code on its PYTHONPATH)."""
+    from types import SimpleNamespace
+
+    from eligsir_o3d.optim import dssim_kernels
+    from eligsir_o3d.optim.losses import _window
+    from eligsir_o3d.render import cpu_backend as cb
+
+    return SimpleNamespace(cb=cb, k=cb._kernels(), pk=cb._proj_kernels(), dk=dssim_kernels, window=_window)
+
+
+def _cases(gaussians: list[int], scales: list[float]) -> list[tuple]:
+    """(gaussians, scale, params, camera, T_world_cam, colour [H, W, 3], depth [H, W]) of every scene and scale."""
+    from benchmarks.speed.render import BASE, load_scene, resize  # PYTHONPATH=the target's root (target_env)
+
+    cases = []
+    for n in gaussians:
+        params, color0, depth0, T0 = load_scene(n)
+        for s in scales:
+            cam = BASE.scaled(s)
+            cases.append((n, s, params, cam, T0, resize(color0, cam.width, cam.height),
+                          resize(depth0, cam.width, cam.height)))
+    return cases
+
+
+def _time_compositing(row: dict, case: tuple, blocks: list[int], kern, best) -> None:
+    """The renderer's forward and forward + backward, and the compositing kernels alone, per block size."""
+    import numpy as np
+    import torch
+
+    from eligsir_o3d.render.cpu_backend import CpuRenderer, bin_tiles_csr, project_cpu
+
+    _, _, params, cam, T0, rgb, dep = case
+    cb, k = kern.cb, kern.k
+    with torch.no_grad():  # the kernels alone, on this view's inputs
+        proj = project_cpu(params["means"], params["quats"], params["scales"], cam, T0)
+        offsets, flat, tiles_x = bin_tiles_csr(proj, cam.width, cam.height)
+    f32 = np.float32
+    m, c = proj.means2d.numpy().astype(f32), proj.conics.numpy().astype(f32)
+    o = params["opacities"].numpy().astype(f32)
+    feats = np.concatenate([params["colors"].numpy(), proj.depths.numpy()[:, None]], 1).astype(f32)
+    order = np.argsort(-(offsets[1:] - offsets[:-1]).numpy(), kind="stable")
+    bounds = np.empty((m.shape[0], 3), f32)
+    k.cull_bounds(c, o, bounds)
+    H, W = cam.height, cam.width
+    of, oa, oT, ol = (np.empty((H, W, 4), f32), np.empty((H, W), f32), np.empty((H, W), f32),
+                      np.empty((H, W), np.int32))
+    off, fl = offsets.numpy(), flat.numpy()
+    gf, ga = np.full((H, W, 4), 0.01, f32), np.full((H, W), 0.01, f32)
+    v = np.empty((fl.shape[0], 10), f32)
+    for blk in blocks:
+        sfx = "" if blk == blocks[0] else f"_{blk}"
+        comp = getattr(cb, "_compositors", None) or getattr(k, "compositors", None)  # by code version
+        renderer = CpuRenderer(block=blk) if comp is not None else CpuRenderer()
+        ps = {kk: vv.clone().requires_grad_(True) for kk, vv in params.items()}
+        bg = torch.zeros(3)
+
+        def fwd():
+            return renderer.render(ps["means"], ps["quats"], ps["scales"], ps["opacities"], ps["colors"],
+                                   cam, T0, background=bg)
+
+        def fwdbwd():
+            out = fwd()
+            valid = dep > 0
+            loss = (out.color - rgb).abs().mean() + 0.1 * (out.depth - dep)[valid].abs().mean()
+            loss.backward()
+            for p in ps.values():
+                p.grad = None
+
+        row["fwd" + sfx] = best(fwd)
+        row["fwdbwd" + sfx] = best(fwdbwd)
+        kf, kb = comp(blk) if comp is not None else (k.composite_forward, k.composite_backward)
+        row["comp_fwd" + sfx] = best(lambda: k.run(kf, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
+                                                   of, oa, oT, ol))
+        row["comp_bwd" + sfx] = best(lambda: k.run(kb, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
+                                                   oT, ol, gf, ga, v))
+
+
+def _time_projection_and_dssim(row: dict, case: tuple, kern, best) -> None:
+    """The projection kernels (forward, backward) and the D-SSIM kernel, on this view's inputs."""
+    import numpy as np
+    import torch
+
+    _, _, params, cam, T0, rgb, _ = case
+    cb, pk, f32 = kern.cb, kern.pk, np.float32
+    V = cb.world_to_cam(T0, "cpu", torch.float32).double().numpy()
+    camv = np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cb.NEAR, cb.EPS2D])
+    mq, qq, sq = (params[kk].numpy().astype(f32) for kk in ("means", "quats", "scales"))
+    nn = mq.shape[0]
+    o2, o3, o1, orad = np.empty((nn, 2), f32), np.empty((nn, 3), f32), np.empty(nn, f32), np.empty(nn, np.int32)
+    row["proj_fwd"] = best(lambda: pk.project_forward(mq, qq, sq, V, camv, o2, o3, o1, orad))
+    g2, g3, g1 = np.full((nn, 2), 0.1, f32), np.full((nn, 3), 0.1, f32), np.full(nn, 0.1, f32)
+    r3, r4, r3b = np.empty((nn, 3), f32), np.empty((nn, 4), f32), np.empty((nn, 3), f32)
+    row["proj_bwd"] = best(lambda: pk.project_backward(mq, qq, sq, V, camv, g2, g3, g1, r3, r4, r3b))
+    x = np.ascontiguousarray(rgb.permute(2, 0, 1).numpy(), f32)
+    y = np.ascontiguousarray(np.clip(x + 0.05, 0, 1), f32)
+    win = np.asarray(kern.window(11, 1.5), f32)
+    grad = np.empty_like(x)
+    row["dssim"] = best(lambda: kern.dk.dssim_value_and_grad(x, y, win, grad))
 
 
 def _update_setup():

@@ -1,4 +1,5 @@
-"""PNG plots of one run's metrics (matplotlib, Agg canvas, imported lazily; no pyplot global state)."""
+"""PNG plots of one run's metrics, and the fidelity trace of the ablation table (matplotlib, Agg canvas, imported
+lazily; no pyplot global state)."""
 
 from __future__ import annotations
 
@@ -114,3 +115,37 @@ def write_plots(metrics: dict, out_dir, cells: dict | None = None) -> list[Path]
     if cells:
         paths.append(_cell_map(cells, out / "cell_psnr_topdown.png"))
     return paths
+
+
+def fidelity_trace_plot(trace: list[dict], path, fixed_curve: list[dict] | None = None) -> Path | None:
+    """Backlog, chosen scale and cumulative supervised pixels over updates (the paper's Fig. 6), as a PNG at ``path``.
+
+    trace: a fidelity trace (a results folder's fidelity_trace.csv as
+    :func:`~eligsir_o3d.run.results.read_fidelity_trace` reads it: update, backlog, backlog_ema, scale,
+    supervised_mpix per row). fixed_curve: the checkpoint curve (metrics.json
+    ``curve``: updates, supervised_mpix) of the fixed-resolution ablation, drawn beside it. None without a trace.
+    """
+    if not trace:
+        return None
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 6.5), dpi=120, layout="constrained")
+    axes = fig.subplots(3, 1, sharex=True)
+    u = [d["update"] for d in trace]
+    axes[0].plot(u, [d["backlog"] for d in trace], lw=0.6, color="0.6", label="backlog")
+    axes[0].plot(u, [d["backlog_ema"] for d in trace], lw=1.2, color="tab:red", label="smoothed")
+    axes[0].set_ylabel("backlog [frames]")
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[1].step(u, [d["scale"] for d in trace], where="post", color="tab:blue")
+    axes[1].set_yscale("log", base=2)
+    axes[1].set_yticks([0.125, 0.25, 0.5, 1.0], ["1/8", "1/4", "1/2", "1"])
+    axes[1].set_ylabel("supervision scale")
+    axes[2].plot(u, [d["supervised_mpix"] for d in trace], color="tab:blue", label="EliGSiR")
+    pts = [(r["updates"], r["supervised_mpix"]) for r in fixed_curve or [] if r.get("supervised_mpix") is not None]
+    if pts:
+        axes[2].plot(*zip(*pts), "--", color="tab:orange", label="w/o adaptive fidelity")
+    axes[2].set_ylabel("supervised pixels [MPix]")
+    axes[2].set_xlabel("optimisation update")
+    axes[2].legend(loc="upper left", fontsize=8)
+    fig.suptitle("Load-Adaptive Fidelity: backlog, scale and cumulative supervision")
+    return _save(fig, Path(path))

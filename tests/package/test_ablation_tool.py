@@ -61,3 +61,24 @@ def test_single_runs_keep_the_variant_folders(ablation, tmp_path, capsys):
 def test_bad_seeds_are_named(ablation, tmp_path):
     with pytest.raises(SystemExit, match="--seeds"):
         ablation.main(["--out", str(tmp_path), "--table-only", "--seeds", "0,x"])
+
+
+def test_the_fidelity_trace_figure_is_drawn_beside_the_fixed_resolution_curve(ablation, tmp_path, capsys):
+    """Fig. 6 (eligsir_o3d.eval.plots.fidelity_trace_plot): the full run's fidelity_trace.csv, the fixed-resolution
+    run's supervised pixels from its curve; a PNG of 7 x 6.5 inches at 120 dpi."""
+    from eligsir_o3d.run.results import write_side_files
+
+    _write(tmp_path / "full", 21.0, 19.0, 10, 20, 5.0)
+    _write(tmp_path / "fidelity", 20.0, 18.0, 8, 20, 20.0)
+    fixed = json.loads((tmp_path / "fidelity" / "metrics.json").read_text())
+    fixed["curve"] = [{"progress": p, "cvq": 18.0, "updates": 5 * k, "supervised_mpix": 2.0 * k}
+                      for k, p in enumerate((0.1, 0.5, 1.0), 1)]
+    (tmp_path / "fidelity" / "metrics.json").write_text(json.dumps(fixed))
+    trace = [{"update": u, "backlog": u % 3, "backlog_ema": 1.0, "scale": 0.25 if u < 5 else 1.0,
+              "supervised_mpix": 0.1 * u} for u in range(10)]
+    write_side_files(tmp_path / "full", None, trace)
+    assert ablation.main(["--out", str(tmp_path), "--table-only", "--variants", "full,fidelity"]) == 0
+    png = (tmp_path / "fidelity_trace.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")) == (840, 780)
+    assert f"fidelity trace: {tmp_path / 'fidelity_trace.png'}" in capsys.readouterr().out

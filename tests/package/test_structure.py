@@ -1,6 +1,7 @@
 """The package's shape: no import circle between its modules (counting imports inside functions too, which
 only hide a circle), no module over 350 lines, no function over 80 lines outside the compiled kernels, and no
-``_private`` name imported from another package."""
+``_private`` name imported from another package. The scripts beside it (tools/*.py, benchmarks/**/*.py) keep the
+same line limits, edit no ``sys.path``, and every benchmark is a module named in benchmarks/README.md."""
 
 import ast
 from pathlib import Path
@@ -143,3 +144,64 @@ def test_the_private_import_check_fails_on_a_cross_package_import(tmp_path, monk
     monkeypatch.setattr(Path, "read_text", lambda self, *a, **k: text if self == bad else Path.read_bytes(self).decode())
     hits = _private_imports(bad)
     assert len(hits) == 2 and "render._cpu_kernels" in hits[0] and "export._private_helper" in hits[1], hits
+
+
+# ---- the scripts beside the package: tools/*.py and benchmarks/**/*.py -------------------------------------------
+REPO = PKG.parent
+SCRIPTS = sorted([*(REPO / "tools").glob("*.py"), *(REPO / "benchmarks").rglob("*.py")])
+# functions over the limit, by "path:name"; update_time.py is being edited on main this session (split it after)
+KNOWN_LONG_SCRIPT_FUNCTIONS = {"benchmarks/speed/update_time.py:main"}
+
+
+def test_the_script_checks_see_the_scripts():
+    names = {str(p.relative_to(REPO)) for p in SCRIPTS}
+    assert {"tools/ablation.py", "benchmarks/budget/soak.py", "benchmarks/speed/render.py"} <= names, names
+
+
+def test_no_script_is_over_350_lines():
+    long = {str(p.relative_to(REPO)): n for p in SCRIPTS if (n := len(p.read_text().splitlines())) > MAX_LINES}
+    assert not long, long
+
+
+def test_no_script_function_is_over_80_lines():
+    long = {key: n for p in SCRIPTS for name, n in _long_functions(ast.parse(p.read_text()), MAX_FUNCTION_LINES)
+            if (key := f"{p.relative_to(REPO)}:{name}") not in KNOWN_LONG_SCRIPT_FUNCTIONS}
+    assert not long, long
+
+
+def _sys_path_edits(tree: ast.AST) -> list[int]:
+    """Lines that change ``sys.path`` (a call on it, or an assignment to it or to an item of it)."""
+    def is_sys_path(node) -> bool:
+        return (isinstance(node, ast.Attribute) and node.attr == "path" and isinstance(node.value, ast.Name)
+                and node.value.id == "sys")
+
+    hits = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and is_sys_path(node.func.value):
+            hits.append(node.lineno)
+        elif isinstance(node, (ast.Assign, ast.AugAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            if any(is_sys_path(t) or (isinstance(t, ast.Subscript) and is_sys_path(t.value)) for t in targets):
+                hits.append(node.lineno)
+    return hits
+
+
+def test_no_script_edits_sys_path():
+    """Benchmarks run as ``python -m benchmarks.<group>.<name>`` or by path, and tools by path, on the installed
+    package: none puts a folder on ``sys.path``."""
+    found = {str(p.relative_to(REPO)): lines for p in SCRIPTS if (lines := _sys_path_edits(ast.parse(p.read_text())))}
+    assert not found, found
+    bad = "import sys\nsys.path.insert(0, 'x')\nsys.path[0:0] = ['y']\nsys.path += ['z']\nprint(sys.path[0])\n"
+    assert sorted(_sys_path_edits(ast.parse(bad))) == [2, 3, 4]
+
+
+def test_every_benchmark_is_a_module_named_in_the_index():
+    """Each folder under benchmarks/ is a package (``python -m`` finds it), and benchmarks/README.md names every
+    script by its path there."""
+    bench = REPO / "benchmarks"
+    index = (bench / "README.md").read_text()
+    folders = {p.parent for p in bench.rglob("*.py")}
+    assert all((d / "__init__.py").is_file() for d in folders), sorted(map(str, folders))
+    scripts = [p for p in [*bench.rglob("*.py"), *bench.rglob("*.sh")] if p.name != "__init__.py"]
+    missing = [str(p.relative_to(bench)) for p in scripts if f"`{p.relative_to(bench)}`" not in index]
+    assert scripts and not missing, missing
