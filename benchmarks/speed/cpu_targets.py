@@ -132,6 +132,7 @@ def _time_compositing(row: dict, case: tuple, blocks: list[int], kern, best) -> 
     import numpy as np
     import torch
 
+    from benchmarks.speed.render import render_steps  # PYTHONPATH=the target's root (target_env)
     from eligsir_o3d.render.cpu_backend import CpuRenderer, bin_tiles_csr, project_cpu
 
     _, _, params, cam, T0, rgb, dep = case
@@ -157,20 +158,7 @@ def _time_compositing(row: dict, case: tuple, blocks: list[int], kern, best) -> 
         comp = getattr(cb, "_compositors", None) or getattr(k, "compositors", None)  # by code version
         renderer = CpuRenderer(block=blk) if comp is not None else CpuRenderer()
         ps = {kk: vv.clone().requires_grad_(True) for kk, vv in params.items()}
-        bg = torch.zeros(3)
-
-        def fwd():
-            return renderer.render(ps["means"], ps["quats"], ps["scales"], ps["opacities"], ps["colors"],
-                                   cam, T0, background=bg)
-
-        def fwdbwd():
-            out = fwd()
-            valid = dep > 0
-            loss = (out.color - rgb).abs().mean() + 0.1 * (out.depth - dep)[valid].abs().mean()
-            loss.backward()
-            for p in ps.values():
-                p.grad = None
-
+        fwd, fwdbwd = render_steps(renderer, ps, cam, T0, torch.zeros(3), rgb, dep)
         row["fwd" + sfx] = best(fwd)
         row["fwdbwd" + sfx] = best(fwdbwd)
         kf, kb = comp(blk) if comp is not None else (k.composite_forward, k.composite_backward)

@@ -122,6 +122,24 @@ def _status_kb(key: str) -> int:
     return 0
 
 
+def render_steps(renderer, ps: dict, camera: Camera, T_world_cam, bg, target_rgb, target_depth):
+    """(fwd, fwdbwd): a forward render of the parameters ``ps``, and a forward + backward of the L1 colour + 0.1 x
+    L1 depth loss (depth where the target [H, W] has some) against ``target_rgb`` [H, W, 3], gradients cleared."""
+    def fwd():
+        return renderer.render(ps["means"], ps["quats"], ps["scales"], ps["opacities"], ps["colors"], camera,
+                               T_world_cam, background=bg)
+
+    def fwdbwd():
+        out = fwd()
+        valid = target_depth > 0
+        loss = (out.color - target_rgb).abs().mean() + 0.1 * (out.depth - target_depth)[valid].abs().mean()
+        loss.backward()
+        for p in ps.values():
+            p.grad = None
+
+    return fwd, fwdbwd
+
+
 def time_backend(name: str, params, camera: Camera, T_world_cam, target_rgb, target_depth, device, repeats: int,
                  clock=time.perf_counter):
     renderer = get_renderer(name, device)
@@ -130,18 +148,7 @@ def time_backend(name: str, params, camera: Camera, T_world_cam, target_rgb, tar
     bg = torch.zeros(3, device=device)
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
 
-    def fwd():
-        return renderer.render(ps["means"], ps["quats"], ps["scales"], ps["opacities"], ps["colors"], camera,
-                               T_world_cam, background=bg)
-
-    def fwdbwd():
-        out = fwd()
-        valid = tgt_d > 0
-        loss = (out.color - tgt_rgb).abs().mean() + 0.1 * (out.depth - tgt_d)[valid].abs().mean()
-        loss.backward()
-        for p in ps.values():
-            p.grad = None
-
+    fwd, fwdbwd = render_steps(renderer, ps, camera, T_world_cam, bg, tgt_rgb, tgt_d)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
         mem0 = torch.cuda.memory_allocated(device)
