@@ -300,7 +300,7 @@ class MappingPipeline:
     def write(self) -> dict:
         from .results import RunResult, collect_metrics, write_results
 
-        tracking = self.heldout_tracking
+        tracking, views = self.heldout_tracking, self.rec.views
         result = RunResult(
             out=self.out, sequence=self.path, opts=self.opts, rec=self.rec, report=self.report, clock=self.clock.name,
             frames_total=self.n, frames_heldout=len(self.held), frames_source=len(self.source),
@@ -310,7 +310,9 @@ class MappingPipeline:
             curve=self.evaluator.curve, wall_s=self.wall_s, eval_s=self.evaluator.eval_seconds,
             decode_s=self.decode_s, acquisition_s=self.seq_acquisition_s(), skipped=self.skipped,
             heldout_skipped=self.heldout_skipped, trajectory=self.trajectory, heldout_frames=self.heldout_frames,
-            render_heldout=self._render, outputs=self.outputs, checkpoint_failures=self.checkpoints.failures)
+            render_heldout=self._render, outputs=self.outputs, checkpoint_failures=self.checkpoints.failures,
+            fidelity_trace=getattr(self.rec.fidelity, "trace", None),  # the plain policies keep no trace
+            views_trace=views.trace_rows() if hasattr(views, "trace_rows") else None)
         metrics = collect_metrics(result)
         write_results(result, metrics)
         return metrics

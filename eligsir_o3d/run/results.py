@@ -64,6 +64,8 @@ class RunResult:
     render_heldout: object  # Frame -> render of the map at the held-out view's (evaluation) pose
     outputs: object  # the run's Outputs (a failed write is listed, the others go on)
     checkpoint_failures: list  # failed periodic checkpoints, {"next_source", "error"} each
+    fidelity_trace: list | None  # the fidelity policy's decisions, a dict each (None: the policy keeps none)
+    views_trace: list | None  # the view policy's events, a dict each (None: the policy keeps no trace)
 
 
 def collect_metrics(r: RunResult) -> dict:
@@ -132,9 +134,8 @@ def collect_metrics(r: RunResult) -> dict:
         "per_view": final.get("per_view"),
         # the side files written beside metrics.json (write_results): the cell table and the fidelity trace
         "files": {k: f for k, f, present in (("cells", CELLS_FILE, final.get("cells") is not None),
-                                             ("fidelity_trace", FIDELITY_TRACE_FILE,
-                                              bool(getattr(rec.fidelity, "trace", None))),
-                                             ("views_trace", VIEWS_TRACE_FILE, hasattr(rec.views, "trace_rows")))
+                                             ("fidelity_trace", FIDELITY_TRACE_FILE, bool(r.fidelity_trace)),
+                                             ("views_trace", VIEWS_TRACE_FILE, r.views_trace is not None))
                   if present},
     }
     return metrics
@@ -180,9 +181,7 @@ def write_results(r: RunResult, metrics: dict) -> None:
            "camera": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                       "cy": cam.cy}}
     outputs.stage(out / RUN_FILE, atomic_write_text, out / RUN_FILE, json.dumps(jsonable(run), indent=2))
-    views_trace = rec.views.trace_rows() if hasattr(rec.views, "trace_rows") else None
-    outputs.stage(out / CELLS_FILE, write_side_files, out, r.final.get("cells"), getattr(rec.fidelity, "trace", None),
-                  views_trace)
+    outputs.stage(out / CELLS_FILE, write_side_files, out, r.final.get("cells"), r.fidelity_trace, r.views_trace)
     metrics["checkpoint_failures"] = r.checkpoint_failures
     metrics["write_failures"] = outputs.messages()  # what failed before metrics.json
     outputs.stage(out / "metrics.json", atomic_write_text, out / "metrics.json",
