@@ -19,8 +19,8 @@ Poses: the TSDF uses the run's source poses as mapped (trajectory.txt) and the h
 strict rule ("given"); with pose refinement the Gaussian map is also scored at the paper's rule ("aligned": the
 given held-out poses after one rigid alignment of the mapped poses to the refined ones, trajectory_refined.txt).
 
-    python benchmarks/tsdf_baseline.py runs/kitchen                      # table
-    python benchmarks/tsdf_baseline.py runs/kitchen --json --pictures /tmp/peer/pics --views 3 17
+    python benchmarks/quality/tsdf_baseline.py runs/kitchen                      # table
+    python benchmarks/quality/tsdf_baseline.py runs/kitchen --json --pictures /tmp/peer/pics --views 3 17
 """
 
 from __future__ import annotations

@@ -18,8 +18,8 @@ those that some view could reach dropped), the scene of a large map whose update
 the Gaussians the updates supervised (median). ``NAME=DIR`` names a checkout (``DIR/eligsir_o3d`` is the package timed):
 
     git -C . worktree add /tmp/old c6a5f9a      # or: mkdir /tmp/old && git archive c6a5f9a | tar -x -C /tmp/old
-    python benchmarks/update_time.py --code old=/tmp/old --code new=. --gaussians 5000 20000 --threads 1 2
-    python benchmarks/update_time.py --in-view 20000 --gaussians 20000 200000 1000000 --threads 1 2
+    python benchmarks/speed/update_time.py --code old=/tmp/old --code new=. --gaussians 5000 20000 --threads 1 2
+    python benchmarks/speed/update_time.py --in-view 20000 --gaussians 20000 200000 1000000 --threads 1 2
 """
 
 from __future__ import annotations
@@ -165,8 +165,6 @@ def main(argv=None) -> int:
     if args.worker:
         worker(args.threads[0], args.plys, args.warm, args.updates, str(args.data), args.in_view)
         return 0
-    import numpy as np
-
     codes = [c.partition("=") for c in args.code] or [("this", "=", str(ROOT))]
     for name, eq, d in codes:
         if not eq or not (Path(d) / "eligsir_o3d").is_dir():
@@ -175,6 +173,17 @@ def main(argv=None) -> int:
     if args.in_view is not None and min(args.gaussians) < args.in_view:
         ap.error(f"--in-view {args.in_view}: every --gaussians size must be at least that")
     plys = args.maps or write_maps(args.gaussians, Path(tmp.name), args.data, in_view=args.in_view)
+    results = run_rounds(start_workers(codes, args, plys), args.rounds)
+    table = report(results, codes, args.threads)
+    if args.json:
+        args.json.write_text(json.dumps({"median_ms": table, "rounds": {f"{k[0]}@{k[1]}": v
+                                                                         for k, v in results.items()}}) + "\n")
+    tmp.cleanup()
+    return 0
+
+
+def start_workers(codes, args, plys) -> dict:
+    """One worker process per (checkout, thread count), started and waited for (its info line printed)."""
     procs = {}
     for name, _, d in codes:
         for th in args.threads:
@@ -192,9 +201,14 @@ def main(argv=None) -> int:
         if not line:
             raise SystemExit(f"worker {key} failed to start")
         print(f"# {key[0]} ({key[1]} thread(s)): {json.loads(line)['info']}")
+    return procs
+
+
+def run_rounds(procs: dict, rounds: int) -> dict:
+    """The workers take turns, round after round; returns {(checkout, threads): [rows of each round]}."""
     print(f"# loadavg at start {' '.join(open('/proc/loadavg').read().split()[:3])}")
     results = {k: [] for k in procs}
-    for _ in range(args.rounds):
+    for _ in range(rounds):
         for key, p in procs.items():
             p.stdin.write("go\n")
             p.stdin.flush()
@@ -203,10 +217,17 @@ def main(argv=None) -> int:
         p.stdin.close()
         p.wait()
     print(f"# loadavg at end {' '.join(open('/proc/loadavg').read().split()[:3])}")
+    return results
+
+
+def report(results: dict, codes, threads) -> dict:
+    """Print the table (median ms per update, ratios to the first checkout, size and thread ratios); returns
+    {"<threads>x<gaussians>": {checkout: median ms}}."""
+    import numpy as np
     print(f"{'threads':>7} {'gaussians':>9} " + " ".join(f"{n + ' ms':>12}" for n, _, _ in codes)
           + "".join(f" {codes[0][0] + '/' + n:>14}" for n, _, _ in codes[1:]) + "   (N at end per code)")
     table = {}
-    for th in args.threads:
+    for th in threads:
         for gi, n in enumerate([r["gaussians"] for r in results[(codes[0][0], th)][0]]):
             med, ends, seen = [], [], []
             for name, _, _ in codes:
@@ -217,22 +238,18 @@ def main(argv=None) -> int:
             table[f"{th}x{n}"] = dict(zip([c[0] for c in codes], med))
             print(f"{th:>7} {n:>9} " + " ".join(f"{m:12.1f}" for m in med)
                   + "".join(f" {med[0] / m:14.2f}" for m in med[1:]) + f"   {ends} in view {seen}")
-    sizes = [r["gaussians"] for r in results[(codes[0][0], args.threads[0])][0]]
+    sizes = [r["gaussians"] for r in results[(codes[0][0], threads[0])][0]]
     for name, _, _ in codes:
-        for th in args.threads:
+        for th in threads:
             ms = [table[f"{th}x{n}"][name] for n in sizes]
             print(f"# {name}, {th} thread(s): time / time at {sizes[0]} Gaussians: "
                   + " ".join(f"{n}: {m / ms[0]:.2f}" for n, m in zip(sizes, ms)))
-        if len(args.threads) > 1:
-            t0 = args.threads[0]
+        if len(threads) > 1:
+            t0 = threads[0]
             print(f"# {name}: speed-up of " + ", ".join(
                 f"{th} over {t0} thread(s) " + "/".join(f"{table[f'{t0}x{n}'][name] / table[f'{th}x{n}'][name]:.2f}"
-                                                        for n in sizes) for th in args.threads[1:]))
-    if args.json:
-        args.json.write_text(json.dumps({"median_ms": table, "rounds": {f"{k[0]}@{k[1]}": v
-                                                                         for k, v in results.items()}}) + "\n")
-    tmp.cleanup()
-    return 0
+                                                        for n in sizes) for th in threads[1:]))
+    return table
 
 
 if __name__ == "__main__":
