@@ -26,7 +26,7 @@ from .base import GrowthPolicy, MapContext
 from .capacity import BudgetCap
 from .mcmc import MCMCConfig, MCMCRefiner
 from .microcells import VoxelHash, grow
-from .seeding import depth_edges, seeds_from_depth
+from .seeding import seeds_from_depth
 from .support import SupportProbe
 
 
@@ -42,9 +42,6 @@ class GrowthConfig:
     # update pays for every Gaussian, the extra seeds cost more updates than their detail buys
     seed_resolution: str = "probe"
     seed_min_stride: int = 2  # adaptive seeding: at most one seed per 2x2 source pixels
-    # adaptive seeding: no seed from a source pixel whose depth jumps by more than this share of its depth to a
-    # neighbour (scheduling.seeding.depth_edges: flying pixels between foreground and background; 0: keep them)
-    seed_edge_rel: float = 0.0
     insert_stride: int = 2  # evidence-gated insertion: one Gaussian per 2x2 probe pixels of a ready voxel
     max_insert_per_frame: int = 2000  # bound on one frame's insertions
     min_views: int = 2  # distinct views that must find a voxel unexplained before it grows
@@ -187,10 +184,6 @@ class TargetedGrowth(GrowthPolicy):
         src_px = vs.numel() * frame.camera.pixels / sup.camera.pixels  # source pixels the probe pixels stand for
         stride = max(self.cfg.seed_min_stride, math.ceil(math.sqrt(src_px / budget)))
         color, depth, cam = frame.at_scale(1.0 / stride, "cpu")
-        if self.cfg.seed_edge_rel > 0:
-            edges = depth_edges(frame.depth.cpu(), self.cfg.seed_edge_rel).float()[None, None]
-            on_edge = torch.nn.functional.interpolate(edges, size=(cam.height, cam.width), mode="nearest")[0, 0]
-            depth = torch.where(on_edge > 0.5, torch.zeros_like(depth), depth)
         probe = torch.zeros_like(sup.valid)
         probe[vs, us] = True
         mask = torch.nn.functional.interpolate(probe[None, None].float(), size=(cam.height, cam.width),

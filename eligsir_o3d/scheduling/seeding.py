@@ -38,22 +38,6 @@ def seeds_from_depth(color: torch.Tensor, depth: torch.Tensor, camera: Camera, T
     return means, color[vs, us], scales
 
 
-def depth_edges(depth: torch.Tensor, rel: float) -> torch.Tensor:
-    """[H, W] bool: valid depth pixels that sit on a depth discontinuity, where some valid 8-neighbour lies more
-    than ``rel`` times the pixel's depth nearer or further. Depth cameras smear such pixels between foreground and
-    background ("flying pixels"), and a block of colour averaged across the edge mixes both surfaces: a seed there
-    lands between them, a floater that every other view sees. ``rel <= 0``: no pixel is flagged."""
-    if rel <= 0:
-        return torch.zeros_like(depth, dtype=torch.bool)
-    d = depth[None, None]
-    valid = d > 0
-    far = torch.nn.functional.max_pool2d(d, 3, stride=1, padding=1)
-    near = -torch.nn.functional.max_pool2d(torch.where(valid, -d, torch.full_like(d, -float("inf"))), 3, stride=1,
-                                           padding=1)
-    jump = torch.maximum(far - d, d - near)
-    return (valid & (jump > rel * d))[0, 0]
-
-
 @dataclass
 class SeedingConfig:
     pixel_stride: int = 8  # seed one Gaussian per stride x stride block of unsupported depth pixels
