@@ -37,6 +37,7 @@ SH_SIGNS_RDF_RUB = np.array([-1, -1, 1,  # y, z, x
                              -1, 1, 1, -1, 1,  # xy, yz, 3z^2 - r^2, xz, x^2 - y^2
                              -1, 1, -1, -1, 1, -1, 1], dtype=np.float32)  # degree 3
 WEB_FORMATS = ("ply", "spz", "splat")
+SPZ_REACH_M = 2.0 ** 23 / 2.0 ** 12  # 2048 m: signed 24-bit positions at the 12 fractional bits Open3D writes
 
 
 def parse_formats(text: str) -> list[str]:
@@ -125,6 +126,10 @@ def write_web_formats(map_ply: str | Path, spz: str | Path | None = None, splat:
     pcd = read_splats(map_ply)
     summary = {"gaussians": int(pcd.point.positions.shape[0]), "ply_bytes": Path(map_ply).stat().st_size}
     if spz is not None:
+        reach = float(np.abs(pcd.point.positions.numpy()).max(initial=0.0))
+        if not reach < SPZ_REACH_M:  # 24-bit fixed point with 12 fractional bits: larger values would wrap around
+            raise ValueError(f"{map_ply}: a Gaussian lies {reach:.0f} m from the origin; SPZ positions reach "
+                             f"{SPZ_REACH_M:.0f} m (recentre the map before exporting)")
         rub = rdf_to_rub(pcd)
         summary["spz_bytes"] = _write(Path(spz), _reordered(rub, spz_order(rub))).stat().st_size
     if splat is not None:

@@ -128,6 +128,17 @@ def test_formats_and_bad_paths():
         write_web_formats("/nonexistent/map.ply", spz="x.spz")
 
 
+def test_spz_refuses_positions_its_fixed_point_cannot_hold(run_sh0, tmp_path):
+    import open3d as o3d
+
+    far = read_splats(run_sh0 / "map.ply")
+    far.point["positions"] = far.point["positions"] + 3000.0  # 3 km off: beyond 2^23 / 2^12 m
+    o3d.t.io.write_point_cloud(str(tmp_path / "far.ply"), far)
+    with pytest.raises(ValueError, match=r"far\.ply: a Gaussian lies 30\d\d m from the origin; SPZ positions reach 2048 m"):
+        write_web_formats(tmp_path / "far.ply", spz=tmp_path / "far.spz")
+    assert not (tmp_path / "far.spz").exists()
+
+
 def test_heldout_picture_of_real_frames_is_at_most_300_kB():
     import io
 
