@@ -1,6 +1,7 @@
-"""Write an RGB-D sequence as a phone capture: Record3D ``.r3d``, a Stray Scanner folder, a Polycam raw export.
+"""Write an RGB-D sequence as a phone capture: Record3D ``.r3d`` or EXR + JPG export, a Stray Scanner folder, a
+Polycam raw export.
 
-The readers (record3d.py, stray.py, polycam.py) are tested by writing real frames (7-Scenes, SUN3D) with these
+The readers (record3d.py, record3d_exr.py, stray.py, polycam.py) are tested by writing real frames (7-Scenes, SUN3D) with these
 functions and reading them back, as the bag readers are. Each writer follows its app's conventions: OpenGL camera
 axes in Record3D and Polycam poses, column-major K in Record3D's metadata, LZFSE float32 depth blobs, millimetre
 PNGs. ``depth_size=(w, h)`` writes depth at a phone's resolution (nearest-neighbour samples of the frame's depth,
@@ -75,12 +76,43 @@ def write_record3d(seq, out: str | Path, *, frames: Sequence[int] | None = None,
             T = seq.poses[i] @ GL_TO_CV if gl_axes else seq.poses[i]
             t, q = pose_to_tum(T)
             poses.append([*map(float, q), *map(float, t)])
-        K = cam.K.T.reshape(-1) if column_major else cam.K.reshape(-1)
-        meta = {"w": cam.width, "h": cam.height, "K": [float(x) for x in K], "dw": dcam.width,
-                "dh": dcam.height, "fps": 30, "poses": poses, "cameraType": 1,
-                "frameTimestamps": [float(seq.timestamps[i]) for i in idx], "initPose": [0, 0, 0, 1, 0, 0, 0]}
+        meta = _record3d_meta(seq, idx, cam, dcam, poses, column_major=column_major)
         if metadata:
             z.writestr("metadata", json.dumps(meta))
+    return out
+
+
+def _record3d_meta(seq, idx, cam, dcam, poses, column_major=True) -> dict:
+    K = cam.K.T.reshape(-1) if column_major else cam.K.reshape(-1)
+    return {"w": cam.width, "h": cam.height, "K": [float(x) for x in K], "dw": dcam.width, "dh": dcam.height,
+            "fps": 30, "poses": poses, "cameraType": 1, "frameTimestamps": [float(seq.timestamps[i]) for i in idx],
+            "initPose": [0, 0, 0, 1, 0, 0, 0]}
+
+
+def write_record3d_exr(seq, out: str | Path, *, frames: Sequence[int] | None = None, depth_size=None,
+                       channel: str = "R", per_frame_intrinsics: Sequence[Sequence[float]] | None = None) -> Path:
+    """Write frames of ``seq`` as Record3D's EXR + JPG export: ``out/EXR_RGBD/`` with metadata.json, rgb/N.jpg and
+    depth/N.exr (one float32 channel named ``channel``, metres, ZIP-compressed). ``per_frame_intrinsics`` adds
+    the newer metadata's ``perFrameIntrinsicCoeffs`` ([fx, fy, cx, cy] per frame). Needs the OpenEXR package."""
+    import OpenEXR
+
+    out, idx, cam = Path(out), _frames(seq, frames), seq.camera
+    root = out / "EXR_RGBD"
+    for sub in ("rgb", "depth"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    poses = []
+    for n, i in enumerate(idx):
+        rgb, d, jpeg = _images(seq, i, depth_size)
+        (root / "rgb" / f"{n}.jpg").write_bytes(_jpeg(rgb, jpeg))
+        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+        with OpenEXR.File(header, {channel: np.ascontiguousarray(d, dtype=np.float32)}) as f:
+            f.write(str(root / "depth" / f"{n}.exr"))
+        t, q = pose_to_tum(seq.poses[i] @ GL_TO_CV)
+        poses.append([*map(float, q), *map(float, t)])
+    meta = _record3d_meta(seq, idx, cam, _depth_camera(seq, depth_size), poses)
+    if per_frame_intrinsics is not None:
+        meta["perFrameIntrinsicCoeffs"] = [[float(v) for v in c] for c in per_frame_intrinsics]
+    (root / "metadata.json").write_text(json.dumps(meta))
     return out
 
 

@@ -1,4 +1,5 @@
-"""Phone captures (Record3D .r3d, Stray Scanner, Polycam) written from real 7-Scenes frames and read back."""
+"""Phone captures (Record3D .r3d and EXR + JPG, Stray Scanner, Polycam) written from real 7-Scenes frames and read
+back."""
 
 from __future__ import annotations
 
@@ -16,11 +17,13 @@ from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 
 pytest.importorskip("liblzfse")
 pytest.importorskip("imageio_ffmpeg")
-from eligsir_o3d.datasets.phone_writers import write_polycam, write_record3d, write_stray  # noqa: E402
+from eligsir_o3d.datasets.phone_writers import (write_polycam, write_record3d, write_record3d_exr,  # noqa: E402
+                                                write_stray)
 
 SEVEN = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 pytestmark = pytest.mark.skipif(not SEVEN.is_dir(), reason="../shared/data is not available")
-WRITERS = {"record3d": (write_record3d, "cap.r3d"), "stray": (write_stray, "stray"), "polycam": (write_polycam, "poly")}
+WRITERS = {"record3d": (write_record3d, "cap.r3d"), "record3d_exr": (write_record3d_exr, "exr"),
+           "stray": (write_stray, "stray"), "polycam": (write_polycam, "poly")}
 N_MAP = 16
 
 
@@ -30,6 +33,8 @@ def src():
 
 
 def _write(fmt, src, tmp_path, **kw):
+    if fmt == "record3d_exr":
+        pytest.importorskip("OpenEXR")
     fn, name = WRITERS[fmt]
     return fn(src, tmp_path / name, **kw)
 
@@ -214,4 +219,4 @@ def test_confidence_and_range_drop_depth():
 def test_new_layouts_are_listed():
     from eligsir_o3d.datasets import list_formats
 
-    assert {"record3d", "stray", "polycam"} <= set(list_formats())
+    assert {"record3d", "record3d_exr", "stray", "polycam"} <= set(list_formats())
