@@ -117,10 +117,12 @@ def write_record3d_exr(seq, out: str | Path, *, frames: Sequence[int] | None = N
 
 
 def write_stray(seq, out: str | Path, *, frames: Sequence[int] | None = None, depth_size=None,
-                header: str = "timestamp, frame, x, y, z, qx, qy, qz, qw", hevc: bool = False) -> Path:
+                header: str = "timestamp, frame, x, y, z, qx, qy, qz, qw", hevc: bool = False,
+                depth_ext: str = "png") -> Path:
     """Write frames of ``seq`` as a Stray Scanner folder. The video is lossless H.264 (``libx264rgb``, qp 0,
     through imageio-ffmpeg) so that a round trip reads back the same colour; ``hevc=True`` writes HEVC (``hvc1``,
-    lossy) as the app does. ``header``: the odometry.csv header ("" writes none, as the oldest captures)."""
+    lossy) as the app does. ``header``: the odometry.csv header ("" writes none, as the oldest captures).
+    ``depth_ext="npy"`` writes depth as the app's 2021 versions did (uint16 millimetre .npy arrays)."""
     import cv2
     import imageio_ffmpeg
 
@@ -140,7 +142,10 @@ def write_stray(seq, out: str | Path, *, frames: Sequence[int] | None = None, de
         rgb, d, _ = _images(seq, i, depth_size)
         writer.send(np.ascontiguousarray(rgb))
         mm = np.clip(np.rint(d * 1000.0), 0, 65535).astype(np.uint16)
-        cv2.imwrite(str(out / "depth" / f"{n:06d}.png"), mm)
+        if depth_ext == "npy":
+            np.save(out / "depth" / f"{n:06d}.npy", mm)
+        else:
+            cv2.imwrite(str(out / "depth" / f"{n:06d}.png"), mm)
         cv2.imwrite(str(out / "confidence" / f"{n:06d}.png"), np.where(mm > 0, 2, 0).astype(np.uint8))
         t, q = pose_to_tum(seq.poses[i])  # Stray Scanner's poses are already in OpenCV camera axes
         vals = [*t, *q]

@@ -2,7 +2,8 @@
 
 Layout::
 
-    keyframes/images/<stamp>.jpg        colour (corrected_images/ when present: preferred)
+    keyframes/images/<stamp>.jpg        colour (corrected_images/, undistorted, with corrected_cameras/: preferred
+                                        when both are present)
     keyframes/cameras/<stamp>.json      per frame: fx, fy, cx, cy, width, height (of the image), blur_score,
                                         t_00 .. t_23: row-major 3 x 4 camera-to-world, ARKit world, OpenGL
                                         camera axes (corrected_cameras/: Polycam's globally optimised poses,
@@ -83,8 +84,11 @@ def open_polycam(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0,
         raise DatasetError(f"fps must be positive, got {fps}")
     opts = PhoneOptions(min_confidence, max_depth, color_width)
     k = path / "keyframes"
-    cam_dir = k / "corrected_cameras" if (k / "corrected_cameras").is_dir() else k / "cameras"
-    img_dir = k / "corrected_images" if (k / "corrected_images").is_dir() else k / "images"
+    # the corrected images are undistorted and go with the corrected cameras' intrinsics and poses: the two are
+    # used together or not at all (as nerfstudio's ns-process-data polycam does)
+    corrected = (k / "corrected_images").is_dir() and (k / "corrected_cameras").is_dir()
+    cam_dir, img_dir = (k / "corrected_cameras", k / "corrected_images") if corrected else \
+        (k / "cameras", k / "images")
     files = sorted(cam_dir.glob("*.json"), key=_stem_key)
     if not files:
         raise DatasetError(f"{cam_dir}: no camera JSON files (empty export)")

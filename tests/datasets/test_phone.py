@@ -191,11 +191,43 @@ def test_polycam_prefers_corrected_poses_and_skips_frames_without_pose(tmp_path,
     assert len(seq) == 3 and len(seq.skipped_frames) == 1 and cam.name in seq.skipped_frames[0]
 
 
+def test_polycam_uses_corrected_cameras_only_with_corrected_images(tmp_path, src):
+    """The corrected (undistorted) images go with the corrected cameras; without them the raw pair is read, as
+    nerfstudio's ns-process-data polycam does (the writer's raw poses are 0.5 m off, to tell them apart)."""
+    poly = write_polycam(src, tmp_path / "poly", frames=range(3), corrected=True)
+    (poly / "keyframes" / "corrected_images").rename(poly / "keyframes" / "images")
+    seq = open_sequence(poly)
+    np.testing.assert_allclose(seq.poses[2][:3, 3], src.poses[2][:3, 3] + 0.5, atol=1e-6)
+
+
 def test_stray_old_odometry_without_timestamp_columns(tmp_path, src):
     stray = write_stray(src, tmp_path / "old", frames=range(3), header="x, y, z, qx, qy, qz, qw")
     seq = open_sequence(stray, fps=60.0)
     assert seq.timestamps[1] == pytest.approx(1 / 60)
     np.testing.assert_allclose(seq.poses[2], src.poses[2], atol=1e-6)
+
+
+def test_stray_frame_without_depth_does_not_shift_the_rest(tmp_path, src):
+    """The app numbers depth, confidence and odometry rows by frame and puts every frame in the video, depth or
+    not (strayrobots/scanner DatasetEncoder): a frame the phone gave no depth for is a gap, not a shift."""
+    stray = write_stray(src, tmp_path / "gap", frames=range(5))
+    (stray / "depth" / "000002.png").unlink()
+    (stray / "confidence" / "000002.png").unlink()
+    seq = open_sequence(stray)
+    assert seq.frame_numbers == [0, 1, 3, 4] and "frame 000002 has no depth" in seq.skipped_frames[0]
+    np.testing.assert_array_equal(seq[2].rgbd.color.as_tensor().numpy(), src[3].rgbd.color.as_tensor().numpy())
+    np.testing.assert_allclose(seq.poses[2], src.poses[3], atol=1e-6)
+    assert seq.timestamps[2] == pytest.approx(src.timestamps[3], abs=1e-5)
+
+
+def test_stray_2021_npy_depth(tmp_path, src):
+    seq = open_sequence(write_stray(src, tmp_path / "npy", frames=range(2), depth_ext="npy"))
+    png = open_sequence(write_stray(src, tmp_path / "png", frames=range(2)))
+    np.testing.assert_array_equal(seq.frame(1).depth.numpy(), png.frame(1).depth.numpy())
+    np.save(seq.path / "depth" / "000001.npy", np.zeros((4, 4), np.float32))
+    with pytest.raises(DatasetError) as e:
+        seq[1]
+    assert "not 16-bit single-channel millimetres (got float32 (4, 4))" in _one_line(e, "000001.npy")
 
 
 def test_stray_hevc_video_as_the_app_writes_it(tmp_path, src):
