@@ -6,7 +6,8 @@ functions and reading them back, as the bag readers are. Each writer follows its
 axes in Record3D and Polycam poses, column-major K in Record3D's metadata, LZFSE float32 depth blobs, millimetre
 PNGs. ``depth_size=(w, h)`` writes depth at a phone's resolution (nearest-neighbour samples of the frame's depth,
 with the intrinsics scaled to match); by default depth keeps the colour size, so a round trip reads back the same
-frames. Confidence is written as 2 (high) where depth is valid and 0 elsewhere.
+frames. Confidence is written as high where depth is valid and low elsewhere (2 and 0; Polycam's 8-bit 255
+and 0).
 """
 
 from __future__ import annotations
@@ -167,16 +168,18 @@ def write_polycam(seq, out: str | Path, *, frames: Sequence[int] | None = None, 
     pre = "corrected_" if corrected else ""
     for sub in (f"{pre}images", f"{pre}cameras", "cameras", "depth", "confidence"):
         (k / sub).mkdir(parents=True, exist_ok=True)
+    last = -1
     for n, i in enumerate(idx):
-        stem = f"{int(round(seq.timestamps[i] * 1e6)) + n:d}"
+        last = max(last + 1, int(round(seq.timestamps[i] * 1e6)))  # names: the time in microseconds, as Polycam's
+        stem = f"{last:d}"
         rgb, d, jpeg = _images(seq, i, depth_size)
         (k / f"{pre}images" / f"{stem}.jpg").write_bytes(_jpeg(rgb, jpeg))
         mm = np.clip(np.rint(d * 1000.0), 0, 65535).astype(np.uint16)
         cv2.imwrite(str(k / "depth" / f"{stem}.png"), mm)
-        cv2.imwrite(str(k / "confidence" / f"{stem}.png"), np.where(mm > 0, 2, 0).astype(np.uint8))
+        cv2.imwrite(str(k / "confidence" / f"{stem}.png"), np.where(mm > 0, 255, 0).astype(np.uint8))  # 0/127/255
         T = seq.poses[i] @ GL_TO_CV
         data = {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "width": cam.width, "height": cam.height,
-                "blur_score": 100.0, "timestamp": int(round(seq.timestamps[i] * 1e6))}
+                "blur_score": 100.0}
         data.update({f"t_{r}{c}": float(T[r, c]) for r in range(3) for c in range(4)})
         (k / f"{pre}cameras" / f"{stem}.json").write_text(json.dumps(data))
         if corrected:  # the uncorrected poses, off by 0.5 m: the reader must prefer the corrected ones

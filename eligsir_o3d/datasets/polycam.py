@@ -1,6 +1,7 @@
 """Polycam raw-data export (iPhone / iPad LiDAR, "Export -> Raw data" with developer mode on): a folder.
 
-Layout::
+Layout (Polycam's own description, PolyCam/polyform README and ``core/capture_folder.py``; nerfstudio's
+``ns-process-data polycam``)::
 
     keyframes/images/<stamp>.jpg        colour (corrected_images/, undistorted, with corrected_cameras/: preferred
                                         when both are present)
@@ -9,13 +10,14 @@ Layout::
                                         camera axes (corrected_cameras/: Polycam's globally optimised poses,
                                         preferred when present)
     keyframes/depth/<stamp>.png         uint16 millimetres, 256 x 192 on current devices
-    keyframes/confidence/<stamp>.png    optional, 0/1/2 (or 8-bit levels)
+    keyframes/confidence/<stamp>.png    optional, 8-bit: 0 low, 127 medium, 255 high (0/1/2 also read)
 
 Frames are the camera files, in the numeric order of their names; a camera file with missing or malformed pose
-fields is left out (``skipped_frames``). Timestamps: the camera files' ``timestamp`` fields, read in the unit
-(s, ms, us or ns) that spaces the keyframes 5 ms to 5 s apart; without them, or with ``fps=`` given, frames are
-spaced at ``fps`` (default 10 per second). All frames share the first camera's intrinsics (a frame whose image size differs is an error). Options:
-``min_confidence``, ``max_depth``, ``color_width``, ``fps`` (see :mod:`.phone`).
+fields is left out (``skipped_frames``). Timestamps: ``<stamp>``, the keyframe's time in microseconds by
+Polycam's spec (a camera file's ``timestamp`` field instead, where one has it), read in the unit (s, ms, us or
+ns) that spaces the keyframes 5 ms to 5 s apart; without them, or with ``fps=`` given, frames are spaced at
+``fps`` (default 10 per second). All frames share the first camera's intrinsics (a frame whose image size
+differs is an error). Options: ``min_confidence``, ``max_depth``, ``color_width``, ``fps`` (see :mod:`.phone`).
 """
 
 from __future__ import annotations
@@ -72,7 +74,10 @@ def _read_camera(path: Path) -> tuple[Camera, np.ndarray | None, object]:
         return cam, None, None
     T = np.eye(4)
     T[:3] = M
-    return cam, gl_to_cv(T), data.get("timestamp")
+    stamp = data.get("timestamp")
+    if stamp is None and path.stem.isdigit():
+        stamp = int(path.stem)  # Polycam names every keyframe's files by its timestamp in microseconds
+    return cam, gl_to_cv(T), stamp
 
 
 def open_polycam(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0, color_width: int = 640,

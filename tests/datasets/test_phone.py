@@ -200,6 +200,26 @@ def test_polycam_uses_corrected_cameras_only_with_corrected_images(tmp_path, src
     np.testing.assert_allclose(seq.poses[2][:3, 3], src.poses[2][:3, 3] + 0.5, atol=1e-6)
 
 
+def test_polycam_as_its_spec_describes_it(tmp_path, src):
+    """PolyCam/polyform's README: files named by the keyframe's time in microseconds (no time field in the camera
+    JSON), confidence 0 / 127 / 255 for low / medium / high."""
+    poly = write_polycam(src, tmp_path / "spec", frames=range(3))
+    names = sorted(p.stem for p in (poly / "keyframes" / "cameras").glob("*.json"))
+    assert all("timestamp" not in json.loads((poly / "keyframes" / "cameras" / f"{n}.json").read_text())
+               for n in names)
+    seq = open_sequence(poly)
+    np.testing.assert_allclose(seq.timestamps, np.asarray(src.timestamps[:3]) - src.timestamps[0], atol=1e-6)
+    conf = np.zeros((480, 640), np.uint8)
+    conf[:, :320] = 127  # medium on the left, low on the right
+    import cv2
+
+    cv2.imwrite(str(poly / "keyframes" / "confidence" / f"{names[1]}.png"), conf)
+    d = seq.frame(1).depth.numpy()
+    assert (d[:, :320] > 0).mean() > 0.5 and not (d[:, 320:] > 0).any()  # default: keep medium and high
+    with pytest.raises(ValueError, match="no valid measurement"):  # high only: nothing of frame 1 is left
+        open_sequence(poly, min_confidence=2).frame(1)
+
+
 def test_stray_old_odometry_without_timestamp_columns(tmp_path, src):
     stray = write_stray(src, tmp_path / "old", frames=range(3), header="x, y, z, qx, qy, qz, qw")
     seq = open_sequence(stray, fps=60.0)
