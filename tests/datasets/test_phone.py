@@ -14,6 +14,7 @@ from eligsir_o3d import Config
 from eligsir_o3d.datasets import DatasetError, open_sequence
 from eligsir_o3d.datasets.phone import PhoneOptions, clean_depth
 from eligsir_o3d.run.pipeline import RunOptions, run_mapping
+from helpers.messages import one_line
 
 pytest.importorskip("liblzfse")
 pytest.importorskip("imageio_ffmpeg")
@@ -131,23 +132,17 @@ def test_record3d_K_is_column_major(tmp_path, src):
         open_sequence(write_record3d(src, tmp_path / "rm.r3d", frames=range(1), column_major=False))
 
 
-def _one_line(excinfo, name):
-    msg = str(excinfo.value)
-    assert "\n" not in msg and name in msg, msg
-    return msg
-
-
 def test_bad_captures_give_one_line_errors_naming_the_file(tmp_path, src):
     r3d = write_record3d(src, tmp_path / "ok.r3d", frames=range(3))
     cut = tmp_path / "cut.r3d"
     cut.write_bytes(r3d.read_bytes()[: r3d.stat().st_size // 2])
     with pytest.raises(DatasetError) as e:
         open_sequence(cut)
-    assert "truncated" in _one_line(e, "cut.r3d")
+    assert "truncated" in one_line(e, "cut.r3d")
 
     with pytest.raises(DatasetError) as e:
         open_sequence(write_record3d(src, tmp_path / "nometa.r3d", frames=range(2), metadata=False))
-    assert "no metadata" in _one_line(e, "nometa.r3d:metadata")
+    assert "no metadata" in one_line(e, "nometa.r3d:metadata")
 
     blob = tmp_path / "blob.r3d"  # frame 1's depth blob holds one row too few
     import liblzfse
@@ -160,14 +155,14 @@ def test_bad_captures_give_one_line_errors_naming_the_file(tmp_path, src):
     seq = open_sequence(blob)
     with pytest.raises(DatasetError) as e:
         seq[1]
-    assert "expected dw x dh = 640x480" in _one_line(e, "blob.r3d:rgbd/1.depth")
+    assert "expected dw x dh = 640x480" in one_line(e, "blob.r3d:rgbd/1.depth")
 
     stray = write_stray(src, tmp_path / "stray", frames=range(4))
     lines = (stray / "odometry.csv").read_text().splitlines()
     (stray / "odometry.csv").write_text("\n".join(lines[:3]) + "\n")  # header + 2 rows for 4 frames
     with pytest.raises(DatasetError) as e:
         open_sequence(stray)
-    assert "poses for 2 frames but the capture has 4" in _one_line(e, "odometry.csv")
+    assert "poses for 2 frames but the capture has 4" in one_line(e, "odometry.csv")
 
     poly = write_polycam(src, tmp_path / "poly", frames=range(2))
     cam = next((poly / "keyframes" / "cameras").glob("*.json"))
@@ -176,7 +171,7 @@ def test_bad_captures_give_one_line_errors_naming_the_file(tmp_path, src):
     cam.write_text(json.dumps(data))
     with pytest.raises(DatasetError) as e:
         open_sequence(poly)
-    assert "missing field(s) fx" in _one_line(e, cam.name)
+    assert "missing field(s) fx" in one_line(e, cam.name)
 
 
 def test_polycam_prefers_corrected_poses_and_skips_frames_without_pose(tmp_path, src):
@@ -247,7 +242,7 @@ def test_stray_2021_npy_depth(tmp_path, src):
     np.save(seq.path / "depth" / "000001.npy", np.zeros((4, 4), np.float32))
     with pytest.raises(DatasetError) as e:
         seq[1]
-    assert "not 16-bit single-channel millimetres (got float32 (4, 4))" in _one_line(e, "000001.npy")
+    assert "not 16-bit single-channel millimetres (got float32 (4, 4))" in one_line(e, "000001.npy")
 
 
 def test_stray_hevc_video_as_the_app_writes_it(tmp_path, src):

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from eligsir_o3d.datasets import DatasetError, open_sequence
+from helpers.messages import one_line
 
 OpenEXR = pytest.importorskip("OpenEXR")
 from eligsir_o3d.datasets.phone_writers import write_record3d_exr  # noqa: E402
@@ -20,12 +21,6 @@ pytestmark = pytest.mark.skipif(not SEVEN.is_dir(), reason="../shared/data is no
 @pytest.fixture(scope="module")
 def src():
     return open_sequence(SEVEN)
-
-
-def _one_line(excinfo, name):
-    msg = str(excinfo.value)
-    assert "\n" not in msg and name in msg, msg
-    return msg
 
 
 def test_export_folder_or_its_exr_rgbd_folder(tmp_path, src):
@@ -52,7 +47,7 @@ def test_per_frame_intrinsics_median_is_the_camera(tmp_path, src):
     bad = write_record3d_exr(src, tmp_path / "pfbad", frames=range(1), per_frame_intrinsics=[[c.fx, c.fy, c.cx]])
     with pytest.raises(DatasetError) as e:
         open_sequence(bad)
-    assert "perFrameIntrinsicCoeffs must be [fx, fy, cx, cy]" in _one_line(e, "metadata.json")
+    assert "perFrameIntrinsicCoeffs must be [fx, fy, cx, cy]" in one_line(e, "metadata.json")
 
 
 def test_frames_without_depth_or_pose_are_left_out(tmp_path, src):
@@ -75,32 +70,32 @@ def test_bad_exports_give_one_line_errors_naming_the_file(tmp_path, src):
     seq = open_sequence(out)
     with pytest.raises(DatasetError) as e:
         seq[1]
-    assert "not a readable EXR image" in _one_line(e, "1.exr")
+    assert "not a readable EXR image" in one_line(e, "1.exr")
 
     with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
                       {"G": np.ones((4, 4), np.float32), "B": np.ones((4, 4), np.float32)}) as f:
         f.write(str(out / "depth" / "2.exr"))
     with pytest.raises(DatasetError) as e:
         seq[2]
-    assert "no depth channel" in _one_line(e, "2.exr") and "the file has B, G" in str(e.value)
+    assert "no depth channel" in one_line(e, "2.exr") and "the file has B, G" in str(e.value)
 
     meta = json.loads((out / "metadata.json").read_text())
     meta["dw"] = 256
     (out / "metadata.json").write_text(json.dumps(meta))
     with pytest.raises(DatasetError) as e:
         open_sequence(out)
-    assert "metadata.json says dw x dh = 256x480" in _one_line(e, "0.exr")
+    assert "metadata.json says dw x dh = 256x480" in one_line(e, "0.exr")
 
     del meta["K"]
     (out / "metadata.json").write_text(json.dumps(meta))
     with pytest.raises(DatasetError) as e:
         open_sequence(out)
-    assert "missing field(s) K" in _one_line(e, "metadata.json")
+    assert "missing field(s) K" in one_line(e, "metadata.json")
 
     (out / "metadata.json").write_text("{not json")
     with pytest.raises(DatasetError) as e:
         open_sequence(out, kind="record3d_exr")
-    assert "not valid JSON" in _one_line(e, "metadata.json")
+    assert "not valid JSON" in one_line(e, "metadata.json")
 
 
 def test_confidence_option_is_refused_and_depth_range_kept(tmp_path, src):
