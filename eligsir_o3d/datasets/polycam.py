@@ -17,7 +17,9 @@ fields is left out (``skipped_frames``). Timestamps: ``<stamp>``, the keyframe's
 Polycam's spec (a camera file's ``timestamp`` field instead, where one has it), read in the unit (s, ms, us or
 ns) that spaces the keyframes 5 ms to 5 s apart; without them, or with ``fps=`` given, frames are spaced at
 ``fps`` (default 10 per second). All frames share the first camera's intrinsics (a frame whose image size
-differs is an error). Options: ``min_confidence``, ``max_depth``, ``color_width``, ``fps`` (see :mod:`.phone`).
+differs is an error). The corrected images' black undistortion border is cut off (``crop_border``, 15 pixels
+by default, as nerfstudio does; Polycam's README asks to mask it). Options: ``min_confidence``, ``max_depth``,
+``color_width``, ``fps`` (see :mod:`.phone`), ``crop_border``.
 """
 
 from __future__ import annotations
@@ -80,9 +82,33 @@ def _read_camera(path: Path) -> tuple[Camera, np.ndarray | None, object]:
     return cam, gl_to_cv(T), stamp
 
 
+def _read_frame(i: int, ip: Path, k: Path, name: str):
+    """Frame i as exported: colour uint8 [H, W, 3] RGB, depth float32 metres, confidence 0/1/2 or None."""
+    import cv2
+
+    dp, cp = k / "depth" / f"{name}.png", k / "confidence" / f"{name}.png"
+    bgr = cv2.imread(str(ip), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise DatasetError(f"frame {i}: colour file {ip} is missing or corrupt")
+    if ip.suffix == ".jpg" and b"\xff\xd9" not in ip.read_bytes()[-64:]:
+        raise DatasetError(f"frame {i}: colour file {ip} is truncated (no JPEG end-of-image marker)")
+    d = cv2.imread(str(dp), cv2.IMREAD_UNCHANGED)
+    if d is None or d.dtype != np.uint16 or d.ndim != 2:
+        raise DatasetError(f"frame {i}: depth file {dp} is missing, corrupt or not a 16-bit PNG")
+    conf = None
+    if cp.is_file():
+        c = cv2.imread(str(cp), cv2.IMREAD_UNCHANGED)
+        if c is None:
+            raise DatasetError(f"frame {i}: confidence file {cp} is corrupt")
+        conf = confidence_levels(c if c.ndim == 2 else c[..., 0])
+    return bgr[..., ::-1].copy(), d.astype(np.float32) / 1000.0, conf
+
+
 def open_polycam(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0, color_width: int = 640,
-                 fps: float | None = None) -> PhoneSequence:
-    """Open a Polycam raw-data export folder; see the module docstring."""
+                 fps: float | None = None, crop_border: int | None = None) -> PhoneSequence:
+    """Open a Polycam raw-data export folder; see the module docstring. ``crop_border``: pixels cut from each
+    edge of the colour images (None: 15 for the corrected images, whose undistortion leaves a black border, as
+    nerfstudio's ns-process-data polycam crops them; 0 for the raw images)."""
     import cv2
 
     if fps is not None and not fps > 0:
@@ -117,31 +143,23 @@ def open_polycam(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0,
     d0 = cv2.imread(str(first_depth), cv2.IMREAD_UNCHANGED)
     if d0 is None or d0.dtype != np.uint16 or d0.ndim != 2:
         raise DatasetError(f"frame 0: depth file {first_depth} is missing or not a 16-bit single-channel PNG")
-    depth_cam = scaled_to(color_cam, d0.shape[1], d0.shape[0])
+    depth_cam = scaled_to(color_cam, d0.shape[1], d0.shape[0])  # the depth covers the whole image
+    b = (15 if corrected else 0) if crop_border is None else int(crop_border)
+    if not 0 <= 2 * b < min(color_cam.width, color_cam.height):
+        raise DatasetError(f"crop_border must be 0 to {min(color_cam.width, color_cam.height) // 2 - 1} pixels for "
+                           f"the {color_cam.width}x{color_cam.height} images of {path}, got {crop_border}")
+    shown = Camera(color_cam.width - 2 * b, color_cam.height - 2 * b, color_cam.fx, color_cam.fy,
+                   color_cam.cx - b, color_cam.cy - b)
 
     def image(i: int) -> Path:
         p = img_dir / f"{names[i]}.jpg"
         return p if p.is_file() else img_dir / f"{names[i]}.png"
 
     def native(i: int):
-        ip, dp, cp = image(i), k / "depth" / f"{names[i]}.png", k / "confidence" / f"{names[i]}.png"
-        bgr = cv2.imread(str(ip), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise DatasetError(f"frame {i}: colour file {ip} is missing or corrupt")
-        if ip.suffix == ".jpg" and b"\xff\xd9" not in ip.read_bytes()[-64:]:
-            raise DatasetError(f"frame {i}: colour file {ip} is truncated (no JPEG end-of-image marker)")
-        d = cv2.imread(str(dp), cv2.IMREAD_UNCHANGED)
-        if d is None or d.dtype != np.uint16 or d.ndim != 2:
-            raise DatasetError(f"frame {i}: depth file {dp} is missing, corrupt or not a 16-bit PNG")
-        conf = None
-        if cp.is_file():
-            c = cv2.imread(str(cp), cv2.IMREAD_UNCHANGED)
-            if c is None:
-                raise DatasetError(f"frame {i}: confidence file {cp} is corrupt")
-            conf = confidence_levels(c if c.ndim == 2 else c[..., 0])
-        return bgr[..., ::-1].copy(), d.astype(np.float32) / 1000.0, conf
+        rgb, d, conf = _read_frame(i, image(i), k, names[i])
+        return rgb[b:rgb.shape[0] - b, b:rgb.shape[1] - b].copy() if b else rgb, d, conf
 
-    seq = PhoneSequence(native=native, color_native=color_cam, depth_native=depth_cam, opts=opts,
+    seq = PhoneSequence(native=native, color_native=shown, depth_native=depth_cam, opts=opts,
                         where=lambda i: str(image(i)), name=path.name, path=path,
                         timestamps=_timestamps(stamps, len(names), fps), poses=poses, format="polycam")
     seq.skipped_frames = skipped

@@ -195,6 +195,22 @@ def test_polycam_uses_corrected_cameras_only_with_corrected_images(tmp_path, src
     np.testing.assert_allclose(seq.poses[2][:3, 3], src.poses[2][:3, 3] + 0.5, atol=1e-6)
 
 
+def test_polycam_corrected_images_lose_their_undistortion_border(tmp_path, src):
+    poly = write_polycam(src, tmp_path / "crop", frames=range(2), corrected=True)
+    seq = open_sequence(poly)  # corrected images: 15 pixels cut from each edge, the depth still covers it all
+    c = src.camera
+    assert (seq.camera.width, seq.camera.height, seq.camera.cx, seq.camera.cy) == (c.width - 30, c.height - 30,
+                                                                                   c.cx - 15, c.cy - 15)
+    f, g = seq.frame(1), src.frame(1)
+    np.testing.assert_array_equal(f.color.numpy(), g.color.numpy()[15:-15, 15:-15])
+    d, ref = f.depth.numpy(), g.depth.numpy()[15:-15, 15:-15]
+    both = (d > 0) & (ref > 0)
+    assert both.mean() > 0.5 and np.median(np.abs(d[both] - ref[both])) < 1e-3
+    assert open_sequence(poly, crop_border=0).camera == c
+    with pytest.raises(DatasetError, match="crop_border must be 0 to 239 pixels"):
+        open_sequence(poly, crop_border=300)
+
+
 def test_polycam_as_its_spec_describes_it(tmp_path, src):
     """PolyCam/polyform's README: files named by the keyframe's time in microseconds (no time field in the camera
     JSON), confidence 0 / 127 / 255 for low / medium / high."""

@@ -39,6 +39,17 @@ def test_lone_channel_of_another_name_is_read(tmp_path, src):
         write_record3d_exr(src, tmp_path / "r", frames=range(2))).frame(1).depth.numpy())
 
 
+def test_half_float_piz_depth_is_read(tmp_path, src):
+    out = write_record3d_exr(src, tmp_path / "half", frames=range(2)) / "EXR_RGBD"
+    full = open_sequence(out).frame(1).depth.numpy()
+    d = OpenEXR.File(str(out / "depth" / "1.exr"), separate_channels=True).channels()["R"].pixels
+    with OpenEXR.File({"compression": OpenEXR.PIZ_COMPRESSION, "type": OpenEXR.scanlineimage},
+                      {"R": d.astype(np.float16)}) as f:  # another writer's choice: 16-bit floats, PIZ
+        f.write(str(out / "depth" / "1.exr"))
+    half = open_sequence(out).frame(1).depth.numpy()
+    assert half.dtype == np.float32 and np.abs(half - full).max() < 5e-3  # float16 keeps ~3 decimal digits
+
+
 def test_per_frame_intrinsics_median_is_the_camera(tmp_path, src):
     c = src.camera
     coeffs = [[c.fx * k, c.fy * k, c.cx, c.cy] for k in (0.99, 1.0, 1.02)]  # focus breathing, frame by frame
