@@ -71,7 +71,7 @@ def test_map_writes_spz_and_splat_beside_the_ply(run_sh0, tmp_path):
     _, plain = _spz_streams(tmp_path / "plain.spz")
     assert sizes["alphas"] * 2 < plain["alphas"], (sizes, plain)
     assert all(sizes[k] <= plain[k] * 1.02 + 16 for k in sizes if k != "alphas"), (sizes, plain)
-    assert ply / spz > 4.0, (ply, spz, n, sizes)  # 4.3x on the 200-frame kitchen map (docs/phone.md)
+    assert ply / spz > 4.2, (ply, spz, n, sizes)  # 4.37x here; 4.3x on the 200-frame kitchen map (docs/phone.md)
 
 
 def test_spz_read_back_by_splat_transform_matches_the_map(run_sh0, tmp_path):
