@@ -31,7 +31,7 @@ import numpy as np
 
 from ..core.camera import Camera
 from .base import DatasetError
-from .phone import PhoneOptions, PhoneSequence, confidence_levels, gl_to_cv, scaled_to
+from .phone import PhoneOptions, PhoneSequence, gl_to_cv, read_confidence_png, scaled_to
 
 T_KEYS = [f"t_{r}{c}" for r in range(3) for c in range(4)]
 
@@ -95,13 +95,7 @@ def _read_frame(i: int, ip: Path, k: Path, name: str):
     d = cv2.imread(str(dp), cv2.IMREAD_UNCHANGED)
     if d is None or d.dtype != np.uint16 or d.ndim != 2:
         raise DatasetError(f"frame {i}: depth file {dp} is missing, corrupt or not a 16-bit PNG")
-    conf = None
-    if cp.is_file():
-        c = cv2.imread(str(cp), cv2.IMREAD_UNCHANGED)
-        if c is None:
-            raise DatasetError(f"frame {i}: confidence file {cp} is corrupt")
-        conf = confidence_levels(c if c.ndim == 2 else c[..., 0])
-    return bgr[..., ::-1].copy(), d.astype(np.float32) / 1000.0, conf
+    return bgr[..., ::-1].copy(), d.astype(np.float32) / 1000.0, read_confidence_png(cp, i)
 
 
 def open_polycam(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0, color_width: int = 640,

@@ -28,7 +28,7 @@ import numpy as np
 
 from ..core.camera import Camera, pose_from_tum
 from .base import DatasetError
-from .phone import PhoneOptions, PhoneSequence, check_frame_count, confidence_levels, scaled_to
+from .phone import PhoneOptions, PhoneSequence, check_frame_count, read_confidence_png, scaled_to
 
 POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 
@@ -155,8 +155,6 @@ def _rows_by_frame(path: Path, rows: list[dict], numbers: list[int]) -> dict[int
 def open_stray(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0, color_width: int = 640,
                fps: float = 60.0) -> PhoneSequence:
     """Open a Stray Scanner folder; see the module docstring."""
-    import cv2
-
     opts = PhoneOptions(min_confidence, max_depth, color_width)
     depths = _depth_files(path / "depth")
     if not depths:
@@ -188,13 +186,7 @@ def open_stray(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0, c
 
     def native(i: int):
         n = keep[i]
-        cf = confs / f"{depths[n].stem}.png"
-        conf = None
-        if cf.is_file():
-            c = cv2.imread(str(cf), cv2.IMREAD_UNCHANGED)
-            if c is None:
-                raise DatasetError(f"frame {i}: confidence file {cf} is corrupt")
-            conf = confidence_levels(c if c.ndim == 2 else c[..., 0])
+        conf = read_confidence_png(confs / f"{depths[n].stem}.png", i)
         return video.frame(n), read_depth_mm(depths[n], i), conf  # the video holds every frame, depth or not
 
     seq = PhoneSequence(native=native, color_native=color_cam, depth_native=depth_cam, opts=opts,
