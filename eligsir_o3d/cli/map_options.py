@@ -45,7 +45,8 @@ def _opt(default, help: str, panel: str, *decls, **kw):
 
 PATH = ("path", Optional[str], typer.Argument(None, help="Sequence folder (TUM, Replica, plain folder layout), a ROS "
                                               "1/2 or RealSense bag, a ScanNet .sens, a phone capture (Record3D "
-                                              ".r3d, Stray Scanner folder, Polycam raw-data export), or "
+                                              ".r3d or EXR + JPG export folder, Stray Scanner folder, Polycam "
+                                              "raw-data export), or "
                                               "'synthetic'.",
                                               show_default=False))
 INPUT_OPTIONS = [
@@ -67,8 +68,8 @@ INPUT_OPTIONS = [
     ("depth_topic", Optional[str], _opt(None, "ROS bag: depth topic (when the bag has several).", INPUT)),
     ("rgb_info_topic", Optional[str], _opt(None, "ROS bag: CameraInfo topic of the colour camera.", INPUT)),
     ("depth_info_topic", Optional[str], _opt(None, "ROS bag: CameraInfo topic of the depth camera.", INPUT)),
-    ("min_confidence", Optional[int], _opt(None, "Phone captures (Record3D, Stray Scanner, Polycam): drop depth "
-                                           "below this ARKit confidence, 0-2 (default 1).", INPUT)),
+    ("min_confidence", Optional[int], _opt(None, "Phone captures (Record3D .r3d, Stray Scanner, Polycam): drop "
+                                           "depth below this ARKit confidence, 0-2 (default 1).", INPUT)),
 ]
 POSE_OPTIONS = [
     ("pose", str, _opt("gt", "gt | odometry (Open3D frame-to-model) | kiss-icp | colmap (runs SfM over the whole "

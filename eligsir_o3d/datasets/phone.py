@@ -92,6 +92,19 @@ def confidence_levels(conf: np.ndarray) -> np.ndarray:
     return conf.astype(np.uint8)
 
 
+def read_confidence_png(path: Path, i: int) -> np.ndarray | None:
+    """Confidence levels 0/1/2 (uint8 [h, w]) from an 8-bit PNG (the first channel of a colour one), or None when
+    the file is absent (confidence is optional in every phone layout)."""
+    if not path.is_file():
+        return None
+    import cv2
+
+    c = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if c is None:
+        raise DatasetError(f"frame {i}: confidence file {path} is corrupt")
+    return confidence_levels(c if c.ndim == 2 else c[..., 0])
+
+
 Native = Callable[[int], tuple[np.ndarray, np.ndarray, "np.ndarray | None"]]
 
 

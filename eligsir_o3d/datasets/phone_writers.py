@@ -1,11 +1,13 @@
-"""Write an RGB-D sequence as a phone capture: Record3D ``.r3d``, a Stray Scanner folder, a Polycam raw export.
+"""Write an RGB-D sequence as a phone capture: Record3D ``.r3d`` or EXR + JPG export, a Stray Scanner folder, a
+Polycam raw export.
 
-The readers (record3d.py, stray.py, polycam.py) are tested by writing real frames (7-Scenes, SUN3D) with these
+The readers (record3d.py, record3d_exr.py, stray.py, polycam.py) are tested by writing real frames (7-Scenes, SUN3D) with these
 functions and reading them back, as the bag readers are. Each writer follows its app's conventions: OpenGL camera
 axes in Record3D and Polycam poses, column-major K in Record3D's metadata, LZFSE float32 depth blobs, millimetre
 PNGs. ``depth_size=(w, h)`` writes depth at a phone's resolution (nearest-neighbour samples of the frame's depth,
 with the intrinsics scaled to match); by default depth keeps the colour size, so a round trip reads back the same
-frames. Confidence is written as 2 (high) where depth is valid and 0 elsewhere.
+frames. Confidence is written as high where depth is valid and low elsewhere (2 and 0; Polycam's 8-bit 255
+and 0).
 """
 
 from __future__ import annotations
@@ -75,20 +77,53 @@ def write_record3d(seq, out: str | Path, *, frames: Sequence[int] | None = None,
             T = seq.poses[i] @ GL_TO_CV if gl_axes else seq.poses[i]
             t, q = pose_to_tum(T)
             poses.append([*map(float, q), *map(float, t)])
-        K = cam.K.T.reshape(-1) if column_major else cam.K.reshape(-1)
-        meta = {"w": cam.width, "h": cam.height, "K": [float(x) for x in K], "dw": dcam.width,
-                "dh": dcam.height, "fps": 30, "poses": poses, "cameraType": 1,
-                "frameTimestamps": [float(seq.timestamps[i]) for i in idx], "initPose": [0, 0, 0, 1, 0, 0, 0]}
+        meta = _record3d_meta(seq, idx, cam, dcam, poses, column_major=column_major)
         if metadata:
             z.writestr("metadata", json.dumps(meta))
     return out
 
 
+def _record3d_meta(seq, idx, cam, dcam, poses, column_major=True) -> dict:
+    K = cam.K.T.reshape(-1) if column_major else cam.K.reshape(-1)
+    return {"w": cam.width, "h": cam.height, "K": [float(x) for x in K], "dw": dcam.width, "dh": dcam.height,
+            "fps": 30, "poses": poses, "cameraType": 1, "frameTimestamps": [float(seq.timestamps[i]) for i in idx],
+            "initPose": [0, 0, 0, 1, 0, 0, 0]}
+
+
+def write_record3d_exr(seq, out: str | Path, *, frames: Sequence[int] | None = None, depth_size=None,
+                       channel: str = "R", per_frame_intrinsics: Sequence[Sequence[float]] | None = None) -> Path:
+    """Write frames of ``seq`` as Record3D's EXR + JPG export: ``out/EXR_RGBD/`` with metadata.json, rgb/N.jpg and
+    depth/N.exr (one float32 channel named ``channel``, metres, ZIP-compressed). ``per_frame_intrinsics`` adds
+    the newer metadata's ``perFrameIntrinsicCoeffs`` ([fx, fy, cx, cy] per frame). Needs the OpenEXR package."""
+    import OpenEXR
+
+    out, idx, cam = Path(out), _frames(seq, frames), seq.camera
+    root = out / "EXR_RGBD"
+    for sub in ("rgb", "depth"):
+        (root / sub).mkdir(parents=True, exist_ok=True)
+    poses = []
+    for n, i in enumerate(idx):
+        rgb, d, jpeg = _images(seq, i, depth_size)
+        (root / "rgb" / f"{n}.jpg").write_bytes(_jpeg(rgb, jpeg))
+        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+        with OpenEXR.File(header, {channel: np.ascontiguousarray(d, dtype=np.float32)}) as f:
+            f.write(str(root / "depth" / f"{n}.exr"))
+        t, q = pose_to_tum(seq.poses[i] @ GL_TO_CV)
+        poses.append([*map(float, q), *map(float, t)])
+    meta = _record3d_meta(seq, idx, cam, _depth_camera(seq, depth_size), poses)
+    if per_frame_intrinsics is not None:
+        meta["perFrameIntrinsicCoeffs"] = [[float(v) for v in c] for c in per_frame_intrinsics]
+    (root / "metadata.json").write_text(json.dumps(meta))
+    return out
+
+
 def write_stray(seq, out: str | Path, *, frames: Sequence[int] | None = None, depth_size=None,
-                header: str = "timestamp, frame, x, y, z, qx, qy, qz, qw", hevc: bool = False) -> Path:
+                header: str = "timestamp, frame, x, y, z, qx, qy, qz, qw", hevc: bool = False,
+                depth_ext: str = "png") -> Path:
     """Write frames of ``seq`` as a Stray Scanner folder. The video is lossless H.264 (``libx264rgb``, qp 0,
     through imageio-ffmpeg) so that a round trip reads back the same colour; ``hevc=True`` writes HEVC (``hvc1``,
-    lossy) as the app does. ``header``: the odometry.csv header ("" writes none, as the oldest captures)."""
+    lossy) as the app does. ``header``: the odometry.csv header ("" writes none, as the oldest captures).
+    ``depth_ext="npy"`` writes depth as the app's 2021 versions did (uint16 millimetre .npy arrays)."""
     import cv2
     import imageio_ffmpeg
 
@@ -108,7 +143,10 @@ def write_stray(seq, out: str | Path, *, frames: Sequence[int] | None = None, de
         rgb, d, _ = _images(seq, i, depth_size)
         writer.send(np.ascontiguousarray(rgb))
         mm = np.clip(np.rint(d * 1000.0), 0, 65535).astype(np.uint16)
-        cv2.imwrite(str(out / "depth" / f"{n:06d}.png"), mm)
+        if depth_ext == "npy":
+            np.save(out / "depth" / f"{n:06d}.npy", mm)
+        else:
+            cv2.imwrite(str(out / "depth" / f"{n:06d}.png"), mm)
         cv2.imwrite(str(out / "confidence" / f"{n:06d}.png"), np.where(mm > 0, 2, 0).astype(np.uint8))
         t, q = pose_to_tum(seq.poses[i])  # Stray Scanner's poses are already in OpenCV camera axes
         vals = [*t, *q]
@@ -130,16 +168,18 @@ def write_polycam(seq, out: str | Path, *, frames: Sequence[int] | None = None, 
     pre = "corrected_" if corrected else ""
     for sub in (f"{pre}images", f"{pre}cameras", "cameras", "depth", "confidence"):
         (k / sub).mkdir(parents=True, exist_ok=True)
+    last = -1
     for n, i in enumerate(idx):
-        stem = f"{int(round(seq.timestamps[i] * 1e6)) + n:d}"
+        last = max(last + 1, int(round(seq.timestamps[i] * 1e6)))  # names: the time in microseconds, as Polycam's
+        stem = f"{last:d}"
         rgb, d, jpeg = _images(seq, i, depth_size)
         (k / f"{pre}images" / f"{stem}.jpg").write_bytes(_jpeg(rgb, jpeg))
         mm = np.clip(np.rint(d * 1000.0), 0, 65535).astype(np.uint16)
         cv2.imwrite(str(k / "depth" / f"{stem}.png"), mm)
-        cv2.imwrite(str(k / "confidence" / f"{stem}.png"), np.where(mm > 0, 2, 0).astype(np.uint8))
+        cv2.imwrite(str(k / "confidence" / f"{stem}.png"), np.where(mm > 0, 255, 0).astype(np.uint8))  # 0/127/255
         T = seq.poses[i] @ GL_TO_CV
         data = {"fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "width": cam.width, "height": cam.height,
-                "blur_score": 100.0, "timestamp": int(round(seq.timestamps[i] * 1e6))}
+                "blur_score": 100.0}
         data.update({f"t_{r}{c}": float(T[r, c]) for r in range(3) for c in range(4)})
         (k / f"{pre}cameras" / f"{stem}.json").write_text(json.dumps(data))
         if corrected:  # the uncorrected poses, off by 0.5 m: the reader must prefer the corrected ones

@@ -1,20 +1,25 @@
 """Polycam raw-data export (iPhone / iPad LiDAR, "Export -> Raw data" with developer mode on): a folder.
 
-Layout::
+Layout (Polycam's own description, PolyCam/polyform README and ``core/capture_folder.py``; nerfstudio's
+``ns-process-data polycam``)::
 
-    keyframes/images/<stamp>.jpg        colour (corrected_images/ when present: preferred)
+    keyframes/images/<stamp>.jpg        colour (corrected_images/, undistorted, with corrected_cameras/: preferred
+                                        when both are present)
     keyframes/cameras/<stamp>.json      per frame: fx, fy, cx, cy, width, height (of the image), blur_score,
                                         t_00 .. t_23: row-major 3 x 4 camera-to-world, ARKit world, OpenGL
                                         camera axes (corrected_cameras/: Polycam's globally optimised poses,
                                         preferred when present)
     keyframes/depth/<stamp>.png         uint16 millimetres, 256 x 192 on current devices
-    keyframes/confidence/<stamp>.png    optional, 0/1/2 (or 8-bit levels)
+    keyframes/confidence/<stamp>.png    optional, 8-bit: 0 low, 127 medium, 255 high (0/1/2 also read)
 
 Frames are the camera files, in the numeric order of their names; a camera file with missing or malformed pose
-fields is left out (``skipped_frames``). Timestamps: the camera files' ``timestamp`` fields, read in the unit
-(s, ms, us or ns) that spaces the keyframes 5 ms to 5 s apart; without them, or with ``fps=`` given, frames are
-spaced at ``fps`` (default 10 per second). All frames share the first camera's intrinsics (a frame whose image size differs is an error). Options:
-``min_confidence``, ``max_depth``, ``color_width``, ``fps`` (see :mod:`.phone`).
+fields is left out (``skipped_frames``). Timestamps: ``<stamp>``, the keyframe's time in microseconds by
+Polycam's spec (a camera file's ``timestamp`` field instead, where one has it), read in the unit (s, ms, us or
+ns) that spaces the keyframes 5 ms to 5 s apart; without them, or with ``fps=`` given, frames are spaced at
+``fps`` (default 10 per second). All frames share the first camera's intrinsics (a frame whose image size
+differs is an error). The corrected images' black undistortion border is cut off (``crop_border``, 15 pixels
+by default, as nerfstudio does; Polycam's README asks to mask it). Options: ``min_confidence``, ``max_depth``,
+``color_width``, ``fps`` (see :mod:`.phone`), ``crop_border``.
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ import numpy as np
 
 from ..core.camera import Camera
 from .base import DatasetError
-from .phone import PhoneOptions, PhoneSequence, confidence_levels, gl_to_cv, scaled_to
+from .phone import PhoneOptions, PhoneSequence, gl_to_cv, read_confidence_png, scaled_to
 
 T_KEYS = [f"t_{r}{c}" for r in range(3) for c in range(4)]
 
@@ -71,20 +76,44 @@ def _read_camera(path: Path) -> tuple[Camera, np.ndarray | None, object]:
         return cam, None, None
     T = np.eye(4)
     T[:3] = M
-    return cam, gl_to_cv(T), data.get("timestamp")
+    stamp = data.get("timestamp")
+    if stamp is None and path.stem.isdigit():
+        stamp = int(path.stem)  # Polycam names every keyframe's files by its timestamp in microseconds
+    return cam, gl_to_cv(T), stamp
+
+
+def _read_frame(i: int, ip: Path, k: Path, name: str):
+    """Frame i as exported: colour uint8 [H, W, 3] RGB, depth float32 metres, confidence 0/1/2 or None."""
+    import cv2
+
+    dp, cp = k / "depth" / f"{name}.png", k / "confidence" / f"{name}.png"
+    bgr = cv2.imread(str(ip), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise DatasetError(f"frame {i}: colour file {ip} is missing or corrupt")
+    if ip.suffix == ".jpg" and b"\xff\xd9" not in ip.read_bytes()[-64:]:
+        raise DatasetError(f"frame {i}: colour file {ip} is truncated (no JPEG end-of-image marker)")
+    d = cv2.imread(str(dp), cv2.IMREAD_UNCHANGED)
+    if d is None or d.dtype != np.uint16 or d.ndim != 2:
+        raise DatasetError(f"frame {i}: depth file {dp} is missing, corrupt or not a 16-bit PNG")
+    return bgr[..., ::-1].copy(), d.astype(np.float32) / 1000.0, read_confidence_png(cp, i)
 
 
 def open_polycam(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0, color_width: int = 640,
-                 fps: float | None = None) -> PhoneSequence:
-    """Open a Polycam raw-data export folder; see the module docstring."""
+                 fps: float | None = None, crop_border: int | None = None) -> PhoneSequence:
+    """Open a Polycam raw-data export folder; see the module docstring. ``crop_border``: pixels cut from each
+    edge of the colour images (None: 15 for the corrected images, whose undistortion leaves a black border, as
+    nerfstudio's ns-process-data polycam crops them; 0 for the raw images)."""
     import cv2
 
     if fps is not None and not fps > 0:
         raise DatasetError(f"fps must be positive, got {fps}")
     opts = PhoneOptions(min_confidence, max_depth, color_width)
     k = path / "keyframes"
-    cam_dir = k / "corrected_cameras" if (k / "corrected_cameras").is_dir() else k / "cameras"
-    img_dir = k / "corrected_images" if (k / "corrected_images").is_dir() else k / "images"
+    # the corrected images are undistorted and go with the corrected cameras' intrinsics and poses: the two are
+    # used together or not at all (as nerfstudio's ns-process-data polycam does)
+    corrected = (k / "corrected_images").is_dir() and (k / "corrected_cameras").is_dir()
+    cam_dir, img_dir = (k / "corrected_cameras", k / "corrected_images") if corrected else \
+        (k / "cameras", k / "images")
     files = sorted(cam_dir.glob("*.json"), key=_stem_key)
     if not files:
         raise DatasetError(f"{cam_dir}: no camera JSON files (empty export)")
@@ -108,31 +137,23 @@ def open_polycam(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0,
     d0 = cv2.imread(str(first_depth), cv2.IMREAD_UNCHANGED)
     if d0 is None or d0.dtype != np.uint16 or d0.ndim != 2:
         raise DatasetError(f"frame 0: depth file {first_depth} is missing or not a 16-bit single-channel PNG")
-    depth_cam = scaled_to(color_cam, d0.shape[1], d0.shape[0])
+    depth_cam = scaled_to(color_cam, d0.shape[1], d0.shape[0])  # the depth covers the whole image
+    b = (15 if corrected else 0) if crop_border is None else int(crop_border)
+    if not 0 <= 2 * b < min(color_cam.width, color_cam.height):
+        raise DatasetError(f"crop_border must be 0 to {min(color_cam.width, color_cam.height) // 2 - 1} pixels for "
+                           f"the {color_cam.width}x{color_cam.height} images of {path}, got {crop_border}")
+    shown = Camera(color_cam.width - 2 * b, color_cam.height - 2 * b, color_cam.fx, color_cam.fy,
+                   color_cam.cx - b, color_cam.cy - b)
 
     def image(i: int) -> Path:
         p = img_dir / f"{names[i]}.jpg"
         return p if p.is_file() else img_dir / f"{names[i]}.png"
 
     def native(i: int):
-        ip, dp, cp = image(i), k / "depth" / f"{names[i]}.png", k / "confidence" / f"{names[i]}.png"
-        bgr = cv2.imread(str(ip), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise DatasetError(f"frame {i}: colour file {ip} is missing or corrupt")
-        if ip.suffix == ".jpg" and b"\xff\xd9" not in ip.read_bytes()[-64:]:
-            raise DatasetError(f"frame {i}: colour file {ip} is truncated (no JPEG end-of-image marker)")
-        d = cv2.imread(str(dp), cv2.IMREAD_UNCHANGED)
-        if d is None or d.dtype != np.uint16 or d.ndim != 2:
-            raise DatasetError(f"frame {i}: depth file {dp} is missing, corrupt or not a 16-bit PNG")
-        conf = None
-        if cp.is_file():
-            c = cv2.imread(str(cp), cv2.IMREAD_UNCHANGED)
-            if c is None:
-                raise DatasetError(f"frame {i}: confidence file {cp} is corrupt")
-            conf = confidence_levels(c if c.ndim == 2 else c[..., 0])
-        return bgr[..., ::-1].copy(), d.astype(np.float32) / 1000.0, conf
+        rgb, d, conf = _read_frame(i, image(i), k, names[i])
+        return rgb[b:rgb.shape[0] - b, b:rgb.shape[1] - b].copy() if b else rgb, d, conf
 
-    seq = PhoneSequence(native=native, color_native=color_cam, depth_native=depth_cam, opts=opts,
+    seq = PhoneSequence(native=native, color_native=shown, depth_native=depth_cam, opts=opts,
                         where=lambda i: str(image(i)), name=path.name, path=path,
                         timestamps=_timestamps(stamps, len(names), fps), poses=poses, format="polycam")
     seq.skipped_frames = skipped

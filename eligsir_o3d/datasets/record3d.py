@@ -1,11 +1,14 @@
 """Record3D captures (iPhone / iPad LiDAR app): the ``.r3d`` export, a ZIP, or the same files unzipped into a folder.
 
-Layout (checked against Record3D's own samples and the public parsers)::
+Layout (checked against Record3D's author's descriptions, marek-simonik/record3d #7, #39, #93, and the public
+parsers, nerfstudio's ``record3d_utils``)::
 
     metadata        JSON: "w", "h" (colour size), "K" (9 numbers, COLUMN-major, for the colour size: K[6], K[7]
                     are cx, cy), "dw", "dh" (depth size; older captures lack them: inferred from the first depth
                     blob and the colour aspect), "fps", "poses" (one [qx, qy, qz, qw, tx, ty, tz] per frame:
-                    camera-to-world, ARKit world, OpenGL camera axes), optional "frameTimestamps" (s)
+                    camera-to-world, ARKit world, OpenGL camera axes), optional "frameTimestamps" (s),
+                    optional "perFrameIntrinsicCoeffs" ([fx, fy, cx, cy] a frame for the colour size, newer
+                    versions: their median is used, see :func:`color_camera`)
     rgbd/N.jpg      colour of frame N (N = 0, 1, ...)
     rgbd/N.depth    LZFSE-compressed float32 metres, dh x dw, row-major
     rgbd/N.conf     optional, LZFSE-compressed uint8 confidence 0/1/2, dh x dw
@@ -65,17 +68,23 @@ class _Archive:
             raise DatasetError(f"{self.where(name)}: cannot read ({e}; truncated capture?)") from None
 
 
+def parse_metadata(raw: bytes, where: str) -> dict:
+    """The capture's metadata JSON (``metadata`` in a .r3d, ``metadata.json`` in the EXR + JPG export), its
+    required fields checked; ``where`` names the file in errors."""
+    try:
+        meta = json.loads(raw)
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise DatasetError(f"{where}: not valid JSON ({e})") from None
+    missing = [k for k in ("w", "h", "K", "poses") if not isinstance(meta, dict) or k not in meta]
+    if missing:
+        raise DatasetError(f"{where}: missing field(s) {', '.join(missing)}")
+    return meta
+
+
 def _metadata(ar: _Archive) -> dict:
     if "metadata" not in ar.names:
         raise DatasetError(f"{ar.where('metadata')}: no metadata in the capture (is it a Record3D .r3d export?)")
-    try:
-        meta = json.loads(ar.read("metadata"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(f"{ar.where('metadata')}: not valid JSON ({e})") from None
-    missing = [k for k in ("w", "h", "K", "poses") if not isinstance(meta, dict) or k not in meta]
-    if missing:
-        raise DatasetError(f"{ar.where('metadata')}: missing field(s) {', '.join(missing)}")
-    return meta
+    return parse_metadata(ar.read("metadata"), ar.where("metadata"))
 
 
 def intrinsics_from_K(K: list, w: int, h: int, where: str) -> Camera:
@@ -89,15 +98,50 @@ def intrinsics_from_K(K: list, w: int, h: int, where: str) -> Camera:
     return Camera(int(w), int(h), float(M[0, 0]), float(M[1, 1]), float(M[0, 2]), float(M[1, 2]))
 
 
-def _poses(meta: dict, where: str) -> list[np.ndarray]:
+def color_camera(meta: dict, where: str) -> Camera:
+    """The colour camera of a capture: from ``perFrameIntrinsicCoeffs`` ([fx, fy, cx, cy] a frame, for the colour
+    size; newer Record3D versions, where focus moves the focal length a little) as their median, else from K."""
+    cam = intrinsics_from_K(meta["K"], meta["w"], meta["h"], where)
+    coeffs = meta.get("perFrameIntrinsicCoeffs")
+    if not coeffs:
+        return cam
+    try:
+        c = np.asarray(coeffs, dtype=np.float64)
+    except (TypeError, ValueError):
+        c = np.zeros(0)
+    if c.ndim != 2 or c.shape[1] != 4 or not np.all(np.isfinite(c)) or not np.all(c[:, :2] > 0):
+        raise DatasetError(f"{where}: perFrameIntrinsicCoeffs must be [fx, fy, cx, cy] per frame, got "
+                           f"{str(coeffs)[:80]}")
+    fx, fy, cx, cy = np.median(c, axis=0)
+    if not (0 < cx < cam.width and 0 < cy < cam.height):
+        raise DatasetError(f"{where}: perFrameIntrinsicCoeffs put the principal point ({cx:.1f}, {cy:.1f}) outside "
+                           f"the {cam.width}x{cam.height} colour image")
+    return Camera(cam.width, cam.height, float(fx), float(fy), float(cx), float(cy))
+
+
+def poses_from_metadata(meta: dict) -> list[np.ndarray | None]:
+    """Camera-to-world poses [4, 4] in OpenCV camera axes, one per ``poses`` entry (None: lost / malformed)."""
     poses = []
-    for k, p in enumerate(meta["poses"]):
-        v = np.asarray(p, dtype=np.float64).reshape(-1)
+    for p in meta["poses"]:
+        try:
+            v = np.asarray(p, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            v = np.zeros(0)
         if v.shape != (7,) or not np.all(np.isfinite(v)) or np.linalg.norm(v[:4]) < 1e-6:
             poses.append(None)  # a lost-tracking / malformed entry: the frame is skipped
             continue
         poses.append(gl_to_cv(pose_from_tum(v[4:], v[:4] / np.linalg.norm(v[:4]))))
     return poses
+
+
+def frame_timestamps(meta: dict, frames: list[int], keep: list[int], fps: float | None) -> list[float]:
+    """Seconds of the kept frames: ``frameTimestamps`` when it covers every frame, else N / fps."""
+    rate = float(fps or meta.get("fps") or 30.0)
+    stamps = meta.get("frameTimestamps")
+    if isinstance(stamps, list) and len(stamps) > max(frames) and \
+            all(isinstance(t, (int, float)) for t in stamps):
+        return [float(stamps[n]) for n in keep]
+    return [n / rate for n in keep]
 
 
 def open_record3d(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0, color_width: int = 640,
@@ -107,7 +151,7 @@ def open_record3d(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0
     ar = _Archive(Path(path))
     meta = _metadata(ar)
     mwhere = ar.where("metadata")
-    color_cam = intrinsics_from_K(meta["K"], meta["w"], meta["h"], mwhere)
+    color_cam = color_camera(meta, mwhere)
     frames = sorted(int(m.group(1)) for m in (_FRAME.match(n) for n in ar.names) if m)
     if not frames:
         raise DatasetError(f"{ar.path}: no rgbd/N.jpg frames in the capture (empty recording)")
@@ -119,18 +163,13 @@ def open_record3d(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0
         dw = int(round(np.sqrt(n * color_cam.width / color_cam.height)))
         dh = n // max(dw, 1)
     depth_cam = scaled_to(color_cam, dw, dh)
-    poses = _poses(meta, mwhere)
+    poses = poses_from_metadata(meta)
     keep = [n for n in frames if n < len(poses) and poses[n] is not None]
     skipped = [f"{ar.where(f'rgbd/{n}.jpg')}: no pose in metadata (lost tracking), left out"
                for n in frames if n not in set(keep)]
     if not keep:
         raise DatasetError(f"{mwhere}: none of the {len(frames)} frames has a pose")
-    rate = float(fps or meta.get("fps") or 30.0)
-    stamps = meta.get("frameTimestamps")
-    if isinstance(stamps, list) and len(stamps) >= len(frames) and all(isinstance(t, (int, float)) for t in stamps):
-        timestamps = [float(stamps[n]) for n in keep]
-    else:
-        timestamps = [n / rate for n in keep]
+    timestamps = frame_timestamps(meta, frames, keep, fps)
 
     def blob(n: int, ext: str, dtype, required: bool):
         name = f"rgbd/{n}.{ext}"

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from . import folder, polycam, record3d, replica, rosbag, rsbag, scannet, stray, tum
+from . import folder, polycam, record3d, record3d_exr, replica, rosbag, rsbag, scannet, stray, tum
 from .base import DatasetError, RGBDSequence
 from .synthetic import SyntheticRoom, open_synthetic
 
@@ -58,7 +58,8 @@ def open_sequence(path_or_name: str | Path, kind: str = "auto", *, register: boo
     for example ``max_dt=0.02`` (tum, rosbag, realsense), ``fps=30`` (replica, folder, scannet), ``depth_scale=``,
     ``rgb_topic, depth_topic, rgb_info_topic, depth_info_topic, pose_topic, pose_frames, intrinsics`` (rosbag),
     ``n_frames, width, height, seed`` (synthetic),
-    ``min_confidence, max_depth, color_width`` (record3d, stray, polycam: see :mod:`.phone`). register=False ignores a separate colour camera
+    ``min_confidence, max_depth, color_width`` (record3d, stray, polycam; record3d_exr: no confidence; see
+    :mod:`.phone`). register=False ignores a separate colour camera
     (the sidecar's ``color`` block or a recording's two CameraInfos): depth is not registered and the depth camera
     serves both images.
     """
@@ -96,6 +97,9 @@ def _open(path_or_name: str | Path, kind: str, **options) -> RGBDSequence:
 register_format("tum", tum.detect, tum.open_tum, "rgb.txt + depth.txt (+ groundtruth.txt), TUM RGB-D")
 register_format("replica", replica.detect, replica.open_replica,
                 "results/frame*.jpg + results/depth*.png + traj.txt, NICE-SLAM Replica")
+# before "folder": the export's rgb/ + depth/ would look like a plain folder missing its intrinsics.json
+register_format("record3d_exr", record3d_exr.detect, record3d_exr.open_record3d_exr,
+                "Record3D EXR + JPG export: [EXR_RGBD/] metadata.json + rgb/N.jpg + depth/N.exr")
 register_format("folder", folder.detect, folder.open_folder, "color/ (or rgb/) + depth/ + intrinsics.json")
 register_format("realsense", rsbag.detect, rsbag.open_realsense,
                 "RealSense .bag (librealsense layout: /file_version, /device_0/sensor_*/Depth_0, Color_0)")

@@ -2,16 +2,21 @@
 
 Layout (the app's own format description)::
 
-    rgb.mp4               colour video (HEVC on the phone), one frame per depth frame
-    depth/000000.png      uint16 millimetres, 256 x 192 on current devices
+    rgb.mp4               colour video (HEVC on the phone), one video frame per saved frame
+    depth/000000.png      uint16 millimetres, 256 x 192 on current devices (``.npy`` of uint16 mm in the app's
+                          2021 versions); numbered by frame: a frame the phone gave no depth for has no file
     confidence/000000.png optional, uint8 0/1/2
     camera_matrix.csv     3 x 3 K for the full colour video size
     odometry.csv          one row per frame: header ``timestamp, frame, x, y, z, qx, qy, qz, qw`` (older captures:
                           ``x, y, z, qx, qy, qz, qw`` only, or no header at all), camera-to-world; the app already
                           turned ARKit's camera axes into OpenCV's (it multiplies by a 180-degree turn about x)
 
-Columns are found by their header names. The video is decoded in order (a request behind the decoder reopens
-it), so a stream reads each frame once. Options: ``min_confidence``, ``max_depth``, ``color_width``, ``fps``
+Checked against the app's source (strayrobots/scanner: DatasetEncoder, OdometryEncoder, DepthEncoder,
+PngEncoder) and its author's scripts (kekeblom/StrayVisualizer). Frames are the depth files' numbers: the
+video and the ``frame`` column (or, without it, the row index) are matched by number, so a frame without
+depth is left out (``skipped_frames``) rather than shifting the rest. Columns are found by their header names.
+The video is decoded in order (a request behind the decoder reopens it), so a stream reads each frame once.
+Options: ``min_confidence``, ``max_depth``, ``color_width``, ``fps``
 (only used without a timestamp column; the app records at 60 Hz) -- see :mod:`.phone`.
 """
 
@@ -23,7 +28,7 @@ import numpy as np
 
 from ..core.camera import Camera, pose_from_tum
 from .base import DatasetError
-from .phone import PhoneOptions, PhoneSequence, check_frame_count, confidence_levels, scaled_to
+from .phone import PhoneOptions, PhoneSequence, check_frame_count, read_confidence_png, scaled_to
 
 POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 
@@ -107,54 +112,86 @@ def _camera_matrix(path: Path, size: tuple[int, int]) -> Camera:
     return Camera(size[0], size[1], float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
 
 
+def _depth_files(folder: Path) -> dict[int, Path]:
+    """Depth files by frame number: ``NNNNNN.png`` (the app since 2022) or ``NNNNNN.npy`` (2021 versions)."""
+    files: dict[int, Path] = {}
+    for p in sorted(folder.glob("*")) if folder.is_dir() else ():
+        if p.stem.isdigit() and p.suffix.lower() in (".png", ".npy"):
+            if int(p.stem) not in files or p.suffix.lower() == ".png":
+                files[int(p.stem)] = p
+    return files
+
+
+def read_depth_mm(path: Path, i: int) -> np.ndarray:
+    """Depth [h, w] float32 metres from a uint16 millimetre PNG or .npy (the app's two encodings)."""
+    import cv2
+
+    if path.suffix.lower() == ".npy":
+        try:
+            d = np.load(path, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as e:
+            raise DatasetError(f"frame {i}: depth file {path} is not a readable .npy array ({e})") from None
+    else:
+        d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if d is None or d.dtype != np.uint16 or d.ndim != 2:
+        what = "None" if d is None else f"{d.dtype} {d.shape}"
+        raise DatasetError(f"frame {i}: depth file {path} is corrupt or not 16-bit single-channel millimetres "
+                           f"(got {what})")
+    return d.astype(np.float32) / 1000.0
+
+
+def _rows_by_frame(path: Path, rows: list[dict], numbers: list[int]) -> dict[int, dict]:
+    """odometry.csv rows by frame number (its ``frame`` column, or the row index in older files), every depth
+    frame checked to have one."""
+    by_frame = {int(r["frame"]): r for r in rows} if rows and "frame" in rows[0] else dict(enumerate(rows))
+    check_frame_count(path, "poses", len(rows), len(numbers))
+    missing = [n for n in numbers if n not in by_frame]
+    if missing:
+        raise DatasetError(f"{path}: no row for frame {missing[0]:06d} (depth/{missing[0]:06d}), "
+                           f"{len(missing)} frame(s) in all")
+    return by_frame
+
+
 def open_stray(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0, color_width: int = 640,
                fps: float = 60.0) -> PhoneSequence:
     """Open a Stray Scanner folder; see the module docstring."""
-    import cv2
-
     opts = PhoneOptions(min_confidence, max_depth, color_width)
-    depths = sorted((path / "depth").glob("*.png"))
+    depths = _depth_files(path / "depth")
     if not depths:
         raise DatasetError(f"{path / 'depth'}: no depth PNGs (empty recording)")
     video = _Video(path / "rgb.mp4")
     if not video.path.is_file():
         raise DatasetError(f"{video.path}: missing (the capture's colour video)")
     color_cam = _camera_matrix(path / "camera_matrix.csv", video.size())
-    first = cv2.imread(str(depths[0]), cv2.IMREAD_UNCHANGED)
-    if first is None or first.dtype != np.uint16 or first.ndim != 2:
-        raise DatasetError(f"frame 0: depth file {depths[0]} is not a 16-bit single-channel PNG")
+    numbers = sorted(depths)
+    first = read_depth_mm(depths[numbers[0]], 0)
     depth_cam = scaled_to(color_cam, first.shape[1], first.shape[0])
-    rows = read_odometry(path / "odometry.csv")
-    check_frame_count(path / "odometry.csv", "poses", len(rows), len(depths))
-    keep, poses, skipped = [], [], []
-    for k, r in enumerate(rows[:len(depths)]):
+    odo = path / "odometry.csv"
+    rows = _rows_by_frame(odo, read_odometry(odo), numbers)
+    skipped = [f"{odo}: frame {n:06d} has no depth/{n:06d} (the phone gave no depth), left out"
+               for n in sorted(set(rows) - set(numbers))]
+    keep, poses = [], []
+    for n in numbers:
+        r = rows[n]
         q = np.array([r["qx"], r["qy"], r["qz"], r["qw"]])
         if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6:
-            skipped.append(f"{path / 'odometry.csv'}: frame {k} has no valid pose (lost tracking), left out")
+            skipped.append(f"{odo}: frame {n:06d} has no valid pose (lost tracking), left out")
             continue
-        keep.append(k)
+        keep.append(n)
         poses.append(pose_from_tum(np.array([r["x"], r["y"], r["z"]]), q / np.linalg.norm(q)))
     if not keep:
-        raise DatasetError(f"{path / 'odometry.csv'}: none of the {len(depths)} frames has a valid pose")
-    timestamps = [rows[k]["timestamp"] if "timestamp" in rows[k] else k / fps for k in keep]
+        raise DatasetError(f"{odo}: none of the {len(numbers)} frames has a valid pose")
+    timestamps = [rows[n]["timestamp"] if "timestamp" in rows[n] else n / fps for n in keep]
     confs = path / "confidence"
 
     def native(i: int):
-        k = keep[i]
-        d = cv2.imread(str(depths[k]), cv2.IMREAD_UNCHANGED)
-        if d is None or d.dtype != np.uint16 or d.ndim != 2:
-            raise DatasetError(f"frame {i}: depth file {depths[k]} is corrupt or not a 16-bit single-channel PNG")
-        cf = confs / depths[k].name
-        conf = None
-        if cf.is_file():
-            c = cv2.imread(str(cf), cv2.IMREAD_UNCHANGED)
-            if c is None:
-                raise DatasetError(f"frame {i}: confidence file {cf} is corrupt")
-            conf = confidence_levels(c if c.ndim == 2 else c[..., 0])
-        return video.frame(k), d.astype(np.float32) / 1000.0, conf
+        n = keep[i]
+        conf = read_confidence_png(confs / f"{depths[n].stem}.png", i)
+        return video.frame(n), read_depth_mm(depths[n], i), conf  # the video holds every frame, depth or not
 
     seq = PhoneSequence(native=native, color_native=color_cam, depth_native=depth_cam, opts=opts,
                         where=lambda i: f"{video.path} / {depths[keep[i]]}", name=path.name, path=path,
                         timestamps=timestamps, poses=poses, format="stray")
     seq.skipped_frames = skipped
+    seq.frame_numbers = keep  # NNNNNN of each frame (depth/, confidence/, the video's frame index)
     return seq

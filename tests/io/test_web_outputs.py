@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from eligsir_o3d import Config
-from eligsir_o3d.export_splats import parse_formats, rdf_to_rub, read_splats, write_web_formats
+from eligsir_o3d.export_splats import parse_formats, rdf_to_rub, read_splats, spz_order, write_web_formats
 from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -44,11 +44,34 @@ def _sigmoid(x):
     return 1.0 / (1.0 + np.exp(-x))
 
 
-def test_map_writes_spz_and_splat_beside_the_ply(run_sh0):
+def _spz_streams(path: Path) -> tuple[int, dict]:
+    """(Gaussian count, {stream: compressed bytes}) of an SPZ v4 file, from its header and table of contents."""
+    import struct
+
+    data = path.read_bytes()
+    magic, version, n, _sh, _bits, _flags, count, toc = struct.unpack_from("<IIIBBBBI", data, 0)
+    assert (magic, version) == (0x5053474E, 4)
+    names = ("positions", "alphas", "colors", "scales", "rotations", "sh")
+    sizes = {names[i]: struct.unpack_from("<QQ", data, toc + 16 * i)[0] for i in range(count)}
+    assert 32 + 16 * count + sum(sizes.values()) == len(data)
+    return n, sizes
+
+
+def test_map_writes_spz_and_splat_beside_the_ply(run_sh0, tmp_path):
+    import open3d as o3d
+
     for name in ("map.ply", "map.spz", "map.splat"):
         assert (run_sh0 / name).stat().st_size > 0
     ply, spz = (run_sh0 / "map.ply").stat().st_size, (run_sh0 / "map.spz").stat().st_size
-    assert ply / spz > 3.5  # SH degree 0: 68 bytes per Gaussian in the PLY (normals included), ~17 in SPZ
+    n, sizes = _spz_streams(run_sh0 / "map.spz")
+    assert n > 500 and ply == pytest.approx(68 * n, abs=2000)  # SH degree 0: 17 floats a Gaussian (normals too)
+    # the same Gaussians written in the PLY's order: written in opacity order instead, the 8-bit opacity stream
+    # becomes runs (over 2x smaller), and no other stream grows by more than a few bytes
+    o3d.t.io.write_point_cloud(str(tmp_path / "plain.spz"), rdf_to_rub(read_splats(run_sh0 / "map.ply")))
+    _, plain = _spz_streams(tmp_path / "plain.spz")
+    assert sizes["alphas"] * 2 < plain["alphas"], (sizes, plain)
+    assert all(sizes[k] <= plain[k] * 1.02 + 16 for k in sizes if k != "alphas"), (sizes, plain)
+    assert ply / spz > 4.2, (ply, spz, n, sizes)  # 4.37x here; 4.3x on the 200-frame kitchen map (docs/phone.md)
 
 
 def test_spz_read_back_by_splat_transform_matches_the_map(run_sh0, tmp_path):
@@ -63,6 +86,7 @@ def test_spz_read_back_by_splat_transform_matches_the_map(run_sh0, tmp_path):
 
     b = PlyData.read(str(back), mmap=False)["vertex"]
     m = PlyData.read(str(run_sh0 / "map.ply"), mmap=False)["vertex"]  # the map as written: RDF, log scales, logits
+    m = m.data[spz_order(read_splats(run_sh0 / "map.ply"))]  # the SPZ holds the Gaussians in opacity order
     flip = np.array([1.0, -1.0, -1.0])
     a = {"positions": np.stack([m["x"], m["y"], m["z"]], 1) * flip,
          "rot": np.stack([m[f"rot_{i}"] for i in range(4)], 1) * np.array([1.0, 1.0, -1.0, -1.0]),
@@ -79,8 +103,8 @@ def test_spz_read_back_by_splat_transform_matches_the_map(run_sh0, tmp_path):
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     assert np.abs(np.sum(q * q_ref, axis=1)).min() > 0.995  # same rotation (q and -q alike), ~10-bit components
     # the axis turn is there: y and z of the SPZ are the map's, negated
-    raw = read_splats(run_sh0 / "map.ply").point.positions.numpy()
-    np.testing.assert_allclose(pos[:, 1:], -raw[:, 1:], atol=2.0 ** -12 + 1e-6)
+    raw = read_splats(run_sh0 / "map.ply")
+    np.testing.assert_allclose(pos[:, 1:], -raw.point.positions.numpy()[spz_order(raw)][:, 1:], atol=2.0 ** -12 + 1e-6)
 
 
 def test_spz_is_six_times_smaller_at_sh_degree_3(tmp_path):
@@ -102,6 +126,17 @@ def test_formats_and_bad_paths():
         parse_formats("ply,gltf")
     with pytest.raises(ValueError, match="no such map"):
         write_web_formats("/nonexistent/map.ply", spz="x.spz")
+
+
+def test_spz_refuses_positions_its_fixed_point_cannot_hold(run_sh0, tmp_path):
+    import open3d as o3d
+
+    far = read_splats(run_sh0 / "map.ply")
+    far.point["positions"] = far.point["positions"] + 3000.0  # 3 km off: beyond 2^23 / 2^12 m
+    o3d.t.io.write_point_cloud(str(tmp_path / "far.ply"), far)
+    with pytest.raises(ValueError, match=r"far\.ply: a Gaussian lies 30\d\d m from the origin; SPZ positions reach 2048 m"):
+        write_web_formats(tmp_path / "far.ply", spz=tmp_path / "far.spz")
+    assert not (tmp_path / "far.spz").exists()
 
 
 def test_heldout_picture_of_real_frames_is_at_most_300_kB():
