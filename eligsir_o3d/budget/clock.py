@@ -38,11 +38,19 @@ class ClockConfig:
     # "calibrate" (fit this machine, device and renderer, cached; see eligsir_o3d.budget.calibrate)
     cost_source: str = "config"
     cost: CostModel = field(default_factory=CostModel)
+    # mode "cost": weight of each measured / modelled ratio of the mapper's work in a running correction of the cost
+    # model (0: none, the run is deterministic). A calibration fits a dozen frames; the run's own work drifts from
+    # it (larger maps, the views' bookkeeping, another process taking a core), so ``eligsir map`` with a calibrated
+    # model turns this on and the budget follows what the work costs on this machine now (issue 32: K 200 frames,
+    # measured / modelled 1.64 without it)
+    cost_feedback: float = 0.0
 
 
 def check_clock_config(c: ClockConfig) -> None:
     if c.mode not in CLOCK_MODES:
         raise ValueError(f"clock.mode must be one of {', '.join(CLOCK_MODES)}, got {c.mode!r}")
+    if not 0.0 <= c.cost_feedback <= 1.0:
+        raise ValueError(f"clock.cost_feedback must lie in [0, 1], got {c.cost_feedback}")
     if c.on_bad_frame not in ("skip", "stop"):
         raise ValueError(f"clock.on_bad_frame must be 'skip' or 'stop', got {c.on_bad_frame!r}")
     if c.cost_source not in COST_SOURCES:

@@ -41,6 +41,8 @@ class ClockReport:
     max_backlog: int = 0  # most frames ever waiting in the queue
     stream_s: float = 0.0  # duration of the replayed stream (last minus first timestamp, divided by speed)
     elapsed_s: float = 0.0  # mapper time from the first release to the end of the last frame (wall or modelled)
+    cost_factor: float = 1.0  # cost clock with feedback: measured / modelled seconds of the work, at the end
+    drain_s: float = 0.0  # cost clock: modelled seconds of the bounded drain after the stream (not in elapsed_s)
 
 
 def _check_bad(on_bad_frame: str) -> str:
@@ -156,6 +158,7 @@ class _Replay(ABC):
         rec.set_load(0)
         report.stream_s = (last_stamp - t_first) / self.speed
         report.elapsed_s = self.now(rec) - start
+        report.cost_factor = float(getattr(self, "factor", 1.0))
         return report
 
     def _next(self, it: Iterator, k: int, report: ClockReport):
@@ -232,11 +235,22 @@ class BudgetClock(_Replay):
 
     def __init__(self, updates_per_frame: int | None = None, cost: CostModel | None = None, speed: float = 1.0,
                  queue_size: int = 4, min_updates_behind: int = 1, on_bad_frame: str = "skip",
-                 frame_period_s: float = DEFAULT_FRAME_PERIOD_S):
+                 frame_period_s: float = DEFAULT_FRAME_PERIOD_S, feedback: float = 0.0):
         super().__init__(speed, queue_size, min_updates_behind, on_bad_frame, frame_period_s)
         self.updates_per_frame = None if updates_per_frame is None else int(updates_per_frame)
         self.cost = cost or CostModel()
         self.t = 0.0  # modelled seconds
+        # live correction (clock.cost_feedback): an EMA of measured / modelled seconds scales every priced piece
+        # of work and the model the policies plan with; 0 keeps the run deterministic (factor stays 1.0 exactly)
+        self.feedback = float(feedback)
+        self.factor = 1.0
+
+    def _priced(self, modelled: float, measured: float) -> float:
+        """Modelled seconds of one piece of work, corrected; with feedback, ``measured`` updates the correction."""
+        if self.feedback > 0 and modelled > 0:
+            ratio = min(max(measured / modelled, 0.25), 4.0)  # one stall (a page fault, a compile) is not a trend
+            self.factor += self.feedback * (ratio - self.factor)
+        return modelled * self.factor
 
     @property
     def name(self) -> str:
@@ -281,24 +295,29 @@ class BudgetClock(_Replay):
         return self.t
 
     def load(self, rec, backlog: int, period_s: float | None) -> None:
-        rec.set_load(backlog, period_s, self.cost)
+        rec.set_load(backlog, period_s, self.cost if self.factor == 1.0 else self.cost.scaled(self.factor))
 
     def _updates(self, rec, n: int | None, deadline: float | None = None) -> int:
         """One update at a time, each advancing modelled time; stops at ``n`` updates or at ``deadline``."""
         done = 0
         while (n is None or done < n) and (deadline is None or self.t < deadline):
             px = rec.stats.supervised_pixels
+            t0 = time.perf_counter()
             if rec.optimize(1) == 0:
                 break
-            self.t += self.cost.update(rec.stats.supervised_pixels - px, priced_gaussians(rec))
+            dt = time.perf_counter() - t0
+            self.t += self._priced(self.cost.update(rec.stats.supervised_pixels - px, priced_gaussians(rec)), dt)
             done += 1
         return done
 
     def work(self, rec, item, deadline, behind: bool) -> None:
+        t0 = time.perf_counter()
         _integrate(rec, item, updates=0)
+        dt = time.perf_counter() - t0
         # a frame without the full admission check (scheduling.load) pays no support render: no Gaussian term
         plan = getattr(rec, "frame_plan", None)
-        self.t += self.cost.frame(priced_gaussians(rec)) if plan is None or plan.check else self.cost.frame_s
+        self.t += self._priced(self.cost.frame(priced_gaussians(rec)) if plan is None or plan.check
+                               else self.cost.frame_s, dt)
         if behind:
             self._updates(rec, _updates_behind(rec, self.min_updates_behind))
         else:
@@ -308,5 +327,13 @@ class BudgetClock(_Replay):
         self._updates(rec, None, deadline)
         self.t = max(self.t, deadline)
 
-    def drain(self, rec, acquisition_s: float) -> None:
-        rec.finalize()
+    def drain(self, rec, acquisition_s: float) -> float:
+        """The bounded drain (``rec.finalize``: ``clock.drain_updates`` updates), priced like any update; returns
+        its modelled seconds, so that modelled and measured mapping time cover the same work."""
+        config = getattr(rec, "config", None)
+        if config is None:  # a mapper without a config drains as it likes, unpriced
+            rec.finalize()
+            return 0.0
+        t0 = self.t
+        self._updates(rec, config.clock.drain_updates)  # = rec.finalize(): that many updates, one at a time
+        return self.t - t0

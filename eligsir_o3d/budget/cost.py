@@ -62,6 +62,10 @@ class CostModel:
     def update(self, pixels: int, gaussians: int) -> float:
         return self.update_s + self.gaussian_s * gaussians + pixels * (self.pixel_s + self.pixel_gaussian_s * gaussians)
 
+    def scaled(self, factor: float) -> "CostModel":
+        """This model with every term multiplied by ``factor`` (a machine ``factor`` times slower)."""
+        return CostModel(**{k: v * float(factor) for k, v in self.to_dict().items()})
+
     def frame(self, gaussians: int) -> float:
         return self.frame_s + self.gaussian_s * gaussians
 

@@ -12,6 +12,7 @@ from .frame_faults import BAD_FRAME_ERRORS, frame_fault
 log = logging.getLogger("eligsir_o3d")
 
 CALIBRATION_FRAMES = 12  # consecutive source frames that eligsir map times to fit the cost model
+CALIBRATED_FEEDBACK = 0.05  # clock.cost_feedback of a calibrated run that sets none: the budget follows the work
 
 
 def run_cost_model(rec, seq, source: list[int], path, *, offline: bool) -> dict:
@@ -28,6 +29,10 @@ def run_cost_model(rec, seq, source: list[int], path, *, offline: bool) -> dict:
         frames = calibration_frames(seq, source, rec.config, path)
         model, info = rec.calibrate(frames, n_frames=len(frames))
         c.cost, c.cost_source = model, "config"
+        if c.cost_feedback == 0:
+            # the fit is a dozen frames' worth; the run's own measured work corrects it from then on (so the
+            # budget is what this machine spends: a calibrated run is this machine's, not a reproducible one)
+            c.cost_feedback = CALIBRATED_FEEDBACK
         log.info("cost model: calibrated for this machine (%s)", info.get("cache"))
         return info
     return {"source": "shipped" if c.cost == CostModel() else "config"}

@@ -259,7 +259,8 @@ class MappingPipeline:
             rec.optimize(offline_updates(self.config.clock, len(self.source)))
             self.map_state = "offline-reference"
         else:
-            self.clock.drain(rec, self.seq_acquisition_s())
+            drained = self.clock.drain(rec, self.seq_acquisition_s())
+            self.report.drain_s = float(drained or 0.0)  # modelled seconds (cost clock); the others return None
             self.map_state = "ME"
         if opts.refine:
             rec.refine(opts.refine)

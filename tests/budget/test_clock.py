@@ -201,3 +201,22 @@ def test_fixed_updates_clock_prices_the_first_frame_with_the_cost_model_too():
     assert all(c is cost for _, c in rec.attached)
     assert rec.attached[0][0] == pytest.approx(1 / 30)  # the default period until two stamps give the recording's
     assert rec.attached[-1][0] == pytest.approx(1 / 100)
+
+
+def test_cost_feedback_follows_the_measured_work():
+    # updates that take 6 ms of wall time, modelled at 3 ms: without feedback the clock grants the modelled
+    # count; with it the correction converges to the measured / modelled ratio (~2) and the budget halves
+    cost = CostModel(update_s=0.003, gaussian_s=0.0, pixel_s=0.0, pixel_gaussian_s=0.0, frame_s=0.0)
+
+    def run(feedback):
+        rec = StubMapper(update_s=0.006)
+        report = BudgetClock(cost=cost, queue_size=4, feedback=feedback).run(rec, _frames(15, fps=20.0))
+        return report, rec
+
+    (plain, m_plain), (fed, m_fed) = run(0.0), run(0.3)
+    assert plain.cost_factor == 1.0 and fed.cost_factor > 1.5  # sleep overshoots, so measured >= 2x modelled
+    assert m_fed.stats.updates < 0.75 * m_plain.stats.updates
+    # the policies plan with the corrected model too
+    assert m_fed.attached[-1][1].update(1000, 100) == pytest.approx(0.003 * fed.cost_factor, rel=0.5)
+    with pytest.raises(ValueError, match="cost_feedback"):
+        get_clock(eo3d.Config(clock=ClockConfig(cost_feedback=1.5)))
