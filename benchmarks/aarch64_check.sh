@@ -45,6 +45,25 @@ if [ ! -e "$FS/.eligsir_root_ready" ]; then
 else
   say "arm64 root: reusing $FS"
 fi
+# -- Debian packages a wheel needs beyond the root's (libgfortran5: open3d's pybind module links it), unpacked natively
+# from bookworm's arm64 archive (their dependencies, gcc-12-base and libgcc-s1, are in the root already)
+for p in ${EXTRA_DEBS:-libgfortran5}; do
+  [ -e "$FS/.eligsir_deb_$p" ] && continue
+  "$HOST_PYTHON" - "$p" "$WORK/$p.deb" <<'EOF'
+import lzma, sys, urllib.request
+mirror = "http://deb.debian.org/debian"
+index = urllib.request.urlopen(f"{mirror}/dists/bookworm/main/binary-arm64/Packages.xz", timeout=120).read()
+for stanza in lzma.decompress(index).decode().split("\n\n"):
+    f = dict(line.split(": ", 1) for line in stanza.splitlines() if ": " in line and not line[0].isspace())
+    if f.get("Package") == sys.argv[1]:
+        urllib.request.urlretrieve(f"{mirror}/{f['Filename']}", sys.argv[2])
+        print(f"aarch64_check: {sys.argv[1]} {f['Version']} from {mirror}/{f['Filename']}")
+        break
+else:
+    sys.exit(f"aarch64_check: {sys.argv[1]} is not in bookworm's arm64 index")
+EOF
+  dpkg-deb -x "$WORK/$p.deb" "$FS" && rm "$WORK/$p.deb" && touch "$FS/.eligsir_deb_$p"
+done
 cleanup() { for m in dev/shm dev proc; do mountpoint -q "$FS/$m" && umount -l "$FS/$m"; done; return 0; }
 trap cleanup EXIT
 for m in proc dev dev/shm; do mkdir -p "$FS/$m"; mountpoint -q "$FS/$m" || mount --bind "/$m" "$FS/$m"; done
