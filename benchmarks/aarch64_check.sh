@@ -5,7 +5,8 @@
 #   1. the ISA the cpu renderer's kernels are compiled for (benchmarks/render.py's `numba_target` line),
 #   2. the renderer agreement tests (cpu backend vs the torch reference, images and gradients),
 #   3. a 12-frame map of the synthetic room (`eligsir demo --frames 12`), whose held-out PSNR is compared with the
-#      same command run natively on this x86-64 machine.
+#      same command run natively on this x86-64 machine,
+#   4. benchmarks/bits_fingerprint.py on both: which stage (numpy, torch, the cpu kernels) first gives other bits.
 # Only Python *running* is emulated: the root's files and the wheels are unpacked by native tools (installing under
 # qemu took over 50 min on 2 busy cores and checks nothing of ours). No speed is measured or claimed: qemu translates
 # every instruction. Needs root (chroot, mounts), the Debian archive and PyPI on the first run.
@@ -176,4 +177,11 @@ digest = lambda p: hashlib.sha256(p.read_bytes()).hexdigest()[:16] if p.is_file(
 da, dx = digest(arm / "map.ply"), digest(x86 / "map.ply")
 print(f"aarch64_check: map.ply sha256 aarch64 {da}  x86-64 {dx}:", "bit-identical" if da == dx else "differs")
 EOF
+# 4. where the bits part, if they do: a digest of each stage an update goes through, on fixed inputs, both machines
+if [ "$FORCE" = 1 ] || [ ! -s "$WORK/fingerprint_aarch64.json" ]; then
+  arm "python3 benchmarks/bits_fingerprint.py" > "$WORK/fingerprint_aarch64.json"
+fi
+(cd "$ROOT" && PYTHONPATH="$ROOT" "$X86_PYTHON" benchmarks/bits_fingerprint.py > "$WORK/fingerprint_x86_64.json")
+"$HOST_PYTHON" "$ROOT/benchmarks/bits_fingerprint.py" --compare "$WORK/fingerprint_aarch64.json" \
+  "$WORK/fingerprint_x86_64.json" | sed 's/^/aarch64_check: /'
 t3=$(date +%s); say "done in $((t3 - t0)) s this run (no speed claimed: emulated)"
