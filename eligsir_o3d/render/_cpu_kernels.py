@@ -272,19 +272,31 @@ def target_features() -> tuple[str, str]:
     return name, feats
 
 
+def isa_of(feats: str, machine: str) -> str:
+    """The vector ISA an LLVM feature string (``"+avx2,-avx512f,..."``) enables on ``machine`` (``platform.machine()``).
+
+    x86-64: its widest extension (``avx512f``, ``avx2``, ``avx``, ``sse4.2``, else ``baseline``). aarch64 / arm64:
+    ``neon`` (Advanced SIMD, "asimd" in /proc/cpuinfo), which every ARMv8-A CPU has and LLVM's generic aarch64 target
+    enables, so a string that does not mention it still has it (only ``-neon`` removes it); then ``+sve`` / ``+sve2``
+    where the string enables them. An empty string (a named CPU's own features, which numba does not list) says so.
+    """
+    on = {f[1:] for f in feats.split(",") if f.startswith("+")}
+    off = {f[1:] for f in feats.split(",") if f.startswith("-")}
+    if machine.lower() in ("aarch64", "arm64"):
+        isa = "+".join(["neon"] * ("neon" not in off) + [x for x in ("sve", "sve2") if x in on]) or "baseline"
+        return isa if feats else f"{isa}, its own features"
+    if not feats:
+        return "its own features"
+    return next((x for x in ("avx512f", "avx2", "avx", "sse4.2") if x in on), "baseline")
+
+
 def target_summary() -> str:
-    """e.g. ``znver5 (host; avx512f)``, ``haswell (avx2)``, ``neoverse-v1 (host; neon+sve)``: the ISA the kernels
-    are built for."""
+    """e.g. ``znver5 (host; avx512f)``, ``haswell (avx2)``, ``neoverse-v1 (host; neon+sve)``, ``generic (host; neon)``
+    (aarch64 under qemu-user, whose /proc/cpuinfo is the x86 host's): the CPU and ISA the kernels are built for."""
+    import platform
     name, feats = target_features()
-    on = set(f[1:] for f in feats.split(",") if f.startswith("+"))
     host = numba.config.CPU_NAME is None
-    if not feats:  # the named CPU's own features: LLVM knows them, numba does not say
-        isa = "its own features"
-    else:
-        x86 = next((x for x in ("avx512f", "avx2", "avx", "sse4.2") if x in on), None)
-        arm = "+".join(x for x in ("neon", "sve", "sve2") if x in on)  # aarch64: NEON, and SVE where present
-        isa = x86 or arm or "baseline"
-    return f"{name} ({'host; ' if host else ''}{isa})"
+    return f"{name} ({'host; ' if host else ''}{isa_of(feats, platform.machine())})"
 
 
 def default_block() -> int:
