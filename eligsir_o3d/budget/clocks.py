@@ -26,6 +26,8 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterable, Iterator
 
+import torch
+
 from ..core.frame import Frame, FrameError
 from .clock import DEFAULT_FRAME_PERIOD_S
 from .cost import CostModel, priced_gaussians
@@ -245,6 +247,15 @@ class BudgetClock(_Replay):
         self.feedback = float(feedback)
         self.factor = 1.0
 
+    def _measured(self, rec, t0: float) -> float:
+        """Wall seconds since ``t0`` of work just queued; with feedback on a CUDA device, after the device has
+        finished it (kernels run asynchronously; without feedback nothing waits)."""
+        if self.feedback > 0:
+            device = getattr(rec, "device", None)
+            if device is not None and torch.device(device).type == "cuda":
+                torch.cuda.synchronize(device)
+        return time.perf_counter() - t0
+
     def _priced(self, modelled: float, measured: float) -> float:
         """Modelled seconds of one piece of work, corrected; with feedback, ``measured`` updates the correction."""
         if self.feedback > 0 and modelled > 0:
@@ -305,7 +316,7 @@ class BudgetClock(_Replay):
             t0 = time.perf_counter()
             if rec.optimize(1) == 0:
                 break
-            dt = time.perf_counter() - t0
+            dt = self._measured(rec, t0)
             self.t += self._priced(self.cost.update(rec.stats.supervised_pixels - px, priced_gaussians(rec)), dt)
             done += 1
         return done
@@ -313,7 +324,7 @@ class BudgetClock(_Replay):
     def work(self, rec, item, deadline, behind: bool) -> None:
         t0 = time.perf_counter()
         _integrate(rec, item, updates=0)
-        dt = time.perf_counter() - t0
+        dt = self._measured(rec, t0)
         # a frame without the full admission check (scheduling.load) pays no support render: no Gaussian term
         plan = getattr(rec, "frame_plan", None)
         self.t += self._priced(self.cost.frame(priced_gaussians(rec)) if plan is None or plan.check
