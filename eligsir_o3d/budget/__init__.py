@@ -32,4 +32,5 @@ def get_clock(cfg, cost: CostModel | None = None, offline: bool = False):
         return RealtimeClock(drain_fraction=c.realtime_drain_fraction, **common)
     if c.mode == "updates":
         return BudgetClock(c.updates_per_frame, c.cost if cost is None else cost, **common)
-    return BudgetClock(None, c.cost if cost is None else cost, feedback=c.cost_feedback, **common)
+    return BudgetClock(None, c.cost if cost is None else cost, feedback=c.cost_feedback,
+                       drain_updates=c.drain_updates, **common)

@@ -69,6 +69,7 @@ class _Replay(ABC):
     """Release frames by timestamp against a time source; a bounded drop-oldest queue; load to the mapper."""
 
     name = "replay"
+    factor = 1.0  # measured / modelled seconds of the work (the cost clock's feedback; 1 for the others)
 
     def __init__(self, speed: float = 1.0, queue_size: int = 4, min_updates_behind: int = 1,
                  on_bad_frame: str = "skip", frame_period_s: float = DEFAULT_FRAME_PERIOD_S):
@@ -160,7 +161,7 @@ class _Replay(ABC):
         rec.set_load(0)
         report.stream_s = (last_stamp - t_first) / self.speed
         report.elapsed_s = self.now(rec) - start
-        report.cost_factor = float(getattr(self, "factor", 1.0))
+        report.cost_factor = float(self.factor)
         return report
 
     def _next(self, it: Iterator, k: int, report: ClockReport):
@@ -237,19 +238,19 @@ class BudgetClock(_Replay):
 
     def __init__(self, updates_per_frame: int | None = None, cost: CostModel | None = None, speed: float = 1.0,
                  queue_size: int = 4, min_updates_behind: int = 1, on_bad_frame: str = "skip",
-                 frame_period_s: float = DEFAULT_FRAME_PERIOD_S, feedback: float = 0.0):
+                 frame_period_s: float = DEFAULT_FRAME_PERIOD_S, feedback: float = 0.0,
+                 drain_updates: int | None = None):
         super().__init__(speed, queue_size, min_updates_behind, on_bad_frame, frame_period_s)
         self.updates_per_frame = None if updates_per_frame is None else int(updates_per_frame)
         self.cost = cost or CostModel()
         self.t = 0.0  # modelled seconds
-        # live correction (clock.cost_feedback): an EMA of measured / modelled seconds scales every priced piece
-        # of work and the model the policies plan with; 0 keeps the run deterministic (factor stays 1.0 exactly)
+        # clock.cost_feedback: an EMA of measured / modelled seconds scales what is charged (0: factor stays 1.0)
         self.feedback = float(feedback)
         self.factor = 1.0
+        self.drain_updates = None if drain_updates is None else int(drain_updates)  # None: rec.finalize, unpriced
 
     def _measured(self, rec, t0: float) -> float:
-        """Wall seconds since ``t0`` of work just queued; with feedback on a CUDA device, after the device has
-        finished it (kernels run asynchronously; without feedback nothing waits)."""
+        """Wall seconds since ``t0``; with feedback on CUDA, once the device has finished the (asynchronous) work."""
         if self.feedback > 0:
             device = getattr(rec, "device", None)
             if device is not None and torch.device(device).type == "cuda":
@@ -339,12 +340,11 @@ class BudgetClock(_Replay):
         self.t = max(self.t, deadline)
 
     def drain(self, rec, acquisition_s: float) -> float:
-        """The bounded drain (``rec.finalize``: ``clock.drain_updates`` updates), priced like any update; returns
-        its modelled seconds, so that modelled and measured mapping time cover the same work."""
-        config = getattr(rec, "config", None)
-        if config is None:  # a mapper without a config drains as it likes, unpriced
+        """The bounded drain (``clock.drain_updates`` updates, as ``rec.finalize`` runs them), priced like any
+        update; returns its modelled seconds, so that modelled and measured mapping time cover the same work."""
+        if self.drain_updates is None:
             rec.finalize()
             return 0.0
         t0 = self.t
-        self._updates(rec, config.clock.drain_updates)  # = rec.finalize(): that many updates, one at a time
+        self._updates(rec, self.drain_updates)
         return self.t - t0
