@@ -45,6 +45,14 @@ def test_tsdf_peer_of_a_run(run_folder, tmp_path):
     # the Gaussian map is rendered at the given poses exactly as the pipeline evaluated it
     assert r["gaussian_whole"] == pytest.approx(metrics["heldout"]["psnr"], abs=1e-3)
     assert "gaussian_aligned_whole" not in r  # no refinement, no aligned rule
+    # where the error lies: defined for both renders; exact poses, so neither is better off shifted far
+    for name in ("gaussian", "tsdf"):
+        assert r[f"{name}_lowpass"] > r[f"{name}_detail"]  # the error is in the detail more than in broad colour
+        assert r[f"{name}_shifted"] >= r[f"{name}_covered"] - 1.0  # the border is left out; a shift never loses more
+        assert r[f"{name}_shift_px"] <= 2.0
+    assert {"gaussian_shift_dx", "tsdf_shift_dy"} <= set(r["per_view"][0])
+    assert "gaussian_shift_dx" not in r  # a mean signed shift says nothing: per view only
+    assert "where the error lies" in tb.format_table(r)
     pics = sorted((tmp_path / "pics").glob("*.png"))
     assert len(pics) == 1  # Gaussian | TSDF | reference, side by side
     import imageio.v3 as iio
