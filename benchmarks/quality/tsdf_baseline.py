@@ -181,8 +181,8 @@ def evaluate(folder: str | Path, voxel_size: float = VOXEL_SIZE, weight_threshol
         t_color, t_depth = tsdf.render(seq.camera, ref.T_world_cam)
         covered = t_depth > 0
         with torch.no_grad():
-            g = renderer.render(*gmap.render_args(), seq.camera, ref.T_world_cam, background).color
-            g = g.clamp(0, 1).numpy()
+            out = renderer.render(*gmap.render_args(), seq.camera, ref.T_world_cam, background)
+            g, g_alpha = out.color.clamp(0, 1).numpy(), out.alpha.numpy()
             ga = None
             if T_align is not None:
                 ga = renderer.render(*gmap.render_args(), seq.camera, T_align @ ref.T_world_cam,
@@ -192,7 +192,7 @@ def evaluate(folder: str | Path, voxel_size: float = VOXEL_SIZE, weight_threshol
                "gaussian_covered": _psnr(g, gt, covered)}
         if ga is not None:
             row.update(gaussian_aligned_whole=_psnr(ga, gt), gaussian_aligned_covered=_psnr(ga, gt, covered))
-        row.update(diagnose(g, t_color, gt, covered))
+        row.update(diagnose(g, t_color, gt, covered, g_alpha > 0.5))
         rows.append(row)
         if pictures is not None and (not picture_views or k in picture_views):
             _picture(Path(pictures) / f"heldout_{i:05d}.png", g, t_color, gt)
@@ -204,15 +204,17 @@ def evaluate(folder: str | Path, voxel_size: float = VOXEL_SIZE, weight_threshol
             "gaussians": len(gmap), **summary, "per_view": rows}
 
 
-def diagnose(g: np.ndarray, t: np.ndarray, gt: np.ndarray, covered: np.ndarray) -> dict:
+def diagnose(g: np.ndarray, t: np.ndarray, gt: np.ndarray, covered: np.ndarray, g_valid: np.ndarray) -> dict:
     """Where each render's error lies on the covered pixels (:mod:`eligsir_o3d.eval.detail`): PSNR on the
     reference's detail (its 20 % of pixels with the largest gradient) and on the rest, PSNR after a common blur
-    (broad colour), and the whole-pixel shift that matches the reference best, with the PSNR there."""
+    (broad colour), and the whole-pixel shift that matches the reference best, with the PSNR there. A render's
+    holes move with it when it is shifted: the TSDF's uncovered pixels, the Gaussian map's pixels of opacity
+    below 0.5 (``g_valid`` marks the others)."""
     from eligsir_o3d.eval.detail import best_shift, detail_split
 
     row = {}
-    for name, img in (("gaussian", g), ("tsdf", t)):
-        d, s = detail_split(img, gt, covered), best_shift(img, gt, covered)
+    for name, img, valid in (("gaussian", g, g_valid), ("tsdf", t, covered)):
+        d, s = detail_split(img, gt, covered), best_shift(img, gt, covered, valid=valid)
         row.update({f"{name}_detail": d["detail"], f"{name}_flat": d["flat"], f"{name}_lowpass": d["lowpass"],
                     f"{name}_shift_px": float(np.hypot(s["dx"], s["dy"])), f"{name}_shifted": s["psnr"],
                     f"{name}_shift_dx": s["dx"], f"{name}_shift_dy": s["dy"]})

@@ -73,10 +73,14 @@ def detail_split(pred, ref, mask=None, detail_share: float = DETAIL_SHARE,
             "lowpass": _psnr_on(se_low, m), "detail_pixels": int(is_detail.sum())}
 
 
-def best_shift(pred, ref, mask=None, radius: int = SHIFT_RADIUS) -> dict:
+def best_shift(pred, ref, mask=None, radius: int = SHIFT_RADIUS, valid=None) -> dict:
     """{"dx": px, "dy": px, "psnr": dB at that shift, "psnr_unshifted": dB}: the render moved by (dx, dy) whole
-    pixels (right and down positive) matches the reference best. Only pixels at least ``radius`` from the border
-    count, for every shift alike, so the figures compare like with like."""
+    pixels (right and down positive) matches the reference best. ``mask`` [H, W] (reference pixels that count)
+    stays in place; ``valid`` [H, W] (the render's pixels that have content, e.g. where a TSDF's ray hit a surface)
+    moves with the render, so that a shift is neither charged for the holes it moves into the mask nor credited
+    for moving them out. Only pixels at least ``radius`` from the border count, for every shift alike."""
+    import cv2
+
     p, r = _rgb(pred, "pred"), _rgb(ref, "ref")
     if p.shape != r.shape:
         raise ValueError(f"pred {list(p.shape)} and ref {list(r.shape)} differ in shape")
@@ -84,16 +88,25 @@ def best_shift(pred, ref, mask=None, radius: int = SHIFT_RADIUS) -> dict:
     if radius < 0 or 2 * radius >= min(h, w):
         raise ValueError(f"radius must be >= 0 and leave pixels inside the {w}x{h} image, got {radius}")
     inner = (slice(radius, h - radius), slice(radius, w - radius))
-    m = _mask(mask, (h, w))[inner]
-    if not m.any():
-        return {"dx": 0, "dy": 0, "psnr": float("nan"), "psnr_unshifted": float("nan")}
-    import cv2
+    m = _mask(mask, (h, w))[inner].astype(np.float32)
+    v = _mask(valid, (h, w)).astype(np.float32)
+    # every shift at once, as correlations of the render's window with the reference's inner part (OpenCV's
+    # template matching): sum over counted pixels of v p^2 - 2 v p r + v r^2, and the count; the whole grid, since
+    # a coarse-to-fine search locks onto the wrong period of a regular texture (stripes, tiles)
+    r_in = r[inner]
 
-    # one masked sum of squared differences per shift, all at once (OpenCV's template matching: the reference's
-    # inner window slid over the render); the whole grid, since a coarse-to-fine search locks onto the wrong
-    # period of a regular texture (stripes, tiles)
-    sq = cv2.matchTemplate(p, np.ascontiguousarray(r[inner]), cv2.TM_SQDIFF, mask=m.astype(np.float32))
-    mse = np.maximum(sq.astype(np.float64), 0.0) / (3.0 * m.sum())  # [2R+1, 2R+1], window start (y, x)
+    def corr(image: np.ndarray, templ: np.ndarray) -> np.ndarray:
+        return cv2.matchTemplate(np.ascontiguousarray(image, np.float32), np.ascontiguousarray(templ, np.float32),
+                                 cv2.TM_CCORR).astype(np.float64)
+
+    vp = p * v[..., None]
+    sse = corr(vp * p, np.repeat(m[..., None], 3, -1)) - 2.0 * corr(vp, r_in * m[..., None]) \
+        + corr(np.repeat(v[..., None], 3, -1), r_in * r_in * m[..., None])
+    count = 3.0 * corr(v, m)
+    enough = count >= 0.5 * 3.0 * m.sum()  # a shift must keep at least half the counted pixels
+    if not enough[radius, radius]:
+        return {"dx": 0, "dy": 0, "psnr": float("nan"), "psnr_unshifted": float("nan")}
+    mse = np.where(enough, np.maximum(sse, 0.0) / np.maximum(count, 1.0), np.inf)  # [2R+1, 2R+1], window (y, x)
     ys, xs = np.mgrid[0:2 * radius + 1, 0:2 * radius + 1]
     dys, dxs = radius - ys, radius - xs  # the window starting at (y, x) is the render moved by (R - x, R - y)
     # ties (within float32 rounding of a perfect match) go to the smaller shift

@@ -69,3 +69,17 @@ def test_bad_inputs_name_the_problem():
         best_shift(ref, ref, radius=60)
     with pytest.raises(ValueError, match="detail_share"):
         detail_split(ref, ref, detail_share=1.0)
+
+
+def test_holes_that_move_with_the_render_do_not_anchor_its_shift():
+    """A render with holes (a TSDF's unobserved pixels, black): without ``valid`` a shift is charged for the black
+    pixels it moves into the mask, which pins the render in place; with it the true shift is found."""
+    ref = _texture(seed=2)
+    pred = np.roll(ref, 3, 1)  # the render sits 3 px right of the reference
+    holes = np.zeros(ref.shape[:2], bool)
+    holes[10:90:8, 15:120] = True  # thin rows of holes, as a TSDF's cracks
+    holes[:, 40:44] = True
+    pred[holes] = 0.0
+    s = best_shift(pred, ref, valid=~holes)
+    assert (s["dx"], s["dy"]) == (-3, 0)
+    assert s["psnr"] == pytest.approx(120.0)
