@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .metrics import mse_to_psnr
+from .metrics import mse_to_psnr, psnr
 
 DETAIL_SHARE = 0.2  # share of the masked pixels, by the reference's gradient, that counts as its detail
 LOWPASS_SIGMA = 6.0  # pixels: the blur that keeps broad colour only (a 640x480 view's ~50 px features)
@@ -41,10 +41,6 @@ def _mask(mask, shape) -> np.ndarray:
     return m
 
 
-def _psnr_on(se: np.ndarray, m: np.ndarray) -> float:
-    return mse_to_psnr(float(se[m].astype(np.float64).mean())) if m.any() else float("nan")
-
-
 def detail_split(pred, ref, mask=None, detail_share: float = DETAIL_SHARE,
                  lowpass_sigma: float = LOWPASS_SIGMA) -> dict:
     """{"detail": dB, "flat": dB, "lowpass": dB, "detail_pixels": n}: see the module docstring."""
@@ -58,7 +54,6 @@ def detail_split(pred, ref, mask=None, detail_share: float = DETAIL_SHARE,
     m = _mask(mask, r.shape[:2])
     gray = cv2.cvtColor(r, cv2.COLOR_RGB2GRAY)
     grad = np.hypot(cv2.Sobel(gray, cv2.CV_32F, 1, 0), cv2.Sobel(gray, cv2.CV_32F, 0, 1))
-    se = ((p - r) ** 2).mean(-1)
     if not m.any():
         return {"detail": float("nan"), "flat": float("nan"), "lowpass": float("nan"), "detail_pixels": 0}
     # rank, not a threshold: ties (a flat reference) still split into the requested shares
@@ -67,10 +62,9 @@ def detail_split(pred, ref, mask=None, detail_share: float = DETAIL_SHARE,
     detail[order[len(order) - max(1, int(round(detail_share * len(order)))):]] = True
     is_detail = np.zeros_like(m)
     is_detail[m] = detail
-    blur = [cv2.GaussianBlur(x, (0, 0), lowpass_sigma) for x in (p, r)]
-    se_low = ((blur[0] - blur[1]) ** 2).mean(-1)
-    return {"detail": _psnr_on(se, is_detail), "flat": _psnr_on(se, m & ~is_detail),
-            "lowpass": _psnr_on(se_low, m), "detail_pixels": int(is_detail.sum())}
+    p_low, r_low = (cv2.GaussianBlur(x, (0, 0), lowpass_sigma) for x in (p, r))
+    return {"detail": psnr(p, r, is_detail), "flat": psnr(p, r, m & ~is_detail), "lowpass": psnr(p_low, r_low, m),
+            "detail_pixels": int(is_detail.sum())}
 
 
 def best_shift(pred, ref, mask=None, radius: int = SHIFT_RADIUS, valid=None) -> dict:
@@ -112,9 +106,5 @@ def best_shift(pred, ref, mask=None, radius: int = SHIFT_RADIUS, valid=None) -> 
     # ties (within float32 rounding of a perfect match) go to the smaller shift
     key = np.lexsort(((np.abs(dxs) + np.abs(dys)).ravel(), np.round(mse.ravel(), 9)))
     k = key[0]
-    dx, dy = int(dxs.ravel()[k]), int(dys.ravel()[k])
-
-    def mse_at(dx: int, dy: int) -> float:
-        return float(mse[radius - dy, radius - dx])
-
-    return {"dx": dx, "dy": dy, "psnr": mse_to_psnr(mse_at(dx, dy)), "psnr_unshifted": mse_to_psnr(mse_at(0, 0))}
+    return {"dx": int(dxs.ravel()[k]), "dy": int(dys.ravel()[k]), "psnr": mse_to_psnr(float(mse.ravel()[k])),
+            "psnr_unshifted": mse_to_psnr(float(mse[radius, radius]))}
