@@ -268,7 +268,7 @@ def export_from_ply(map_ply: str | Path, mesh_path: str | Path | None = None, cl
         background = torch.zeros(3, device=gmap.device)
 
         def render_fn(cam: Camera, T: np.ndarray):
-            return rend.render(*gmap.render_args(), cam, T, background)
+            return rend.render(*gmap.render_args(), cam, T, background, low_pass=gmap.low_pass(cam))
 
         mesh = extract_triangle_mesh(render_fn, poses, camera.scaled(render_scale), voxel_size=voxel_size,
                                      depth_max=mesh_depth_max)

@@ -23,7 +23,7 @@ from .budget.cost import priced_gaussians
 from .render.culling import InView
 from .config import Config
 from .core.frame import Frame, FrameError
-from .core.gaussians import GaussianMap
+from .core.gaussians import EPS2D, GaussianMap
 from .optim.losses import supervision_loss
 from .pose.refine import PoseRefiner
 from .reconstructor_state import ReconstructorState
@@ -154,6 +154,7 @@ class Reconstructor(ReconstructorState):
         self.last_in_view = len(rows)
         args, T = self.pose_refine.render_args(frame, rows.render_args())  # at the refined pose
         out = self.renderer.render(*args, cam, T, self._background)
+        self.gmap.note_supervision(cam)
         loss, error = supervision_loss(out, color, depth, self.config.optim.loss)
         if (reg := self.growth.pre_backward(out, self.ctx)) is not None:
             loss = loss + reg
@@ -226,21 +227,23 @@ class Reconstructor(ReconstructorState):
         return cached_cost_model(self, frames, **kw) if cache else calibrate(self, frames, **kw)
 
     # ---- rendering -------------------------------------------------------------------------------------
-    def _render(self, camera: Camera, T_world_cam) -> RenderOutput:
+    def _render(self, camera: Camera, T_world_cam, low_pass: float = EPS2D) -> RenderOutput:
         """The map at ``camera``/``T_world_cam`` (differentiable); with ``config.optim.cull`` only the rows in view
         are drawn (the same image; per-Gaussian outputs such as radii are then the kept rows')."""
         cull = self.config.optim.cull
-        args = InView.select(self.gmap, camera, T_world_cam).render_args() if cull else self.gmap.render_args()
-        return self.renderer.render(*args, camera, T_world_cam, self._background)
+        rows = InView.select(self.gmap, camera, T_world_cam, low_pass) if cull else self.gmap
+        return self.renderer.render(*rows.render_args(), camera, T_world_cam, self._background, low_pass=low_pass)
 
     @torch.no_grad()
     def render(self, pose, intrinsic: o3d.camera.PinholeCameraIntrinsic | Camera | None = None,
                scale: float = 1.0) -> RenderOutput:
-        """Render colour [H, W, 3], depth [H, W] (metres) and alpha [H, W] at ``T_world_cam`` ``pose``."""
+        """Render colour [H, W, 3], depth [H, W] (metres) and alpha [H, W] at ``T_world_cam`` ``pose``, with the
+        low-pass of the resolution the map was supervised at (:meth:`.GaussianMap.low_pass`)."""
         cam = self.camera if intrinsic is None else (intrinsic if isinstance(intrinsic, Camera)
                                                      else Camera.from_o3d(intrinsic))
         T = check_pose(pose, "render pose")
-        out = self._render(cam.scaled(scale), T)
+        cam = cam.scaled(scale)
+        out = self._render(cam, T, self.gmap.low_pass(cam))
         out.color = out.color.clamp(0.0, 1.0)
         return out
 

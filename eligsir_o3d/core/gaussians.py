@@ -8,11 +8,13 @@ rewrites parameters and optimizer moments together (the gsplat strategy-ops patt
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass
 
 import torch
 
 SH_C0 = 0.28209479177387814  # Y_0^0
+EPS2D = 0.3  # px^2: 3DGS's screen-space low-pass at the supervised resolution (every renderer's default)
 
 
 def rgb_to_sh0(rgb: torch.Tensor) -> torch.Tensor:
@@ -96,6 +98,7 @@ class GaussianMap:
         }
         self.params = torch.nn.ParameterDict({n: torch.nn.Parameter(v.to(self.device)) for n, v in empty.items()})
         self.optimizers = {n: self._make_optimizer(n) for n in PARAM_NAMES}
+        self.supervision_focal: float | None = None  # the finest focal length [px] an update supervised it at
 
     def _make_optimizer(self, name: str) -> torch.optim.Adam:
         a = self.adam
@@ -232,10 +235,27 @@ class GaussianMap:
                 elif k not in ROW_STATE and isinstance(s, torch.Tensor) and s.ndim > 0 and s.shape != p.shape:
                     raise AssertionError(f"optimizer state {name}.{k} has shape {tuple(s.shape)}, parameter {tuple(p.shape)}")
 
+    # ---- the resolution it was fitted at --------------------------------------------------------------
+    def note_supervision(self, camera) -> None:
+        """Record that an update supervised the map through ``camera`` (its focal length sets :meth:`low_pass`)."""
+        f = math.sqrt(camera.fx * camera.fy)
+        self.supervision_focal = f if self.supervision_focal is None else max(self.supervision_focal, f)
+
+    def low_pass(self, camera) -> float:
+        """The screen-space low-pass [px^2] to draw this map with through ``camera``: 3DGS's 0.3 px^2 at the
+        resolution the map was supervised at, growing with the square of the focal-length ratio where ``camera``
+        samples finer (0.3 * 16 = 4.8 px^2 for a map fitted at 1/4 scale and drawn at full size), so every
+        Gaussian keeps the screen footprint it had in the supervised images instead of shrinking into gaps and
+        speckle (the train-coarse / render-fine case of Mip-Splatting, Yu et al. 2024). Never below 0.3."""
+        if self.supervision_focal is None:
+            return EPS2D
+        return EPS2D * max(1.0, camera.fx * camera.fy / (self.supervision_focal * self.supervision_focal))
+
     # ---- persistence -----------------------------------------------------------------------------------
     def state_dict(self) -> dict:
         return {
             "sh_degree": self.sh_degree,
+            "supervision_focal": self.supervision_focal,
             # copies: on the CPU .cpu() and Adam's state_dict() share memory with the live tensors, which the next
             # update changes in place (a state taken, then mapped on, would change under its holder)
             "params": {n: p.detach().cpu().clone() for n, p in self.params.items()},
@@ -244,6 +264,8 @@ class GaussianMap:
 
     def load_state_dict(self, state: dict) -> None:
         self.sh_degree = int(state["sh_degree"])
+        f = state.get("supervision_focal")  # absent in maps written before it was kept
+        self.supervision_focal = None if f is None else float(f)
         for n in PARAM_NAMES:
             self.params[n] = torch.nn.Parameter(state["params"][n].to(self.device))
             self.optimizers[n] = self._make_optimizer(n)

@@ -6,6 +6,7 @@ scale, wxyz quaternion, f_rest stored channel-major (all R coefficients, then G,
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +39,10 @@ def save_ply(gmap: GaussianMap, path: str | Path) -> Path:
     arr = np.empty(n, dtype=[(name, "f4") for name, _ in cols])
     for name, v in cols:
         arr[name] = v
-    ply = PlyData([PlyElement.describe(arr, "vertex")], comments=[f"sh_degree {gmap.sh_degree}"])
+    comments = [f"sh_degree {gmap.sh_degree}"]
+    if gmap.supervision_focal is not None:  # the resolution it was fitted at: GaussianMap.low_pass
+        comments.append(f"supervision_focal_px {gmap.supervision_focal!r}")
+    ply = PlyData([PlyElement.describe(arr, "vertex")], comments=comments)
     return atomic_write(path, ply.write)  # a crash or full disk mid-write leaves the previous file intact
 
 
@@ -83,6 +87,7 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu", lrs=None, ada
     rest = col(*[f"f_rest_{i}" for i in range(n_rest)]) if n_rest else torch.zeros(n, 0)
     state = {
         "sh_degree": degree,
+        "supervision_focal": _supervision_focal(path, ply.comments),
         "params": {
             "means": col("x", "y", "z"),
             "scales": col("scale_0", "scale_1", "scale_2"),
@@ -97,6 +102,21 @@ def load_ply(path: str | Path, device: str | torch.device = "cpu", lrs=None, ada
             raise PlyError(f"{path}: property group '{name}' contains NaN or Inf")
     gmap.load_state_dict(state)
     return gmap
+
+
+def _supervision_focal(path: Path, comments: list[str]) -> float | None:
+    """The ``supervision_focal_px F`` header comment save_ply writes (None: absent, a PLY from elsewhere)."""
+    for c in comments:
+        key, _, value = c.partition(" ")
+        if key == "supervision_focal_px":
+            try:
+                f = float(value)
+            except ValueError:
+                f = float("nan")
+            if not (math.isfinite(f) and f > 0):
+                raise PlyError(f"{path}: header comment 'supervision_focal_px' must be a positive number, got {value!r}")
+            return f
+    return None
 
 
 _SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,

@@ -41,6 +41,7 @@ def _frustum_counts(means, log_scales, V, cam, mask, counts):
     Branch-free float32 (a vector loop); the largest scale bounded by a power of two (exponent bits, no exp)."""
     fx, fy, cx, cy = np.float32(cam[0]), np.float32(cam[1]), np.float32(cam[2]), np.float32(cam[3])
     w, h, jb2 = np.float32(cam[4] - 0.5), np.float32(cam[5] - 0.5), np.float32(cam[7])
+    lp = np.float32(cam[8])  # the low-pass + 0.32 of the radius formula's clamp
     near = np.float32(cam[6] * (1.0 - 1e-3) - 1e-6)  # below the renderer's near plane: float32 rounding of z
     v00, v01, v02, v03 = np.float32(V[0, 0]), np.float32(V[0, 1]), np.float32(V[0, 2]), np.float32(V[0, 3])
     v10, v11, v12, v13 = np.float32(V[1, 0]), np.float32(V[1, 1]), np.float32(V[1, 2]), np.float32(V[1, 3])
@@ -61,9 +62,9 @@ def _frustum_counts(means, log_scales, V, cam, mask, counts):
             s = _exp2_neg(max(-e, ZERO)) / _exp2_neg(max(e, ZERO)) * (ONE + (t - e))
             zs = max(z, near)
             iz = ONE / zs
-            # ||J||_F^2 s^2 bounds the largest eigenvalue of J Sigma J^T; + 0.3 low-pass + 0.32 of the radius
+            # ||J||_F^2 s^2 bounds the largest eigenvalue of J Sigma J^T; + the low-pass + 0.32 of the radius
             # formula's clamp; + 2 px for the ceil and float32 rounding of the renderer's means2d
-            r = np.float32(3.003) * np.sqrt(s * s * jb2 * iz * iz + np.float32(0.62)) + np.float32(2.0)
+            r = np.float32(3.003) * np.sqrt(s * s * jb2 * iz * iz + lp) + np.float32(2.0)
             u = fx * x * iz + cx
             v = fy * y * iz + cy
             inside = (u + r > -HALF) & (u - r < w) & (v + r > -HALF) & (v - r < h)

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import torch
 
 from ..core.camera import Camera
-from .projection import TILE, Projection, TileBins, bin_tiles, project
+from .projection import EPS2D, TILE, Projection, TileBins, bin_tiles, project
 from .sh import sh_eval, view_dirs
 
 ALPHA_MAX = 0.999  # gsplat 1.5 clamps per-Gaussian alpha here
@@ -80,11 +80,13 @@ class TileRenderer(ABC):
         self.device = torch.device(device)
 
     def render(self, means, quats, scales, opacities, colors, camera: Camera, T_world_cam,
-               background: torch.Tensor | None = None, sh_degree: int | None = None) -> RenderOutput:
+               background: torch.Tensor | None = None, sh_degree: int | None = None,
+               low_pass: float = EPS2D) -> RenderOutput:
         """means [N, 3], quats [N, 4] wxyz, scales [N, 3] metres, opacities [N] in (0, 1), colors [N, 3] RGB or
-        [N, K, 3] SH coefficients (evaluated from the camera centre, degree ``sh_degree`` or all that K holds)."""
+        [N, K, 3] SH coefficients (evaluated from the camera centre, degree ``sh_degree`` or all that K holds);
+        ``low_pass``: the screen-space variance [px^2] added to each Gaussian (:meth:`.GaussianMap.low_pass`)."""
         colors = view_colors(colors, means, T_world_cam, sh_degree)
-        proj = project(means, quats, scales, camera, T_world_cam)
+        proj = project(means, quats, scales, camera, T_world_cam, low_pass)
         bins = bin_tiles(proj, camera.width, camera.height)
         color_acc, depth_acc, alpha_acc = self.composite(proj, opacities, colors, bins, camera.width, camera.height)
         if background is not None:

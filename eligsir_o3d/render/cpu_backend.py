@@ -173,11 +173,11 @@ class _Project(torch.autograd.Function):
         return tuple(v.to(dt) for v, dt in zip((v_means, v_quats, v_scales), ctx.dtypes)) + (None, None)
 
 
-def project_cpu(means, quats, scales, camera: Camera, T_world_cam) -> Projection:
+def project_cpu(means, quats, scales, camera: Camera, T_world_cam, low_pass: float = EPS2D) -> Projection:
     """:func:`.projection.project` in compiled code (forward and backward); same values up to float32 rounding."""
     # the reference rounds the world-to-camera matrix to the parameters' dtype: do the same
     V = world_to_cam(T_world_cam, "cpu", torch.float32).double().numpy()
-    cam = np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, NEAR, EPS2D], np.float64)
+    cam = np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, NEAR, low_pass], np.float64)
     means2d, conics, depths, radii = _Project.apply(means, quats, scales, V, cam)
     return Projection(means2d, conics, depths, radii)
 
@@ -230,13 +230,14 @@ class CpuRenderer(TileRenderer):
             raise ValueError(f"the 'cpu' renderer runs on the CPU only, not on {self.device}")
 
     def render(self, means, quats, scales, opacities, colors, camera: Camera, T_world_cam,
-               background: torch.Tensor | None = None, sh_degree: int | None = None) -> RenderOutput:
+               background: torch.Tensor | None = None, sh_degree: int | None = None,
+               low_pass: float = EPS2D) -> RenderOutput:
         """means [N, 3], quats [N, 4] wxyz, scales [N, 3] metres, opacities [N] in (0, 1), colors [N, 3] RGB or
         [N, K, 3] SH coefficients (evaluated in torch from the camera centre, as :class:`.base.TileRenderer`)."""
         colors = view_colors(colors, means, T_world_cam, sh_degree)
         _check_shapes(means, quats, scales, opacities, colors)
         warmup()
-        proj = project_cpu(means, quats, scales, camera, T_world_cam)
+        proj = project_cpu(means, quats, scales, camera, T_world_cam, low_pass)
         offsets, flat, tiles_x = bin_tiles_csr(proj, camera.width, camera.height)
         color_acc, depth_acc, alpha_acc = self._composite(proj, opacities, colors, offsets, flat, tiles_x,
                                                           camera.width, camera.height, self.block)

@@ -28,25 +28,27 @@ import torch
 
 from ..core.camera import Camera
 from ..core.gaussians import PARAM_NAMES, sh0_to_rgb
-from .projection import NEAR, world_to_cam
+from .projection import EPS2D, NEAR, world_to_cam
 
 
-def camera_bounds(camera: Camera) -> np.ndarray:
-    """(fx, fy, cx, cy, width, height, near, jb2) float64; jb2 * s^2 / z^2 bounds the largest eigenvalue of the
+def camera_bounds(camera: Camera, low_pass: float = EPS2D) -> np.ndarray:
+    """(fx, fy, cx, cy, width, height, near, jb2, lp) float64; jb2 * s^2 / z^2 bounds the largest eigenvalue of the
     projected covariance of a Gaussian of largest scale s at depth z (the Jacobian's x/z, y/z clamped as the
-    renderer clamps them, :func:`.render.projection.project`)."""
+    renderer clamps them, :func:`.render.projection.project`); lp: the render's ``low_pass`` plus the 0.32 px^2
+    that the radius formula's clamp can add."""
     fx, fy, cx, cy, w, h = camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height
     tan_x, tan_y = 0.5 * w / fx, 0.5 * h / fy
     lx = max((w - cx - 0.5) / fx, (cx + 0.5) / fx) + 0.3 * tan_x
     ly = max((h - cy - 0.5) / fy, (cy + 0.5) / fy) + 0.3 * tan_y
     jb2 = fx * fx * (1.0 + lx * lx) + fy * fy * (1.0 + ly * ly)
-    return np.array([fx, fy, cx, cy, w, h, NEAR, jb2], np.float64)
+    return np.array([fx, fy, cx, cy, w, h, NEAR, jb2, float(low_pass) + 0.32], np.float64)
 
 
-def in_view(means: torch.Tensor, log_scales: torch.Tensor, camera: Camera, T_world_cam) -> torch.Tensor:
+def in_view(means: torch.Tensor, log_scales: torch.Tensor, camera: Camera, T_world_cam,
+            low_pass: float = EPS2D) -> torch.Tensor:
     """Ids [M] int64 (ascending, on the map's device) of the Gaussians (raw means [N, 3], log scales [N, 3]) that
-    can reach ``camera``'s image at ``T_world_cam``; a superset of those the renderer draws."""
-    cam = camera_bounds(camera)
+    can reach ``camera``'s image at ``T_world_cam``; a superset of those the renderer draws (with ``low_pass``)."""
+    cam = camera_bounds(camera, low_pass)
     V = world_to_cam(T_world_cam, "cpu", torch.float64).numpy()
     if means.device.type == "cpu" and means.dtype == torch.float32 and log_scales.dtype == torch.float32:
         from ._cull_kernels import frustum_rows
@@ -59,7 +61,7 @@ def in_view(means: torch.Tensor, log_scales: torch.Tensor, camera: Camera, T_wor
     front = z > cam[6]
     zs = torch.where(front, z, torch.ones_like(z))
     s = torch.exp(log_scales.detach().double().amax(-1).clamp(max=80.0))
-    r = 3.0 * torch.sqrt(s * s * cam[7] / (zs * zs) + 0.62) * 1.001 + 2.0
+    r = 3.0 * torch.sqrt(s * s * cam[7] / (zs * zs) + cam[8]) * 1.001 + 2.0
     u, v = cam[0] * x / zs + cam[2], cam[1] * y / zs + cam[3]
     hit = front & (u + r > -0.5) & (u - r < cam[4] - 0.5) & (v + r > -0.5) & (v - r < cam[5] - 0.5)
     return torch.nonzero(hit).squeeze(1)
@@ -75,8 +77,8 @@ class InView:
         self.leaves = {n: gmap.params[n].detach()[self.idx].requires_grad_(True) for n in PARAM_NAMES}
 
     @classmethod
-    def select(cls, gmap, camera: Camera, T_world_cam) -> "InView":
-        return cls(gmap, in_view(gmap.params["means"], gmap.params["scales"], camera, T_world_cam))
+    def select(cls, gmap, camera: Camera, T_world_cam, low_pass: float = EPS2D) -> "InView":
+        return cls(gmap, in_view(gmap.params["means"], gmap.params["scales"], camera, T_world_cam, low_pass))
 
     def __len__(self) -> int:
         return int(self.idx.numel())

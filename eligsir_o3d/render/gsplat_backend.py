@@ -81,7 +81,8 @@ class GsplatRenderer:
         return hit
 
     def render(self, means, quats, scales, opacities, colors, camera: Camera, T_world_cam,
-               background: torch.Tensor | None = None, sh_degree: int | None = None) -> RenderOutput:
+               background: torch.Tensor | None = None, sh_degree: int | None = None,
+               low_pass: float = EPS2D) -> RenderOutput:
         """means [N, 3], quats [N, 4] wxyz, scales [N, 3] metres, opacities [N] in (0, 1), colors [N, 3] RGB or
         [N, K, 3] SH coefficients (degree ``sh_degree``, default all that K holds, at most 3)."""
         rasterization = self._load()
@@ -95,7 +96,7 @@ class GsplatRenderer:
         viewmats, Ks = self._camera_tensors(camera, T_world_cam, device)  # [1, 4, 4], [1, 3, 3]
         rendered, alphas, meta = rasterization(
             means.float(), quats.float(), scales.float(), opacities.float(), colors.float(), viewmats, Ks,
-            camera.width, camera.height, near_plane=NEAR, eps2d=EPS2D, radius_clip=0.0, sh_degree=sh_degree,
+            camera.width, camera.height, near_plane=NEAR, eps2d=float(low_pass), radius_clip=0.0, sh_degree=sh_degree,
             packed=False, tile_size=TILE, render_mode="RGB+D", rasterize_mode="classic")
         color_acc = rendered[0, ..., :3].to(dtype)  # [H, W, 3]
         depth_acc = rendered[0, ..., 3].to(dtype)  # [H, W]

@@ -2,7 +2,7 @@
 
 This is the first half of every tile renderer (the second half, compositing, is backend specific). The math
 follows 3DGS / gsplat's "classic" mode: Jacobian of the pinhole projection with clamped x/z and y/z, a 0.3 px^2
-low-pass added to the 2D covariance, a 3-sigma screen radius, 16x16 tiles, front-to-back order by view depth.
+low-pass added to the 2D covariance (more where a map is drawn finer than it was supervised), a 3-sigma screen radius, 16x16 tiles, front-to-back order by view depth.
 """
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ from dataclasses import dataclass
 import torch
 
 from ..core.camera import Camera
+from ..core.gaussians import EPS2D
 
 TILE = 16
 NEAR = 0.01
-EPS2D = 0.3
 
 
 @dataclass
@@ -62,8 +62,9 @@ def world_to_cam(T_world_cam, device, dtype=torch.float32) -> torch.Tensor:
 
 
 def project(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, camera: Camera,
-            T_world_cam) -> Projection:
-    """Project Gaussians (means [N, 3] world, quats [N, 4] wxyz, scales [N, 3] metres) into ``camera``."""
+            T_world_cam, low_pass: float = EPS2D) -> Projection:
+    """Project Gaussians (means [N, 3] world, quats [N, 4] wxyz, scales [N, 3] metres) into ``camera``;
+    ``low_pass``: the variance [px^2] added to every 2D covariance (see :meth:`.GaussianMap.low_pass`)."""
     V = world_to_cam(T_world_cam, means.device, means.dtype)
     R_v, t_v = V[:3, :3], V[:3, 3]
     p = means @ R_v.T + t_v  # [N, 3]
@@ -89,9 +90,9 @@ def project(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, came
     zero = torch.zeros_like(zs)
     J = torch.stack([fx / zs, zero, -fx * tx / (zs * zs), zero, fy / zs, -fy * ty / (zs * zs)], -1).reshape(-1, 2, 3)
     cov2d = J @ cov_c @ J.transpose(1, 2)
-    a = cov2d[:, 0, 0] + EPS2D
+    a = cov2d[:, 0, 0] + low_pass
     b = cov2d[:, 0, 1]
-    c = cov2d[:, 1, 1] + EPS2D
+    c = cov2d[:, 1, 1] + low_pass
     det = a * c - b * b
     ok = in_front & (det > 0)
     det_s = torch.where(ok, det, torch.ones_like(det))

@@ -196,7 +196,7 @@ def map_render_fn(gmap, renderer: str = "auto", device: str = "cpu", background=
     bg = torch.tensor(background, dtype=torch.float32, device=gmap.device)
 
     def render_fn(cam: Camera, T: np.ndarray):
-        return rend.render(*gmap.render_args(), cam, T, bg)
+        return rend.render(*gmap.render_args(), cam, T, bg, low_pass=gmap.low_pass(cam))
 
     return render_fn
 
