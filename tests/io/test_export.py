@@ -122,15 +122,17 @@ def test_mesh_conventions_on_exact_depth(scene):
 
 
 def test_mesh_of_the_map_matches_the_room(scene, rec):
-    """Mesh of the Reconstructor's map (rendered depth -> TSDF). Bounds: 9 cm mean, 8 cm median to the surface,
-    12 cm mean from it, at 80x60 and 3 cm voxels (measured 6.0, 5.6 and 8.1 cm; exact depth gives 2.3 and 4.3 cm,
-    a swapped pose convention 74 and 100 cm): the expected depth of a barely trained map of overlapping isotropic
-    splats, at this resolution, is biased toward the camera by a few centimetres."""
+    """Mesh of the Reconstructor's map (rendered depth -> TSDF). Bounds: 14 cm mean, 13 cm median to the surface,
+    18 cm mean from it, at 80x60 and 3 cm voxels (measured 11.1, 10.8 and 14.3 cm; exact depth gives 2.3 and 4.3 cm,
+    a swapped pose convention 74 and 100 cm): the expected depth of a barely trained map (12 updates) of
+    overlapping isotropic splats is biased toward the camera by centimetres, more so drawn at 80x60 with the
+    low-pass of the 20x15 images it was supervised at (GaussianMap.low_pass; 3DGS's fixed 0.3 px^2 gave 6.0, 5.6
+    and 8.1 cm here, while on the 7-Scenes kitchen the low-pass lowered held-out depth RMSE from 10.7 to 9.4 cm)."""
     mesh = extract_triangle_mesh(lambda cam, T: rec.render(T, cam), scene.seq.poses, rec.camera, voxel_size=0.03)
     assert len(mesh.triangles) > 1000
     to_gt, from_gt = _distances(mesh.sample_points_uniformly(20000), scene.gt)
-    assert to_gt.mean() < 0.09 and np.median(to_gt) < 0.08, (to_gt.mean(), np.median(to_gt))
-    assert from_gt.mean() < 0.12, from_gt.mean()
+    assert to_gt.mean() < 0.14 and np.median(to_gt) < 0.13, (to_gt.mean(), np.median(to_gt))
+    assert from_gt.mean() < 0.18, from_gt.mean()
 
 
 def test_mesh_needs_views_and_valid_poses():
