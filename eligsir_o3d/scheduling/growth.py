@@ -38,8 +38,9 @@ class GrowthConfig:
     # where new space is seeded from: "probe" (the probe's 1/4-scale image on the seed_stride grid) or "adaptive"
     # (the source image, area-averaged to the finest grid whose seeds the frame's seed bound and the room under the
     # cap still allow, never finer than seed_min_stride source pixels: a larger map is seeded finer). "adaptive"
-    # lost 0.26 dB on the SUN3D study room at the default budget and 2.0 dB with a 20k cap (issue 32): while every
-    # update pays for every Gaussian, the extra seeds cost more updates than their detail buys
+    # (max_seeds_per_frame 6000, seed_min_stride 4; drawn with the map's low-pass) gains 0.45 dB on the SUN3D
+    # study room and loses 0.49 dB on the 7-Scenes kitchen at the default budget (issue 32, docs/evaluation.md):
+    # the extra seeds cost updates (1050 -> 872 on the kitchen) that a kitchen-length sequence needs
     seed_resolution: str = "probe"
     seed_min_stride: int = 2  # adaptive seeding: at most one seed per 2x2 source pixels
     insert_stride: int = 2  # evidence-gated insertion: one Gaussian per 2x2 probe pixels of a ready voxel
