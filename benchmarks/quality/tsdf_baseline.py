@@ -166,6 +166,9 @@ def evaluate(folder: str | Path, voxel_size: float = VOXEL_SIZE, weight_threshol
 
     folder = Path(folder)
     seq, cfg, opts, source, held, poses = read_results(folder)
+    if not held:
+        raise ValueError(f"{folder}: the run held out no views ({len(source)} source frames, holdout every "
+                         f"{opts.holdout_every}): there is nothing to score either map at")
     t0 = time.perf_counter()
     vbg, per_frame_s = fuse(seq, poses, cfg.depth_max, voxel_size)
     tsdf = MeshRenderer(vbg.extract_triangle_mesh(weight_threshold=weight_threshold))

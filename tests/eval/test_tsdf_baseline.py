@@ -82,3 +82,15 @@ def test_a_folder_without_a_run_record_is_a_clear_error(tmp_path):
     tb = _baseline()
     with pytest.raises(ValueError, match="run.json"):
         tb.evaluate(tmp_path)
+
+
+def test_a_run_without_held_out_views_is_a_clear_error(tmp_path):
+    """A recording too short for the split (4 frames, every 8th held out) has nothing to score: say so."""
+    cfg = Config(renderer="cpu")
+    cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 1, 0
+    run_mapping("synthetic", tmp_path, cfg, RunOptions(max_frames=4, holdout_every=8, eval_every=0, progress=False,
+                                                       plots=False, pictures=False))
+    tb = _baseline()
+    with pytest.raises(ValueError, match="held out no views"):
+        tb.evaluate(tmp_path)
+    assert tb.main([str(tmp_path)]) == 2
