@@ -321,13 +321,13 @@ class Reconstructor(ReconstructorState):
     def extract_triangle_mesh(self, poses=None, voxel_size: float = 0.02, depth_max: float = 5.0,
                               scale: float = 0.5, **kw) -> o3d.geometry.TriangleMesh:
         """TSDF mesh (Open3D VoxelBlockGrid) of depth and colour rendered from the map at ``poses``
-        (default: the retained views' poses), rendered at ``scale`` of the camera."""
+        (default: the retained views' poses), rendered at ``scale`` of the camera with the map's low-pass."""
         from .export import extract_triangle_mesh
 
         poses = [f.T_world_cam for f in self.views.views] if poses is None else list(poses)
         with torch.no_grad():
-            return extract_triangle_mesh(self._render, poses, self.camera.scaled(scale), voxel_size=voxel_size,
-                                         depth_max=depth_max, **kw)
+            return extract_triangle_mesh(lambda cam, T: self._render(cam, T, self.gmap.low_pass(cam)), poses,
+                                         self.camera.scaled(scale), voxel_size=voxel_size, depth_max=depth_max, **kw)
 
     def __repr__(self) -> str:
         return (f"Reconstructor({self.camera.width}x{self.camera.height}, device={self.device}, "
