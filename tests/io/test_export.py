@@ -127,7 +127,7 @@ def test_mesh_of_the_map_matches_the_room(scene, rec):
     a swapped pose convention 74 and 100 cm): the expected depth of a barely trained map (12 updates) of
     overlapping isotropic splats is biased toward the camera by centimetres, more so drawn at 80x60 with the
     low-pass of the 20x15 images it was supervised at (GaussianMap.low_pass; 3DGS's fixed 0.3 px^2 gave 6.0, 5.6
-    and 8.1 cm here, while on the 7-Scenes kitchen the low-pass lowered held-out depth RMSE from 10.7 to 9.4 cm)."""
+    and 8.1 cm here, while on the 7-Scenes kitchen the low-pass lowered held-out depth RMSE from 10.6 to 9.4 cm)."""
     mesh = extract_triangle_mesh(lambda cam, T: rec.render(T, cam), scene.seq.poses, rec.camera, voxel_size=0.03)
     assert len(mesh.triangles) > 1000
     to_gt, from_gt = _distances(mesh.sample_points_uniformly(20000), scene.gt)
