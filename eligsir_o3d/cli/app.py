@@ -189,15 +189,21 @@ def export(
     spz: Optional[Path] = typer.Option(None, help="Write the map as SPZ here (compressed splats for web viewers; "
                                        "RUB axes, as the SPZ spec says)."),
     splat: Optional[Path] = typer.Option(None, help="Write the map as .splat here (antimatter15's format)."),
+    for_viewers: Optional[Path] = typer.Option(None, "--for-viewers", help="Write a 3DGS PLY here that viewers "
+                                               "with the fixed 0.3 px^2 low-pass draw as this package does (the "
+                                               "map's low-pass baked in; needs run.json and the poses)."),
 ) -> None:
     """Export a saved map as an Open3D triangle mesh and/or point cloud, and/or as SPZ / .splat for the web."""
     from ..export import export_from_ply
+    from ..export_baked import write_for_viewers
     from ..export_splats import write_web_formats
 
-    if mesh is None and point_cloud is None and spz is None and splat is None:
-        _fail("nothing to do: give --mesh, --point-cloud, --spz and/or --splat")
+    if mesh is None and point_cloud is None and spz is None and splat is None and for_viewers is None:
+        _fail("nothing to do: give --mesh, --point-cloud, --spz, --splat and/or --for-viewers")
     try:
         summary = {}
+        if for_viewers is not None:
+            summary.update(write_for_viewers(map_ply, for_viewers, poses=poses))
         if spz is not None or splat is not None:
             summary.update(write_web_formats(map_ply, spz, splat))
         if mesh is not None or point_cloud is not None:
