@@ -221,7 +221,7 @@ def export_from_ply(map_ply: str | Path, mesh_path: str | Path | None = None, cl
     """
     from .datasets.base import read_tum_trajectory
     from .io.ply import load_ply
-    from .render import get_renderer
+    from .render import get_renderer, render_map
 
     from .io.guards import check_tsdf_memory, refuse_overwriting_inputs
 
@@ -268,7 +268,7 @@ def export_from_ply(map_ply: str | Path, mesh_path: str | Path | None = None, cl
         background = torch.zeros(3, device=gmap.device)
 
         def render_fn(cam: Camera, T: np.ndarray):
-            return rend.render(*gmap.render_args(), cam, T, background, low_pass=gmap.low_pass(cam))
+            return render_map(rend, gmap, cam, T, background)
 
         mesh = extract_triangle_mesh(render_fn, poses, camera.scaled(render_scale), voxel_size=voxel_size,
                                      depth_max=mesh_depth_max)

@@ -13,10 +13,9 @@ resolution as its supervision, so this package then draws it with 0.3 px^2 as we
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Sequence
-
-import math
 
 import numpy as np
 import torch
@@ -50,7 +49,7 @@ def baked_for_viewers(gmap: GaussianMap, camera: Camera, poses: Sequence[np.ndar
     if len(poses) == 0:
         raise ValueError("baking the low-pass needs the map's views: no poses given")
     out = GaussianMap(gmap.sh_degree, "cpu")
-    out.load_state_dict({"sh_degree": gmap.sh_degree, "supervision_focal": gmap.supervision_focal,
+    out.load_state_dict({"sh_degree": gmap.sh_degree,
                          "params": {n: p.detach().cpu().clone() for n, p in gmap.params.items()}})
     extra = gmap.low_pass(camera) - EPS2D
     if extra > 0 and len(out):

@@ -162,7 +162,7 @@ def evaluate(folder: str | Path, voxel_size: float = VOXEL_SIZE, weight_threshol
     import torch
 
     from eligsir_o3d.io.ply import load_ply
-    from eligsir_o3d.render import get_renderer
+    from eligsir_o3d.render import get_renderer, render_map
 
     folder = Path(folder)
     seq, cfg, opts, source, held, poses = read_results(folder)
@@ -184,13 +184,12 @@ def evaluate(folder: str | Path, voxel_size: float = VOXEL_SIZE, weight_threshol
         t_color, t_depth = tsdf.render(seq.camera, ref.T_world_cam)
         covered = t_depth > 0
         with torch.no_grad():
-            lp = gmap.low_pass(seq.camera)  # the map's own low-pass at this resolution (as eligsir map scores it)
-            out = renderer.render(*gmap.render_args(), seq.camera, ref.T_world_cam, background, low_pass=lp)
+            out = render_map(renderer, gmap, seq.camera, ref.T_world_cam, background)  # as eligsir map scores it
             g, g_alpha = out.color.clamp(0, 1).numpy(), out.alpha.numpy()
             ga = None
             if T_align is not None:
-                ga = renderer.render(*gmap.render_args(), seq.camera, T_align @ ref.T_world_cam,
-                                     background, low_pass=lp).color.clamp(0, 1).numpy()
+                ga = render_map(renderer, gmap, seq.camera, T_align @ ref.T_world_cam,
+                                background).color.clamp(0, 1).numpy()
         row = {"index": i, "coverage": float(covered.mean()), "tsdf_whole": _psnr(t_color, gt),
                "tsdf_covered": _psnr(t_color, gt, covered), "gaussian_whole": _psnr(g, gt),
                "gaussian_covered": _psnr(g, gt, covered)}

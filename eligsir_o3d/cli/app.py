@@ -189,9 +189,9 @@ def export(
     spz: Optional[Path] = typer.Option(None, help="Write the map as SPZ here (compressed splats for web viewers; "
                                        "RUB axes, as the SPZ spec says)."),
     splat: Optional[Path] = typer.Option(None, help="Write the map as .splat here (antimatter15's format)."),
-    for_viewers: Optional[Path] = typer.Option(None, "--for-viewers", help="Write a 3DGS PLY here that viewers "
-                                               "with the fixed 0.3 px^2 low-pass draw as this package does (the "
-                                               "map's low-pass baked in; needs run.json and the poses)."),
+    for_viewers: Optional[Path] = typer.Option(
+        None, "--for-viewers", help="Write a 3DGS PLY here that viewers with the fixed 0.3 px^2 low-pass draw as "
+        "this package does (the map's low-pass baked in; needs run.json and the poses)."),
 ) -> None:
     """Export a saved map as an Open3D triangle mesh and/or point cloud, and/or as SPZ / .splat for the web."""
     from ..export import export_from_ply

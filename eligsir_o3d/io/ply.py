@@ -114,7 +114,8 @@ def _supervision_focal(path: Path, comments: list[str]) -> float | None:
             except ValueError:
                 f = float("nan")
             if not (math.isfinite(f) and f > 0):
-                raise PlyError(f"{path}: header comment 'supervision_focal_px' must be a positive number, got {value!r}")
+                raise PlyError(f"{path}: header comment 'supervision_focal_px' must be a positive number, "
+                               f"got {value!r}")
             return f
     return None
 

@@ -14,10 +14,10 @@ import logging
 import torch
 
 from .availability import GsplatStatus, GsplatUnavailable, gsplat_status, load_gsplat_extension
-from .base import RenderOutput, TileRenderer
+from .base import RenderOutput, TileRenderer, render_map
 from .torch_backend import TorchRenderer
 
-__all__ = ["RenderOutput", "TileRenderer", "TorchRenderer", "available_backends", "get_renderer"]
+__all__ = ["RenderOutput", "TileRenderer", "TorchRenderer", "available_backends", "get_renderer", "render_map"]
 
 log = logging.getLogger("eligsir_o3d")
 

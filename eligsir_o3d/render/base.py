@@ -56,6 +56,12 @@ def view_colors(colors: torch.Tensor, means: torch.Tensor, T_world_cam, sh_degre
     return sh_eval(colors, view_dirs(means, T_world_cam).to(colors.dtype), sh_degree)
 
 
+def render_map(renderer, gmap, camera: Camera, T_world_cam, background=None) -> RenderOutput:
+    """``gmap`` (a GaussianMap) drawn by ``renderer`` at ``camera`` / ``T_world_cam`` as users see it: with the
+    map's own low-pass for that camera (:meth:`.GaussianMap.low_pass`)."""
+    return renderer.render(*gmap.render_args(), camera, T_world_cam, background, low_pass=gmap.low_pass(camera))
+
+
 def mask_culled(means2d: torch.Tensor, radii: torch.Tensor) -> torch.Tensor:
     """``means2d`` [N, 2] with NaN in the rows of culled Gaussians (``radii`` [N] == 0)."""
     return torch.where((radii > 0)[:, None], means2d, torch.full_like(means2d, float("nan")))

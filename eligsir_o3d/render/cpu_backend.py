@@ -177,7 +177,8 @@ def project_cpu(means, quats, scales, camera: Camera, T_world_cam, low_pass: flo
     """:func:`.projection.project` in compiled code (forward and backward); same values up to float32 rounding."""
     # the reference rounds the world-to-camera matrix to the parameters' dtype: do the same
     V = world_to_cam(T_world_cam, "cpu", torch.float32).double().numpy()
-    cam = np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, NEAR, low_pass], np.float64)
+    cam = np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, NEAR, low_pass],
+                   np.float64)
     means2d, conics, depths, radii = _Project.apply(means, quats, scales, V, cam)
     return Projection(means2d, conics, depths, radii)
 

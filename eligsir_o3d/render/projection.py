@@ -2,7 +2,8 @@
 
 This is the first half of every tile renderer (the second half, compositing, is backend specific). The math
 follows 3DGS / gsplat's "classic" mode: Jacobian of the pinhole projection with clamped x/z and y/z, a 0.3 px^2
-low-pass added to the 2D covariance (more where a map is drawn finer than it was supervised), a 3-sigma screen radius, 16x16 tiles, front-to-back order by view depth.
+low-pass added to the 2D covariance (more where a map is drawn finer than it was supervised), a 3-sigma screen
+radius, 16x16 tiles, front-to-back order by view depth.
 """
 
 from __future__ import annotations

@@ -190,13 +190,13 @@ def render_path(render_fn: Callable, poses: Sequence[np.ndarray], camera: Camera
 
 def map_render_fn(gmap, renderer: str = "auto", device: str = "cpu", background=(0.0, 0.0, 0.0)) -> Callable:
     """``render_fn(camera, T_world_cam)`` for a :class:`GaussianMap` (e.g. one read from a PLY)."""
-    from ..render import get_renderer
+    from ..render import get_renderer, render_map
 
     rend = get_renderer(renderer, device)
     bg = torch.tensor(background, dtype=torch.float32, device=gmap.device)
 
     def render_fn(cam: Camera, T: np.ndarray):
-        return rend.render(*gmap.render_args(), cam, T, bg, low_pass=gmap.low_pass(cam))
+        return render_map(rend, gmap, cam, T, bg)
 
     return render_fn
 
