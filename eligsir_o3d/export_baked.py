@@ -65,7 +65,6 @@ def write_for_viewers(map_ply: str | Path, out_ply: str | Path, camera: Camera |
                       poses: Sequence[np.ndarray] | str | Path | None = None) -> dict:
     """Read ``map_ply``, bake its low-pass for ``camera`` (default: the run's, beside the map) and ``poses``
     (default: trajectory.txt beside the map), write ``out_ply``; returns a summary."""
-    from .datasets.base import read_tum_trajectory
     from .export import camera_next_to
     from .io.guards import refuse_overwriting_inputs
     from .io.ply import load_ply, save_ply
@@ -77,12 +76,62 @@ def write_for_viewers(map_ply: str | Path, out_ply: str | Path, camera: Camera |
     if camera is None:
         raise ValueError(f"{map_ply}: no camera beside the map (run.json of eligsir map): the low-pass depends on "
                          f"the resolution the map is viewed at")
-    if poses is None or isinstance(poses, (str, Path)):
-        path = Path(poses) if poses is not None else map_ply.parent / "trajectory.txt"
-        if not path.is_file():
-            raise ValueError(f"{map_ply}: {path} does not exist: the low-pass is baked at the depth the map's views "
-                             f"saw each Gaussian (give --poses)")
-        _, poses = read_tum_trajectory(path)
+    poses = _views_of(map_ply, poses, required=True)
     lp = gmap.low_pass(camera)
     save_ply(baked_for_viewers(gmap, camera, list(poses)), out_ply)
     return {"for_viewers": str(out_ply), "baked_low_pass_px2": lp, "gaussians": len(gmap)}
+
+
+def _views_of(map_ply: Path, poses, required: bool):
+    """``poses`` as a list of camera-to-world matrices: given, or read from a TUM file (default: trajectory.txt
+    beside the map). A missing file is an error when ``required``, else None."""
+    from .datasets.base import read_tum_trajectory
+
+    if poses is not None and not isinstance(poses, (str, Path)):
+        return list(poses)
+    path = Path(poses) if poses is not None else map_ply.parent / "trajectory.txt"
+    if not path.is_file():
+        if not required and poses is None:
+            return None
+        raise ValueError(f"{map_ply}: {path} does not exist: the low-pass is baked at the depth the map's views "
+                         f"saw each Gaussian (give --poses)")
+    return list(read_tum_trajectory(path)[1])
+
+
+def write_web_for_map(map_ply: str | Path, spz: str | Path | None = None, splat: str | Path | None = None,
+                      poses: Sequence[np.ndarray] | str | Path | None = None) -> dict:
+    """``eligsir export --spz/--splat``: :func:`write_web_for_viewers` of a saved map, with the camera of its
+    ``run.json`` and the poses of ``poses`` (default: trajectory.txt beside it); a map without them (a PLY from
+    elsewhere) is written as it is."""
+    from .export import camera_next_to
+    from .io.ply import load_ply
+
+    map_ply = Path(map_ply)
+    if not map_ply.is_file():
+        raise ValueError(f"{map_ply}: no such map")
+    gmap = load_ply(map_ply)
+    return write_web_for_viewers(gmap, camera_next_to(map_ply), _views_of(map_ply, poses, required=False),
+                                 spz, splat)
+
+
+def write_web_for_viewers(gmap: GaussianMap, camera: Camera | None, poses: Sequence[np.ndarray] | None,
+                          spz: str | Path | None = None, splat: str | Path | None = None) -> dict:
+    """Write ``gmap`` as SPZ and/or ``.splat`` (:func:`.export_splats.write_web_formats`) with its low-pass baked
+    in for ``camera`` (web players add 0.3 px^2 whatever the map was fitted at). Without a camera or poses, or for
+    a map supervised at ``camera``'s resolution, the map is written as it is. The summary's
+    ``baked_low_pass_px2`` is the low-pass baked in (0.3: none)."""
+    from .export_splats import write_web_formats
+    from .io.ply import save_ply
+
+    target = Path(spz if spz is not None else splat)
+    lp = gmap.low_pass(camera) if camera is not None else EPS2D
+    baked = lp > EPS2D and poses is not None and len(poses) > 0
+    src = baked_for_viewers(gmap, camera, list(poses)) if baked else gmap
+    tmp = target.parent / f".{target.name}.baked.ply"
+    try:
+        save_ply(src, tmp)
+        summary = write_web_formats(tmp, spz, splat)
+    finally:
+        tmp.unlink(missing_ok=True)
+    summary["baked_low_pass_px2"] = lp if baked else EPS2D
+    return summary

@@ -195,8 +195,7 @@ def export(
 ) -> None:
     """Export a saved map as an Open3D triangle mesh and/or point cloud, and/or as SPZ / .splat for the web."""
     from ..export import export_from_ply
-    from ..export_baked import write_for_viewers
-    from ..export_splats import write_web_formats
+    from ..export_baked import write_for_viewers, write_web_for_map
 
     if mesh is None and point_cloud is None and spz is None and splat is None and for_viewers is None:
         _fail("nothing to do: give --mesh, --point-cloud, --spz, --splat and/or --for-viewers")
@@ -205,7 +204,7 @@ def export(
         if for_viewers is not None:
             summary.update(write_for_viewers(map_ply, for_viewers, poses=poses))
         if spz is not None or splat is not None:
-            summary.update(write_web_formats(map_ply, spz, splat))
+            summary.update(write_web_for_map(map_ply, spz, splat, poses))
         if mesh is not None or point_cloud is not None:
             summary.update(export_from_ply(map_ply, mesh, point_cloud, poses=poses, voxel_size=voxel_size,
                                            depth_max=depth_max, min_opacity=min_opacity, device=device))

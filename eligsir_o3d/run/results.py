@@ -157,13 +157,19 @@ def write_results(r: RunResult, metrics: dict) -> None:
     from ..io.atomic import atomic_write_text
     from ..eval import write_plots
     from ..pose.trajectory import write_tum_trajectory
-    from ..export_splats import parse_formats, write_web_formats
+    from ..export_baked import write_web_for_viewers
+    from ..export_splats import parse_formats
 
     out, rec, outputs = r.out, r.rec, r.outputs
     outputs.stage(out / "map.ply", rec.save_ply, out / "map.ply")
-    for fmt in parse_formats(r.opts.formats)[1:]:  # map.spz / map.splat beside map.ply
-        outputs.stage(out / f"map.{fmt}", write_web_formats, out / "map.ply", **{fmt: out / f"map.{fmt}"})
     items = sorted(r.trajectory.items())
+    # map.spz / map.splat beside map.ply, for web players (fixed 0.3 px^2): the map's low-pass baked in, at the
+    # depths the mapped views (in the map's frame) saw each Gaussian
+    views = [rec.pose_refine.carried_pose(i, T, always=True) if rec.pose_refine.moved else T
+             for i, (_, T) in items]
+    for fmt in parse_formats(r.opts.formats)[1:]:
+        outputs.stage(out / f"map.{fmt}", write_web_for_viewers, rec.gmap, rec.camera, views,
+                      **{fmt: out / f"map.{fmt}"})
     outputs.stage(out / "trajectory.txt", write_tum_trajectory, out / "trajectory.txt",
                   [ts for _, (ts, _) in items], [T for _, (_, T) in items])
     if rec.pose_refine.moved:  # the mapped frames' poses in the map's refined frame

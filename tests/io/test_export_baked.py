@@ -2,6 +2,8 @@
 package draws the map with its own low-pass; depths come from the nearest view that sees each Gaussian; the CLI
 writes it from a results folder and names what is missing."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -11,7 +13,8 @@ from eligsir_o3d import Config
 from eligsir_o3d.cli.app import app
 from eligsir_o3d.core.camera import Camera
 from eligsir_o3d.core.gaussians import EPS2D, GaussianMap
-from eligsir_o3d.export_baked import baked_for_viewers, nearest_depths, write_for_viewers
+from eligsir_o3d.export_baked import (baked_for_viewers, nearest_depths, write_for_viewers, write_web_for_map,
+                                      write_web_for_viewers)
 from eligsir_o3d.io.ply import load_ply, save_ply
 from eligsir_o3d.render import get_renderer
 from eligsir_o3d.run.pipeline import RunOptions, run_mapping
@@ -67,7 +70,7 @@ def run_folder(tmp_path_factory):
     cfg = Config(renderer="cpu")
     cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 2, 0
     run_mapping("synthetic", out, cfg, RunOptions(max_frames=8, holdout_every=4, eval_every=0, progress=False,
-                                                  plots=False, pictures=False))
+                                                  plots=False, pictures=False, formats="ply,splat"))
     return out
 
 
@@ -92,3 +95,39 @@ def test_missing_camera_or_poses_and_overwriting_are_clear_errors(run_folder, tm
         write_for_viewers(run_folder / "map.ply", run_folder / "map.ply")
     res = CliRunner().invoke(app, ["export", str(lone), "--for-viewers", str(tmp_path / "b.ply")])
     assert res.exit_code == 2 and "no camera beside the map" in res.output
+
+
+def _splat_bytes(gm: GaussianMap, tmp_path, name: str) -> bytes:
+    """The .splat that write_web_formats makes of ``gm`` as it is (no bake)."""
+    from eligsir_o3d.export_splats import write_web_formats
+
+    write_web_formats(save_ply(gm, tmp_path / "plain" / f"{name}.ply"), splat=tmp_path / "plain" / f"{name}.splat")
+    return (tmp_path / "plain" / f"{name}.splat").read_bytes()
+
+
+def test_web_formats_carry_the_baked_low_pass(tmp_path):
+    """Web players add 0.3 px^2 whatever the map was fitted at, so .splat / SPZ get the bake; a map drawn at its
+    supervised scale, or one without poses, is written as it is."""
+    gm = _near_axis_map()
+    out = tmp_path / "out"
+    s = write_web_for_viewers(gm, CAM, [np.eye(4)], splat=out / "a.splat")
+    assert s["baked_low_pass_px2"] == pytest.approx(gm.low_pass(CAM)) and s["gaussians"] == len(gm)
+    plain = _splat_bytes(gm, tmp_path, "plain")
+    assert (out / "a.splat").read_bytes() == _splat_bytes(baked_for_viewers(gm, CAM, [np.eye(4)]), tmp_path, "b")
+    assert (out / "a.splat").read_bytes() != plain
+    for cam, poses in ((CAM.scaled(0.25), [np.eye(4)]), (CAM, None)):
+        s = write_web_for_viewers(gm, cam, poses, splat=out / "b.splat")
+        assert s["baked_low_pass_px2"] == EPS2D and (out / "b.splat").read_bytes() == plain
+    assert sorted(p.name for p in out.iterdir()) == ["a.splat", "b.splat"]  # no temporary file left
+
+
+def test_map_and_export_write_baked_web_formats(run_folder, tmp_path):
+    gm = load_ply(run_folder / "map.ply")
+    written = (run_folder / "map.splat").read_bytes()  # eligsir map --format ply,splat
+    assert gm.low_pass(Camera(**json.loads((run_folder / "run.json").read_text())["camera"])) > EPS2D
+    assert len(written) == 32 * len(gm) and written != _splat_bytes(gm, tmp_path, "unbaked")
+    res = CliRunner().invoke(app, ["export", str(run_folder / "map.ply"), "--splat", str(tmp_path / "e.splat")])
+    assert res.exit_code == 0 and "baked_low_pass_px2" in res.output, res.output
+    assert (tmp_path / "e.splat").read_bytes() == written
+    lone = save_ply(gm, tmp_path / "lone" / "map.ply")  # no run.json nor trajectory beside it: as it is
+    assert write_web_for_map(lone, splat=tmp_path / "f.splat")["baked_low_pass_px2"] == EPS2D

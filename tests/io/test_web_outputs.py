@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from eligsir_o3d import Config
+from eligsir_o3d.export_baked import write_for_viewers
 from eligsir_o3d.export_splats import parse_formats, rdf_to_rub, read_splats, spz_order, write_web_formats
 from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 
@@ -76,17 +77,20 @@ def test_map_writes_spz_and_splat_beside_the_ply(run_sh0, tmp_path):
 
 def test_spz_read_back_by_splat_transform_matches_the_map(run_sh0, tmp_path):
     """splat-transform decodes SPZ without any axis conversion, so its output must equal our map turned to RUB
-    (the SPZ spec's axes) within SPZ's quantisation."""
+    (the SPZ spec's axes) within SPZ's quantisation: the map as web players should draw it, its low-pass baked
+    in (what `eligsir export --for-viewers` writes)."""
     cmd = _splat_transform()
     if cmd is None:
         pytest.skip("splat-transform not installed (tools/setup.sh --test installs it into .npm/)")
     back = tmp_path / "back.ply"
+    ref = tmp_path / "for_viewers.ply"
+    write_for_viewers(run_sh0 / "map.ply", ref)
     subprocess.run([*cmd, "-w", str(run_sh0 / "map.spz"), str(back)], check=True, capture_output=True, timeout=120)
     from plyfile import PlyData
 
     b = PlyData.read(str(back), mmap=False)["vertex"]
-    m = PlyData.read(str(run_sh0 / "map.ply"), mmap=False)["vertex"]  # the map as written: RDF, log scales, logits
-    m = m.data[spz_order(read_splats(run_sh0 / "map.ply"))]  # the SPZ holds the Gaussians in opacity order
+    m = PlyData.read(str(ref), mmap=False)["vertex"]  # the map as written: RDF, log scales, logits
+    m = m.data[spz_order(read_splats(ref))]  # the SPZ holds the Gaussians in opacity order
     flip = np.array([1.0, -1.0, -1.0])
     a = {"positions": np.stack([m["x"], m["y"], m["z"]], 1) * flip,
          "rot": np.stack([m[f"rot_{i}"] for i in range(4)], 1) * np.array([1.0, 1.0, -1.0, -1.0]),
@@ -103,7 +107,7 @@ def test_spz_read_back_by_splat_transform_matches_the_map(run_sh0, tmp_path):
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     assert np.abs(np.sum(q * q_ref, axis=1)).min() > 0.995  # same rotation (q and -q alike), ~10-bit components
     # the axis turn is there: y and z of the SPZ are the map's, negated
-    raw = read_splats(run_sh0 / "map.ply")
+    raw = read_splats(ref)
     np.testing.assert_allclose(pos[:, 1:], -raw.point.positions.numpy()[spz_order(raw)][:, 1:], atol=2.0 ** -12 + 1e-6)
 
 
