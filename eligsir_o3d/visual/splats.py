@@ -48,11 +48,33 @@ def splats_from_map(gmap: GaussianMap, min_opacity: float = 0.0) -> Splats:
     return Splats(means.numpy(), cov.numpy(), rgb.numpy(), opac.numpy(), gmap.sh_degree)
 
 
-def read_splats(path: str | Path, min_opacity: float = 0.0) -> Splats:
-    """Viewer arrays of a 3DGS PLY file; raises :class:`eligsir_o3d.io.ply.PlyError` naming the file on bad input."""
+def read_splats(path: str | Path, min_opacity: float = 0.0, bake: bool = True) -> Splats:
+    """Viewer arrays of a 3DGS PLY file; raises :class:`eligsir_o3d.io.ply.PlyError` naming the file on bad input.
+
+    A browser splat renderer adds 3DGS's fixed 0.3 px^2, so with ``bake`` a map supervised coarser than its
+    camera (``run.json`` and ``trajectory.txt`` beside it: a results folder) gets its low-pass baked in
+    (:func:`eligsir_o3d.export_baked.baked_for_viewers`), as the web formats do; other PLYs are drawn as they are."""
     from ..io.ply import PlyError, load_ply
 
+    path = Path(path)
     gmap = load_ply(path, "cpu")
     if len(gmap) == 0:
         raise PlyError(f"{path}: the map has no Gaussians")
+    if bake:
+        gmap = _baked_if_known(gmap, path)
     return splats_from_map(gmap, min_opacity)
+
+
+def _baked_if_known(gmap: GaussianMap, path: Path) -> GaussianMap:
+    from ..core.gaussians import EPS2D
+    from ..export import camera_next_to
+    from ..export_baked import _views_of, baked_for_viewers
+
+    camera = camera_next_to(path)
+    if camera is None or gmap.low_pass(camera) <= EPS2D:
+        return gmap
+    try:
+        poses = _views_of(path, None, required=False)
+    except ValueError:  # an unreadable trajectory: the viewer still shows the map as it is
+        return gmap
+    return baked_for_viewers(gmap, camera, poses) if poses else gmap

@@ -131,3 +131,17 @@ def test_map_and_export_write_baked_web_formats(run_folder, tmp_path):
     assert (tmp_path / "e.splat").read_bytes() == written
     lone = save_ply(gm, tmp_path / "lone" / "map.ply")  # no run.json nor trajectory beside it: as it is
     assert write_web_for_map(lone, splat=tmp_path / "f.splat")["baked_low_pass_px2"] == EPS2D
+
+
+def test_viewer_draws_a_results_folder_baked(run_folder, tmp_path):
+    """eligsir view (viser adds 0.3 px^2): a results folder's map is shown with its low-pass baked in, a lone PLY
+    as it is."""
+    from eligsir_o3d.visual.splats import read_splats
+
+    gm = load_ply(run_folder / "map.ply")
+    shown, plain = read_splats(run_folder / "map.ply"), read_splats(run_folder / "map.ply", bake=False)
+    tr = lambda s: np.trace(s.covariances, axis1=1, axis2=2)  # noqa: E731
+    assert len(shown) == len(plain) == len(gm)
+    assert (tr(shown) >= tr(plain) * (1 - 1e-5)).all() and (tr(shown) > tr(plain) * 1.01).any()
+    lone = save_ply(gm, tmp_path / "lone" / "map.ply")
+    np.testing.assert_allclose(tr(read_splats(lone)), tr(plain), rtol=1e-6)
