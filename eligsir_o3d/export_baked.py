@@ -76,13 +76,13 @@ def write_for_viewers(map_ply: str | Path, out_ply: str | Path, camera: Camera |
     if camera is None:
         raise ValueError(f"{map_ply}: no camera beside the map (run.json of eligsir map): the low-pass depends on "
                          f"the resolution the map is viewed at")
-    poses = _views_of(map_ply, poses, required=True)
+    poses = mapped_poses(map_ply, poses, required=True)
     lp = gmap.low_pass(camera)
     save_ply(baked_for_viewers(gmap, camera, list(poses)), out_ply)
     return {"for_viewers": str(out_ply), "baked_low_pass_px2": lp, "gaussians": len(gmap)}
 
 
-def _views_of(map_ply: Path, poses, required: bool):
+def mapped_poses(map_ply: Path, poses, required: bool):
     """``poses`` as a list of camera-to-world matrices: given, or read from a TUM file (default: trajectory.txt
     beside the map). A missing file is an error when ``required``, else None."""
     from .datasets.base import read_tum_trajectory
@@ -110,7 +110,7 @@ def write_web_for_map(map_ply: str | Path, spz: str | Path | None = None, splat:
     if not map_ply.is_file():
         raise ValueError(f"{map_ply}: no such map")
     gmap = load_ply(map_ply)
-    return write_web_for_viewers(gmap, camera_next_to(map_ply), _views_of(map_ply, poses, required=False),
+    return write_web_for_viewers(gmap, camera_next_to(map_ply), mapped_poses(map_ply, poses, required=False),
                                  spz, splat)
 
 

@@ -68,13 +68,13 @@ def read_splats(path: str | Path, min_opacity: float = 0.0, bake: bool = True) -
 def _baked_if_known(gmap: GaussianMap, path: Path) -> GaussianMap:
     from ..core.gaussians import EPS2D
     from ..export import camera_next_to
-    from ..export_baked import _views_of, baked_for_viewers
+    from ..export_baked import baked_for_viewers, mapped_poses
 
     camera = camera_next_to(path)
     if camera is None or gmap.low_pass(camera) <= EPS2D:
         return gmap
     try:
-        poses = _views_of(path, None, required=False)
+        poses = mapped_poses(path, None, required=False)
     except ValueError:  # an unreadable trajectory: the viewer still shows the map as it is
         return gmap
     return baked_for_viewers(gmap, camera, poses) if poses else gmap
