@@ -98,20 +98,35 @@ def mapped_poses(map_ply: Path, poses, required: bool):
     return list(read_tum_trajectory(path)[1])
 
 
+def for_viewers(gmap: GaussianMap, camera: Camera | None, poses: Sequence[np.ndarray] | None
+                ) -> tuple[GaussianMap, float]:
+    """(what a 0.3 px^2 viewer should draw, the low-pass baked in): :func:`baked_for_viewers` where ``gmap`` was
+    supervised coarser than ``camera`` and ``poses`` are known, else ``gmap`` itself and 0.3 (nothing baked)."""
+    lp = gmap.low_pass(camera) if camera is not None else EPS2D
+    if lp <= EPS2D or not poses:
+        return gmap, EPS2D
+    return baked_for_viewers(gmap, camera, list(poses)), lp
+
+
+def for_viewers_next_to(gmap: GaussianMap, map_ply: str | Path, poses=None) -> tuple[GaussianMap, float]:
+    """:func:`for_viewers` with the camera of the ``run.json`` beside ``map_ply`` and ``poses`` (default:
+    trajectory.txt beside it); a map without them (a PLY from elsewhere) is returned as it is."""
+    from .export import camera_next_to
+
+    map_ply = Path(map_ply)
+    return for_viewers(gmap, camera_next_to(map_ply), mapped_poses(map_ply, poses, required=False))
+
+
 def write_web_for_map(map_ply: str | Path, spz: str | Path | None = None, splat: str | Path | None = None,
                       poses: Sequence[np.ndarray] | str | Path | None = None) -> dict:
-    """``eligsir export --spz/--splat``: :func:`write_web_for_viewers` of a saved map, with the camera of its
-    ``run.json`` and the poses of ``poses`` (default: trajectory.txt beside it); a map without them (a PLY from
-    elsewhere) is written as it is."""
-    from .export import camera_next_to
+    """``eligsir export --spz/--splat``: a saved map as SPZ and/or ``.splat`` with its low-pass baked in
+    (:func:`for_viewers_next_to`)."""
     from .io.ply import load_ply
 
     map_ply = Path(map_ply)
     if not map_ply.is_file():
         raise ValueError(f"{map_ply}: no such map")
-    gmap = load_ply(map_ply)
-    return write_web_for_viewers(gmap, camera_next_to(map_ply), mapped_poses(map_ply, poses, required=False),
-                                 spz, splat)
+    return write_web(*for_viewers_next_to(load_ply(map_ply), map_ply, poses), spz, splat)
 
 
 def write_web_for_viewers(gmap: GaussianMap, camera: Camera | None, poses: Sequence[np.ndarray] | None,
@@ -120,18 +135,22 @@ def write_web_for_viewers(gmap: GaussianMap, camera: Camera | None, poses: Seque
     in for ``camera`` (web players add 0.3 px^2 whatever the map was fitted at). Without a camera or poses, or for
     a map supervised at ``camera``'s resolution, the map is written as it is. The summary's
     ``baked_low_pass_px2`` is the low-pass baked in (0.3: none)."""
+    return write_web(*for_viewers(gmap, camera, poses), spz, splat)
+
+
+def write_web(gmap: GaussianMap, baked_low_pass: float, spz: str | Path | None = None,
+              splat: str | Path | None = None) -> dict:
+    """Write ``gmap`` (as a viewer should draw it) as SPZ and/or ``.splat``, through a temporary PLY beside the
+    target; the summary records ``baked_low_pass_px2``."""
     from .export_splats import write_web_formats
     from .io.ply import save_ply
 
     target = Path(spz if spz is not None else splat)
-    lp = gmap.low_pass(camera) if camera is not None else EPS2D
-    baked = lp > EPS2D and poses is not None and len(poses) > 0
-    src = baked_for_viewers(gmap, camera, list(poses)) if baked else gmap
     tmp = target.parent / f".{target.name}.baked.ply"
     try:
-        save_ply(src, tmp)
+        save_ply(gmap, tmp)
         summary = write_web_formats(tmp, spz, splat)
     finally:
         tmp.unlink(missing_ok=True)
-    summary["baked_low_pass_px2"] = lp if baked else EPS2D
+    summary["baked_low_pass_px2"] = baked_low_pass
     return summary

@@ -163,13 +163,13 @@ def write_results(r: RunResult, metrics: dict) -> None:
     out, rec, outputs = r.out, r.rec, r.outputs
     outputs.stage(out / "map.ply", rec.save_ply, out / "map.ply")
     items = sorted(r.trajectory.items())
-    # map.spz / map.splat beside map.ply, for web players (fixed 0.3 px^2): the map's low-pass baked in, at the
-    # depths the mapped views (in the map's frame) saw each Gaussian
-    views = [rec.pose_refine.carried_pose(i, T, always=True) if rec.pose_refine.moved else T
-             for i, (_, T) in items]
-    for fmt in parse_formats(r.opts.formats)[1:]:
-        outputs.stage(out / f"map.{fmt}", write_web_for_viewers, rec.gmap, rec.camera, views,
-                      **{fmt: out / f"map.{fmt}"})
+    web = parse_formats(r.opts.formats)[1:]
+    if web:  # map.spz / map.splat beside map.ply, for web players (fixed 0.3 px^2): the map's low-pass baked in
+        # once, at the depths the mapped views (in the map's frame) saw each Gaussian
+        views = [rec.pose_refine.carried_pose(i, T, always=True) if rec.pose_refine.moved else T
+                 for i, (_, T) in items]
+        outputs.stage(out / f"map.{web[0]}", write_web_for_viewers, rec.gmap, rec.camera, views,
+                      **{fmt: out / f"map.{fmt}" for fmt in web})
     outputs.stage(out / "trajectory.txt", write_tum_trajectory, out / "trajectory.txt",
                   [ts for _, (ts, _) in items], [T for _, (_, T) in items])
     if rec.pose_refine.moved:  # the mapped frames' poses in the map's refined frame

@@ -66,15 +66,9 @@ def read_splats(path: str | Path, min_opacity: float = 0.0, bake: bool = True) -
 
 
 def _baked_if_known(gmap: GaussianMap, path: Path) -> GaussianMap:
-    from ..core.gaussians import EPS2D
-    from ..export import camera_next_to
-    from ..export_baked import baked_for_viewers, mapped_poses
+    from ..export_baked import for_viewers_next_to
 
-    camera = camera_next_to(path)
-    if camera is None or gmap.low_pass(camera) <= EPS2D:
-        return gmap
     try:
-        poses = mapped_poses(path, None, required=False)
+        return for_viewers_next_to(gmap, path)[0]
     except ValueError:  # an unreadable trajectory: the viewer still shows the map as it is
         return gmap
-    return baked_for_viewers(gmap, camera, poses) if poses else gmap
