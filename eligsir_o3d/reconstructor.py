@@ -188,6 +188,7 @@ class Reconstructor(ReconstructorState):
             cost_fn = None if cost is None else (lambda pixels: cost.update(pixels, priced_gaussians(self)))
             self.fidelity.attach(period_s, cost_fn)
             self.growth.attach(period_s, cost)  # the budget cap on the map size (scheduling.capacity)
+            self.views.attach(period_s, cost)  # the pose pre-filter's spacing (scheduling.spacing)
 
     def policy_counters(self) -> dict:
         """Each policy's name and what it decided so far (admissions, seeds, insertions, relocations, scales)."""

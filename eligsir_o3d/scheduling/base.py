@@ -119,6 +119,11 @@ class ViewPolicy(Policy):
                  camera: Camera) -> None:
         """After an update: the training render's per-pixel error [h, w] (already computed by the loss)."""
 
+    def attach(self, period_s: float | None, cost=None) -> None:
+        """When the load changes (``Reconstructor.set_load``): the seconds one source frame grants and the
+        ``CostModel`` pricing the work (None without a deterministic budget). A policy whose admission does not
+        depend on the budget ignores it."""
+
     @property
     @abstractmethod
     def views(self) -> list[Frame]:

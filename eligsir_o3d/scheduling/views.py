@@ -23,6 +23,7 @@ from ..core.frame import Frame
 from ..render import RenderOutput
 from .base import MapContext, ViewPolicy
 from .microcells import MicrocellConfig, Microcells
+from .spacing import ViewSpacing
 from .support import SupportProbe
 from .views_trace import ViewsTrace, pearson
 
@@ -31,6 +32,10 @@ from .views_trace import ViewsTrace, pearson
 class ViewConfig:
     min_translation_m: float = 0.05  # pose pre-filter: a candidate closer than this AND ...
     min_rotation_deg: float = 5.0  # ... rotated less than this from some retained view is a near-duplicate
+    # both thresholds shrink as the budget grows (scheduling.spacing): by sqrt(spacing_updates / u) where one source
+    # frame buys u > spacing_updates updates at 1/4 scale (never in real time on the shipped cost model: u ~3-5;
+    # --speed 0.1: ~0.45, about 2 cm / 2 deg). 0: the thresholds above at every budget
+    spacing_updates: float = 8.0
     min_novelty: float = 0.10  # admit when at least this fraction of the frame's depth is not explained by the map
     max_gap_s: float = 1.0  # admit the next non-redundant view when none was admitted for this long
     active_size: int = 16  # views in the active supervision set
@@ -79,6 +84,7 @@ class MapGuidedViews(ViewPolicy):
             raise ValueError(f"views.retained_replay must be 'stalest' or 'priority', got {self.cfg.retained_replay!r}")
         self.probe = probe or SupportProbe()
         self.cells = cells or Microcells(self.cfg.cells)
+        self.spacing = ViewSpacing(self.cfg.spacing_updates)
         self._views: list[_View] = []
         self._by_frame: dict[int, _View] = {}
         self.active: list[int] = []  # positions in self._views
@@ -96,7 +102,7 @@ class MapGuidedViews(ViewPolicy):
         self.counts["released"] += 1
         if not self._views:
             return self._admit(frame)
-        if self.is_redundant(frame.T_world_cam):
+        if self.is_redundant(frame.T_world_cam, self._spacing(frame, ctx)):
             self.counts["pose_filtered"] += 1
             return False
         gap = self._last_admit_ts is not None and frame.timestamp - self._last_admit_ts >= self.cfg.max_gap_s
@@ -115,8 +121,19 @@ class MapGuidedViews(ViewPolicy):
         self.counts["low_novelty"] += 1
         return False
 
-    def is_redundant(self, T_world_cam) -> bool:
-        """True if some retained view is within both the translation and the rotation threshold."""
+    def attach(self, period_s: float | None, cost=None) -> None:
+        self.spacing.attach(period_s, cost)
+
+    def _spacing(self, frame: Frame, ctx: MapContext) -> float:
+        """The pose pre-filter's scale for this candidate under the current budget (:mod:`.spacing`)."""
+        if not self.spacing.enabled:
+            return 1.0
+        cam = frame.camera.scaled(self.spacing.scale)
+        return self.spacing.factor(cam.pixels, ctx.in_view(frame.camera, frame.T_world_cam))
+
+    def is_redundant(self, T_world_cam, factor: float = 1.0) -> bool:
+        """True if some retained view is within both the translation and the rotation threshold (each scaled by
+        ``factor``, the budget's spacing)."""
         if not self._views:
             return False
         T = np.asarray(T_world_cam)
@@ -125,7 +142,7 @@ class MapGuidedViews(ViewPolicy):
         # angle of R_v^T R: trace(R_v^T R) = sum of elementwise products
         tr = np.einsum("vij,ij->v", poses[:, :3, :3], T[:3, :3])
         ang = np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
-        return bool(np.any((dt < self.cfg.min_translation_m) & (ang < self.cfg.min_rotation_deg)))
+        return bool(np.any((dt < factor * self.cfg.min_translation_m) & (ang < factor * self.cfg.min_rotation_deg)))
 
     def _admit(self, frame: Frame) -> bool:
         cells, weights = self.cells.footprint(frame.depth, frame.camera, frame.T_world_cam)
@@ -286,7 +303,7 @@ class MapGuidedViews(ViewPolicy):
 
     def counters(self) -> dict:
         return {**self.counts, **self.trace.counts, "retained": len(self._views), "active": len(self.active),
-                "trace_dropped": self.trace.dropped}
+                "trace_dropped": self.trace.dropped, **self.spacing.counters()}
 
     # ---- persistence ----------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -297,7 +314,7 @@ class MapGuidedViews(ViewPolicy):
         # the active set and priorities of the last refresh decide the next picks: saved, not recomputed
         return {"views": views, "cells": self.cells.state_dict(), "last_admit_ts": self._last_admit_ts,
                 "counts": dict(self.counts), "active": list(self.active), "since_refresh": self._since_refresh,
-                "updates": self.updates, "trace": self.trace.state_dict()}
+                "updates": self.updates, "trace": self.trace.state_dict(), "spacing": self.spacing.state_dict()}
 
     def load_state_dict(self, state: dict) -> None:
         self.cells.load_state_dict(state["cells"])
@@ -312,6 +329,7 @@ class MapGuidedViews(ViewPolicy):
         self.counts.update(state.get("counts", {}))
         self.updates = int(state.get("updates", 0))
         self.trace.load_state_dict(state.get("trace", {}))
+        self.spacing.load_state_dict(state.get("spacing", {}))
         if "active" in state:
             self.active = [int(i) for i in state["active"]]
             self._since_refresh = int(state["since_refresh"])
