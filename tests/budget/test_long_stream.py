@@ -1,23 +1,17 @@
 """Long streams: nothing the mapper keeps grows with the number of frames beyond a configured bound, and the soak
 benchmark (benchmarks/budget/soak.py) that checks it on 20,000 frames still runs and reports a bounded run."""
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 import eligsir_o3d as eo3d
 from eligsir_o3d.scheduling.fidelity import FidelityConfig, LoadAdaptiveFidelity
-
-ROOT = Path(__file__).resolve().parents[2]
+from helpers.scripts import load_script
 
 
 def _soak_module():
-    spec = importlib.util.spec_from_file_location("soak", ROOT / "benchmarks" / "budget" / "soak.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks/budget/soak.py", "soak")
 
 
 def test_fidelity_trace_is_bounded_and_still_spans_the_stream():

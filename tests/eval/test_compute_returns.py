@@ -2,24 +2,17 @@
 own admitted views for the CPU seconds asked, the first row is the run's map as the pipeline scored it, more
 updates of an under-trained map score higher, and a folder it cannot continue is a clear error."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
 from eligsir_o3d import Config
 from eligsir_o3d.run.pipeline import RunOptions, run_mapping
-
-ROOT = Path(__file__).resolve().parents[2]
+from helpers.scripts import load_script
 
 
 def _tool():
-    spec = importlib.util.spec_from_file_location("compute_returns",
-                                                  ROOT / "benchmarks" / "quality" / "compute_returns.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks/quality/compute_returns.py")
 
 
 @pytest.fixture(scope="module")

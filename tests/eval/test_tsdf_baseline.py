@@ -2,24 +2,18 @@
 the views it was fused from, scores higher on its covered pixels than on the whole image, and the Gaussian map is
 scored at the same given poses as the pipeline's own evaluation."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from eligsir_o3d import Config
 from eligsir_o3d.run.pipeline import RunOptions, run_mapping
-
-ROOT = Path(__file__).resolve().parents[2]
+from helpers.scripts import load_script
 
 
 def _baseline():
-    spec = importlib.util.spec_from_file_location("tsdf_baseline", ROOT / "benchmarks" / "quality" / "tsdf_baseline.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks/quality/tsdf_baseline.py")
 
 
 @pytest.fixture(scope="module")

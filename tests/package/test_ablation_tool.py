@@ -1,21 +1,17 @@
 """tools/ablation.py (Table III): the table, its per-seed means, the CUC@20 cell counts and the issue's criteria,
 read back from results folders (--table-only), and the acquisition-speed default."""
 
-import importlib.util
 import json
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+from helpers.scripts import load_script
 
 
 @pytest.fixture(scope="module")
 def ablation():
-    spec = importlib.util.spec_from_file_location("ablation_tool", ROOT / "tools" / "ablation.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("tools/ablation.py", "ablation_tool")
 
 
 def _write(run: Path, psnr, auc, cuc_cells, n_cells, mpix):
