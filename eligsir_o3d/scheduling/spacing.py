@@ -55,6 +55,11 @@ class ViewSpacing:
         left = self.period_s - c.frame(gaussians)
         return max(0.0, left) / max(c.update(pixels, gaussians), 1e-12)
 
+    def could_shrink(self, pixels: int) -> bool:
+        """Whether any map could make the spacing below 1 for updates of ``pixels`` pixels: an empty view buys
+        the most updates (every Gaussian makes a frame and an update dearer)."""
+        return self.enabled and self.updates_per_frame(pixels, 0) > self.reference_updates
+
     def factor(self, pixels: int, gaussians: int) -> float:
         """The thresholds' scale for a candidate whose update at the pricing scale supervises ``pixels`` pixels
         over ``gaussians`` Gaussians in view: ``min(1, sqrt(reference_updates / u))``; 1 when disabled."""

@@ -102,7 +102,8 @@ class MapGuidedViews(ViewPolicy):
         self.counts["released"] += 1
         if not self._views:
             return self._admit(frame)
-        if self.is_redundant(frame.T_world_cam, self._spacing(frame, ctx)):
+        # a closer spacing can only clear a candidate within the configured one: the budget is priced only then
+        if self.is_redundant(frame.T_world_cam) and self.is_redundant(frame.T_world_cam, self._spacing(frame, ctx)):
             self.counts["pose_filtered"] += 1
             return False
         gap = self._last_admit_ts is not None and frame.timestamp - self._last_admit_ts >= self.cfg.max_gap_s
@@ -126,10 +127,10 @@ class MapGuidedViews(ViewPolicy):
 
     def _spacing(self, frame: Frame, ctx: MapContext) -> float:
         """The pose pre-filter's scale for this candidate under the current budget (:mod:`.spacing`)."""
-        if not self.spacing.enabled:
-            return 1.0
-        cam = frame.camera.scaled(self.spacing.scale)
-        return self.spacing.factor(cam.pixels, ctx.in_view(frame.camera, frame.T_world_cam))
+        pixels = frame.camera.scaled(self.spacing.scale).pixels
+        if not self.spacing.could_shrink(pixels):  # then the Gaussians in view (a culling pass) change nothing
+            return self.spacing.factor(pixels, 0)
+        return self.spacing.factor(pixels, ctx.in_view(frame.camera, frame.T_world_cam))
 
     def is_redundant(self, T_world_cam, factor: float = 1.0) -> bool:
         """True if some retained view is within both the translation and the rotation threshold (each scaled by

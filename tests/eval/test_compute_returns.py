@@ -6,9 +6,7 @@ import json
 
 import pytest
 
-from eligsir_o3d import Config
-from eligsir_o3d.run.pipeline import RunOptions, run_mapping
-from helpers.scripts import load_script
+from helpers.scripts import load_script, synthetic_run
 
 
 def _tool():
@@ -16,14 +14,8 @@ def _tool():
 
 
 @pytest.fixture(scope="module")
-def run_folder(tmp_path_factory):
-    out = tmp_path_factory.mktemp("returns_run")
-    cfg = Config(renderer="cpu")
-    cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 2, 0  # under-trained
-    cfg.pose_refine.enabled = False
-    run_mapping("synthetic", out, cfg, RunOptions(max_frames=16, holdout_every=4, eval_every=0, progress=False,
-                                                  plots=False, pictures=False))
-    return out
+def run_folder(tmp_path_factory):  # 2 updates per frame, no drain: an under-trained map
+    return synthetic_run(tmp_path_factory.mktemp("returns_run"), updates_per_frame=2, drain_updates=0)
 
 
 def test_arms_continue_the_runs_map(run_folder):

@@ -9,7 +9,7 @@ import pytest
 
 from eligsir_o3d import Config
 from eligsir_o3d.run.pipeline import RunOptions, run_mapping
-from helpers.scripts import load_script
+from helpers.scripts import load_script, synthetic_run
 
 
 def _baseline():
@@ -18,13 +18,7 @@ def _baseline():
 
 @pytest.fixture(scope="module")
 def run_folder(tmp_path_factory):
-    out = tmp_path_factory.mktemp("tsdf_run")
-    cfg = Config(renderer="cpu")
-    cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 3, 10
-    cfg.pose_refine.enabled = False  # the given poses are the map's: the pipeline's figure is the given-pose one
-    run_mapping("synthetic", out, cfg, RunOptions(max_frames=16, holdout_every=4, eval_every=0, progress=False,
-                                                  plots=False, pictures=False))
-    return out
+    return synthetic_run(tmp_path_factory.mktemp("tsdf_run"), updates_per_frame=3, drain_updates=10)
 
 
 def test_tsdf_peer_of_a_run(run_folder, tmp_path):
