@@ -24,6 +24,7 @@ from .render.culling import InView
 from .config import Config
 from .core.frame import Frame, FrameError
 from .core.gaussians import EPS2D, GaussianMap
+from .core.threads import torch_threads
 from .optim.losses import supervision_loss
 from .pose.refine import PoseRefiner
 from .reconstructor_state import ReconstructorState
@@ -102,6 +103,10 @@ class Reconstructor(ReconstructorState):
         (``updates`` updates, or until ``deadline`` in :meth:`clock_now` seconds; default: config's per-frame budget).
         A bad frame raises :class:`FrameError` before anything in the map changes.
         """
+        with self._threads():
+            return self._integrate(rgbd, pose, timestamp, updates, deadline)
+
+    def _integrate(self, rgbd, pose, timestamp, updates, deadline) -> dict:
         t0 = time.perf_counter()
         frame = self._to_frame(rgbd, pose, timestamp)
         self.stats.last_timestamp = frame.timestamp
@@ -124,12 +129,17 @@ class Reconstructor(ReconstructorState):
     def optimize(self, updates: int | None = None, deadline: float | None = None, scale: float | None = None) -> int:
         """Run optimisation updates: ``updates`` of them, or as many as fit before ``deadline`` (:meth:`clock_now`)."""
         done = 0
-        while (updates is None or done < updates) and (deadline is None or self.clock_now() < deadline):
-            if not self.views.views or len(self.gmap) == 0:
-                break
-            self._step(scale)
-            done += 1
+        with self._threads():
+            while (updates is None or done < updates) and (deadline is None or self.clock_now() < deadline):
+                if not self.views.views or len(self.gmap) == 0:
+                    break
+                self._step(scale)
+                done += 1
         return done
+
+    def _threads(self):
+        """torch's thread count while mapping on the CPU (``config.optim.torch_threads``, :mod:`.core.threads`)."""
+        return torch_threads(self.config.optim.torch_threads if self.device.type == "cpu" else 0)
 
     def finalize(self, deadline: float | None = None) -> None:
         """The bounded drain after the stream (the paper's ME map state): ``config.clock.drain_updates`` updates,

@@ -188,8 +188,7 @@ def start_workers(codes, args, plys) -> dict:
     for name, _, d in codes:
         for th in args.threads:
             env = dict(os.environ, PYTHONPATH=str(Path(d).resolve()))
-            if th == 1:
-                env["OMP_WAIT_POLICY"] = "PASSIVE"
+            env.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # the package's own default (eligsir_o3d/__init__.py)
             cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--threads", str(th), "--warm",
                    str(args.warm), "--updates", str(args.updates), "--data", str(args.data),
                    *(["--in-view", str(args.in_view)] if args.in_view is not None else []),
@@ -206,6 +205,7 @@ def start_workers(codes, args, plys) -> dict:
 
 def run_rounds(procs: dict, rounds: int) -> dict:
     """The workers take turns, round after round; returns {(checkout, threads): [rows of each round]}."""
+    print(f"# OMP_WAIT_POLICY {os.environ.get('OMP_WAIT_POLICY', 'PASSIVE (the package default)')}")
     print(f"# loadavg at start {' '.join(open('/proc/loadavg').read().split()[:3])}")
     results = {k: [] for k in procs}
     for _ in range(rounds):

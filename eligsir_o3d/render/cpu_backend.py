@@ -55,6 +55,12 @@ def _proj_kernels():
     return _cpu_projection
 
 
+def _rows_threads(rows: int):
+    """One numba thread for a per-Gaussian kernel over few rows (:func:`eligsir_o3d.core.jit.threads_for`)."""
+    from ..core.jit import PARALLEL_MIN_ROWS, threads_for
+    return threads_for(rows, PARALLEL_MIN_ROWS)
+
+
 def warmup() -> float:
     """Compile (or load from numba's cache) both kernels on a tiny problem; returns the seconds it took.
 
@@ -110,7 +116,8 @@ class _Composite(torch.autograd.Function):
         m, c, o, f = _f32(means2d), _f32(conics), _f32(opacities), _f32(feats)
         n_feat = f.shape[1]
         bounds = torch.empty(m.shape[0], 3, dtype=torch.float32)
-        k.cull_bounds(c.numpy(), o.numpy(), bounds.numpy())
+        with _rows_threads(m.shape[0]):
+            k.cull_bounds(c.numpy(), o.numpy(), bounds.numpy())
         out_feats = torch.empty(height, width, n_feat, dtype=torch.float32)
         out_alpha = torch.empty(height, width, dtype=torch.float32)
         out_T = torch.empty(height, width, dtype=torch.float32)
@@ -152,8 +159,9 @@ class _Project(torch.autograd.Function):
         n = m.shape[0]
         means2d, conics = torch.empty(n, 2), torch.empty(n, 3)
         depths, radii = torch.empty(n), torch.empty(n, dtype=torch.int32)
-        pk.project_forward(m.numpy(), q.numpy(), s.numpy(), V, cam, means2d.numpy(), conics.numpy(), depths.numpy(),
-                           radii.numpy())
+        with _rows_threads(n):
+            pk.project_forward(m.numpy(), q.numpy(), s.numpy(), V, cam, means2d.numpy(), conics.numpy(),
+                               depths.numpy(), radii.numpy())
         ctx.save_for_backward(m, q, s)
         ctx.V, ctx.cam, ctx.dtypes = V, cam, (means.dtype, quats.dtype, scales.dtype)
         ctx.mark_non_differentiable(radii)
@@ -168,8 +176,9 @@ class _Project(torch.autograd.Function):
         grads = [g if g is not None else torch.zeros(shape) for g, shape in
                  ((g_means2d, (n, 2)), (g_conics, (n, 3)), (g_depths, (n,)))]
         v_means, v_quats, v_scales = torch.empty(n, 3), torch.empty(n, 4), torch.empty(n, 3)
-        pk.project_backward(m.numpy(), q.numpy(), s.numpy(), ctx.V, ctx.cam, *(_f32(g).numpy() for g in grads),
-                            v_means.numpy(), v_quats.numpy(), v_scales.numpy())
+        with _rows_threads(n):
+            pk.project_backward(m.numpy(), q.numpy(), s.numpy(), ctx.V, ctx.cam, *(_f32(g).numpy() for g in grads),
+                                v_means.numpy(), v_quats.numpy(), v_scales.numpy())
         return tuple(v.to(dt) for v, dt in zip((v_means, v_quats, v_scales), ctx.dtypes)) + (None, None)
 
 
