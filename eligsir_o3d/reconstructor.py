@@ -24,7 +24,7 @@ from .render.culling import InView
 from .config import Config
 from .core.frame import Frame, FrameError
 from .core.gaussians import EPS2D, GaussianMap
-from .core.threads import torch_threads
+from .core.threads import PARALLEL_MIN_PIXELS, torch_threads
 from .optim.losses import supervision_loss
 from .pose.refine import PoseRefiner
 from .reconstructor_state import ReconstructorState
@@ -103,22 +103,19 @@ class Reconstructor(ReconstructorState):
         (``updates`` updates, or until ``deadline`` in :meth:`clock_now` seconds; default: config's per-frame budget).
         A bad frame raises :class:`FrameError` before anything in the map changes.
         """
-        with self._threads():
-            return self._integrate(rgbd, pose, timestamp, updates, deadline)
-
-    def _integrate(self, rgbd, pose, timestamp, updates, deadline) -> dict:
         t0 = time.perf_counter()
         frame = self._to_frame(rgbd, pose, timestamp)
         self.stats.last_timestamp = frame.timestamp
         self.stats.frames_released += 1
         self.frame_plan = self.fixed_work.plan(self.backlog, self.fidelity.at_lowest_scale())
-        with self.timing("admission"):
-            admitted = self.views.admit(frame, self.ctx)
-        self.stats.frames_admitted += int(admitted)
-        with self.timing("growth"):
-            if admitted:
-                self.pose_refine.warm_start(frame)  # off unless pose_refine.warm_start
-            added = self.growth.on_frame(self.pose_refine.posed(frame), admitted, self.ctx)
+        with self._threads(self.camera.scaled(self.config.support.scale).pixels):
+            with self.timing("admission"):
+                admitted = self.views.admit(frame, self.ctx)
+            self.stats.frames_admitted += int(admitted)
+            with self.timing("growth"):
+                if admitted:
+                    self.pose_refine.warm_start(frame)  # off unless pose_refine.warm_start
+                added = self.growth.on_frame(self.pose_refine.posed(frame), admitted, self.ctx)
         self.stats.mapping_s += time.perf_counter() - t0
         if updates is None and deadline is None:
             updates = self.config.clock.updates_per_frame
@@ -129,17 +126,18 @@ class Reconstructor(ReconstructorState):
     def optimize(self, updates: int | None = None, deadline: float | None = None, scale: float | None = None) -> int:
         """Run optimisation updates: ``updates`` of them, or as many as fit before ``deadline`` (:meth:`clock_now`)."""
         done = 0
-        with self._threads():
-            while (updates is None or done < updates) and (deadline is None or self.clock_now() < deadline):
-                if not self.views.views or len(self.gmap) == 0:
-                    break
-                self._step(scale)
-                done += 1
+        while (updates is None or done < updates) and (deadline is None or self.clock_now() < deadline):
+            if not self.views.views or len(self.gmap) == 0:
+                break
+            self._step(scale)
+            done += 1
         return done
 
-    def _threads(self):
-        """torch's thread count while mapping on the CPU (``config.optim.torch_threads``, :mod:`.core.threads`)."""
-        return torch_threads(self.config.optim.torch_threads if self.device.type == "cpu" else 0)
+    def _threads(self, pixels: int):
+        """torch's threads for work on images of ``pixels``: ``config.optim.torch_threads`` on the CPU below
+        :data:`.core.threads.PARALLEL_MIN_PIXELS`, else as the caller set them (:mod:`.core.threads`)."""
+        small = self.device.type == "cpu" and pixels < PARALLEL_MIN_PIXELS
+        return torch_threads(self.config.optim.torch_threads if small else 0)
 
     def finalize(self, deadline: float | None = None) -> None:
         """The bounded drain after the stream (the paper's ME map state): ``config.clock.drain_updates`` updates,
@@ -158,6 +156,23 @@ class Reconstructor(ReconstructorState):
         frame = self.views.select(self.rng)
         s = self.fidelity.scale() if scale is None else scale
         color, depth, cam = frame.at_scale(s, self.device)
+        with self._threads(cam.pixels):
+            self._update(frame, color, depth, cam)
+        dt = time.perf_counter() - t0
+        self.stats.updates += 1
+        self.stats.supervised_pixels += cam.pixels
+        self.stats.mapping_s += dt
+        self.timing.add("update", dt)
+        self.fidelity.observe(dt, cam.pixels, self.backlog)
+        if self.callbacks:
+            t1 = time.perf_counter()
+            for cb in self.callbacks:
+                cb(self)
+            self.stats.excluded_s += time.perf_counter() - t1
+
+    def _update(self, frame: Frame, color: torch.Tensor, depth: torch.Tensor, cam: Camera) -> None:
+        """One update on ``frame``'s view at ``cam``'s scale: render the rows in view, the loss, backward, Adam, then
+        the policies' per-update steps (pose correction, growth's MCMC, the views' feedback)."""
         cull = self.config.optim.cull  # only the rows that can reach the view (at its refined pose): drawn and stepped
         self.view = InView.select(self.gmap, cam, self.pose_refine.posed(frame).T_world_cam) if cull else None
         rows = self.view if self.view is not None else self.gmap
@@ -177,17 +192,6 @@ class Reconstructor(ReconstructorState):
         self.growth.post_step(posed, out, depth, cam, self.ctx)
         self.view = None
         self.views.feedback(frame, out, error, depth, cam)
-        dt = time.perf_counter() - t0
-        self.stats.updates += 1
-        self.stats.supervised_pixels += cam.pixels
-        self.stats.mapping_s += dt
-        self.timing.add("update", dt)
-        self.fidelity.observe(dt, cam.pixels, self.backlog)
-        if self.callbacks:
-            t1 = time.perf_counter()
-            for cb in self.callbacks:
-                cb(self)
-            self.stats.excluded_s += time.perf_counter() - t1
 
     def set_load(self, backlog: int, period_s: float | None = None, cost=None) -> None:
         """The load a clock reports: ``backlog`` frames waiting, ``period_s`` seconds that one source frame grants

@@ -44,14 +44,7 @@ def compile_kernel(parallel: bool):
 jit = compile_kernel(parallel=True)
 jit_serial = compile_kernel(parallel=False)
 
-# Work below which a parallel kernel runs on one thread. With passive OpenMP waiting (the package's default,
-# eligsir_o3d/__init__.py) every parallel region wakes sleeping workers, ~55-60 us per region on the 2-core machines
-# measured (trivial work: 1.5 us on one thread); a kernel shorter than ~0.2 ms loses more to the wake-up than a
-# second thread saves. Measured side by side in one process (2 threads, 1/4-scale updates of the kitchen map): at
-# 2.8k Gaussians in view the per-Gaussian kernels and the 160x120 D-SSIM ran 3-9 % faster serial, at 14k even, at
-# 60k in view parallel won by 5-8 %; D-SSIM at 320x240 even, at 640x480 parallel won by 10 %.
-PARALLEL_MIN_ROWS = 50_000  # Gaussians (projection, culling, Adam rows)
-PARALLEL_MIN_PIXELS = 150_000  # image pixels (D-SSIM)
+from .threads import PARALLEL_MIN_PIXELS, PARALLEL_MIN_ROWS  # noqa: E402,F401 (the kernels' call sites use them)
 
 
 @contextmanager

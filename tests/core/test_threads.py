@@ -9,7 +9,7 @@ import torch
 
 from eligsir_o3d import Config, Reconstructor
 from eligsir_o3d.core.jit import threads_for
-from eligsir_o3d.core.threads import torch_threads
+from eligsir_o3d.core.threads import PARALLEL_MIN_PIXELS, torch_threads
 from eligsir_o3d.datasets.synthetic import SyntheticRoom
 
 
@@ -35,19 +35,27 @@ def test_torch_threads_sets_and_restores(two_torch_threads):
     assert torch.get_num_threads() == 2  # restored on the way out of an error too
 
 
-@pytest.mark.parametrize("setting, inside", [(1, 1), (0, 2)])
-def test_the_mapper_runs_torch_on_the_configured_threads(two_torch_threads, setting, inside):
-    seq = SyntheticRoom(n_frames=4)
+@pytest.mark.parametrize("setting, small", [(1, 1), (0, 2)])
+def test_the_mapper_runs_torch_on_the_configured_threads(two_torch_threads, setting, small):
+    seq = SyntheticRoom(n_frames=4, width=480, height=320)  # 153.6k pixels: at scale 1, past PARALLEL_MIN_PIXELS
+    assert seq.camera.width * seq.camera.height >= PARALLEL_MIN_PIXELS
     cfg = Config(renderer="cpu")
     cfg.optim.torch_threads = setting
     rec = Reconstructor(seq.camera, "cpu", cfg, depth_scale=seq.depth_scale)
-    seen = []
-    rec.callbacks.append(lambda r: seen.append(torch.get_num_threads()))  # called inside every update
+    seen, update = [], rec._update
+
+    def spy(frame, color, depth, cam):
+        seen.append((cam.pixels, torch.get_num_threads()))
+        return update(frame, color, depth, cam)
+
+    rec._update = spy
     for item in seq:
-        rec.integrate(item.rgbd, item.T_world_cam, updates=2)
-    rec.optimize(3)
-    assert seen and set(seen) == {inside}
-    assert torch.get_num_threads() == 2  # the caller's count, back after every call
+        rec.integrate(item.rgbd, item.T_world_cam, updates=1)  # at the fidelity policy's scale (small here)
+        assert torch.get_num_threads() == 2  # the caller's count, back after every call
+    rec.optimize(1, scale=1.0)
+    assert torch.get_num_threads() == 2
+    assert {t for px, t in seen if px < PARALLEL_MIN_PIXELS} == {small}
+    assert {t for px, t in seen if px >= PARALLEL_MIN_PIXELS} == {2}  # a large image keeps the caller's threads
 
 
 def test_a_small_kernel_runs_on_one_numba_thread_with_the_same_bits():
