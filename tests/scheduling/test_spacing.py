@@ -20,9 +20,9 @@ VGA = Camera(640, 480, 525.0, 525.0, 319.5, 239.5)
 
 @pytest.mark.parametrize("gaussians", [0, 4_000, 20_000, 200_000])
 def test_real_time_on_the_shipped_model_keeps_the_configured_spacing(gaussians):
-    s = ViewSpacing(8.0)
+    s = ViewSpacing(ViewConfig().spacing_updates)
     s.attach(1.0 / 30.0, None)  # None: the shipped fit, as under real-time replay
-    assert s.updates_per_frame(QUARTER_VGA, gaussians) < 8.0
+    assert s.updates_per_frame(QUARTER_VGA, gaussians) < ViewConfig().spacing_updates
     assert s.factor(QUARTER_VGA, gaussians) == 1.0
 
 
