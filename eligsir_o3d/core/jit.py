@@ -44,7 +44,7 @@ def compile_kernel(parallel: bool):
 jit = compile_kernel(parallel=True)
 jit_serial = compile_kernel(parallel=False)
 
-from .threads import PARALLEL_MIN_PIXELS, PARALLEL_MIN_ROWS  # noqa: E402,F401 (the kernels' call sites use them)
+from .threads import PARALLEL_MIN_PIXELS, PARALLEL_MIN_ROWS  # noqa: E402
 
 
 @contextmanager
@@ -60,3 +60,13 @@ def threads_for(work: int, min_work: int):
         yield
     finally:
         numba.set_num_threads(n)
+
+
+def rows_threads(rows: int):
+    """:func:`threads_for` a per-Gaussian kernel (projection, culling, Adam) over ``rows`` Gaussians."""
+    return threads_for(rows, PARALLEL_MIN_ROWS)
+
+
+def pixels_threads(pixels: int):
+    """:func:`threads_for` an image kernel (D-SSIM) over ``pixels`` pixels."""
+    return threads_for(pixels, PARALLEL_MIN_PIXELS)

@@ -43,13 +43,13 @@ class _DssimCPU(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, pred, ref, win: int, sigma: float):
-        from ..core.jit import PARALLEL_MIN_PIXELS, threads_for
+        from ..core.jit import pixels_threads
         from .dssim_kernels import dssim_value_and_grad
 
         x = np.ascontiguousarray(pred.detach().permute(2, 0, 1).numpy())
         y = np.ascontiguousarray(ref.detach().permute(2, 0, 1).to(torch.float32).numpy())
         grad = np.empty_like(x)
-        with threads_for(x.shape[1] * x.shape[2], PARALLEL_MIN_PIXELS):
+        with pixels_threads(x.shape[1] * x.shape[2]):
             value = dssim_value_and_grad(x, y, _window(win, sigma), grad)
         ctx.save_for_backward(torch.from_numpy(grad).permute(1, 2, 0))
         return torch.tensor(value, dtype=pred.dtype)

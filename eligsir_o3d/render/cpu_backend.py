@@ -56,9 +56,8 @@ def _proj_kernels():
 
 
 def _rows_threads(rows: int):
-    """One numba thread for a per-Gaussian kernel over few rows (:func:`eligsir_o3d.core.jit.threads_for`)."""
-    from ..core.jit import PARALLEL_MIN_ROWS, threads_for
-    return threads_for(rows, PARALLEL_MIN_ROWS)
+    from ..core.jit import rows_threads  # numba loads with the kernels, not with eligsir_o3d.render
+    return rows_threads(rows)
 
 
 def warmup() -> float:

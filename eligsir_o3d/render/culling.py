@@ -51,10 +51,10 @@ def in_view(means: torch.Tensor, log_scales: torch.Tensor, camera: Camera, T_wor
     cam = camera_bounds(camera, low_pass)
     V = world_to_cam(T_world_cam, "cpu", torch.float64).numpy()
     if means.device.type == "cpu" and means.dtype == torch.float32 and log_scales.dtype == torch.float32:
-        from ..core.jit import PARALLEL_MIN_ROWS, threads_for
+        from ..core.jit import rows_threads
         from ._cull_kernels import frustum_rows
 
-        with threads_for(means.shape[0], PARALLEL_MIN_ROWS):
+        with rows_threads(means.shape[0]):
             rows = frustum_rows(means.detach().contiguous().numpy(), log_scales.detach().contiguous().numpy(), V, cam)
         return torch.from_numpy(rows)
     Vt = torch.as_tensor(V, device=means.device)
@@ -147,10 +147,10 @@ class InView:
             items.append((p, g, state["exp_avg"], state["exp_avg_sq"], a_rows, b_rows,
                           (1.0 - b1, b2, 1.0 - b2, group["eps"])))
         if gmap.device.type == "cpu" and all(it[0].dtype == torch.float32 for it in items):
-            from ..core.jit import PARALLEL_MIN_ROWS, threads_for
+            from ..core.jit import rows_threads
             from ._cull_kernels import adam_rows_at
 
-            with threads_for(len(idx), PARALLEL_MIN_ROWS):
+            with rows_threads(len(idx)):
                 adam_rows_at(items, idx.numpy())
             return
         for p, g, m, v, a_rows, b_rows, (w, beta2, w2, eps) in items:
