@@ -1,5 +1,5 @@
 """Optimisation: the photometric/depth losses (:mod:`.losses`), per-Gaussian Adam (:mod:`.row_adam`) and the compiled
-CPU update and D-SSIM kernels (:mod:`.update_kernels`, :mod:`.dssim_kernels`).
+CPU update, D-SSIM and fused-loss kernels (:mod:`.update_kernels`, :mod:`.dssim_kernels`, :mod:`.loss_kernels`).
 
 ``from eligsir_o3d.optim import LossConfig`` (the path of the first release, when this package was one module) keeps
 working: the losses' names resolve lazily, so importing a kernel module does not import the losses."""

@@ -126,6 +126,51 @@ def _adam_at(ps, gs, ms, vs, hyper, a_rows, b_rows, widths, rows):
                 p[i] = p[i] + ar * (mi / (np.sqrt(vi) / br + eps))
 
 
+@_jit
+def _adam_view(ps, gs, ms, vs, row_steps, hyper, steps, widths, rows, seen, plan):
+    """Adam over the view's rows ``rows`` [M] of every parameter t, with the per-row bookkeeping of
+    :meth:`.culling.InView.adam_step` in the same pass: row_steps[t][row] += 1; for t = 0 (the means) first
+    seen[row] += 1 where the row's gradient is not all zero; then the step size -lr / (1 - beta1^k) and
+    sqrt(1 - beta2^k) with k the row's count (plan[0] = 1: exact per row) or steps[t] (the tensor's), times
+    means_decay_to^min(seen / means_decay_updates, 1) for the means and min(seen / warmup_updates, 1) for every
+    parameter. hyper[t] = (1 - beta1, beta2, 1 - beta2, eps, lr, beta1) (float64); plan = (row bias correction,
+    means_decay_to, means_decay_updates, warmup_updates)."""
+    for t in range(len(ps)):
+        p, g, m, v, rs, wd = ps[t], gs[t], ms[t], vs[t], row_steps[t], widths[t]
+        w, b2, w2, eps = np.float32(hyper[t, 0]), np.float32(hyper[t, 1]), np.float32(hyper[t, 2]), \
+            np.float32(hyper[t, 3])
+        lr, b1, b2d = hyper[t, 4], hyper[t, 5], hyper[t, 1]
+        a_t = np.float32(-lr * (1.0 / (1.0 - b1 ** steps[t])))  # the tensor's count: once, not per row
+        b_t = np.float32(math.sqrt(1.0 - b2d ** steps[t]))
+        for r in prange(rows.shape[0]):
+            row = rows[r]
+            rs[row] += np.float32(1.0)
+            if t == 0:
+                nz = False
+                for j in range(wd):
+                    nz = nz | (g[r * wd + j] != 0)
+                seen[row] += np.float32(1.0) if nz else np.float32(0.0)
+            ar, br = a_t, b_t
+            if plan[0] != 0:
+                k = np.float64(rs[row])
+                ar = np.float32(-lr * (1.0 / (1.0 - b1 ** k)))
+                br = np.float32(math.sqrt(1.0 - b2d ** k))
+            sr = seen[row]
+            if t == 0 and plan[1] != 1.0:
+                ar = ar * np.float32(np.float32(plan[1]) ** min(sr / np.float32(plan[2]), np.float32(1.0)))
+            if plan[3] > 0:
+                ar = ar * min(sr / np.float32(plan[3]), np.float32(1.0))
+            base = row * wd
+            for j in range(wd):
+                i = base + j
+                gi = g[r * wd + j]
+                mi = m[i] + w * (gi - m[i])
+                vi = v[i] * b2 + w2 * gi * gi
+                m[i] = mi
+                v[i] = vi
+                p[i] = p[i] + ar * (mi / (np.sqrt(vi) / br + eps))
+
+
 def adam_rows_at(items, rows: np.ndarray) -> None:
     """One Adam step per item ``(param, grad_rows, exp_avg, exp_avg_sq, a_rows, b_rows, (1 - beta1, beta2,
     1 - beta2, eps))`` on map rows ``rows`` [M] int64: param/exp_avg/exp_avg_sq float32 CPU tensors of the whole

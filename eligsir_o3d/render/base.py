@@ -41,6 +41,9 @@ class RenderOutput:
     alpha: torch.Tensor  # [H, W] accumulated opacity
     radii: torch.Tensor  # [N] int32 screen radius; 0 = the Gaussian was culled (see the class docstring)
     means2d: torch.Tensor | None = None  # [N, 2] pixels, meaningful where visible (screen-space statistics)
+    # the compositing's accumulations before finish(), for a fused loss (the cpu renderer only): colour and depth
+    # summed front to back [H, W, 4], alpha [H, W] (differentiable), the background [3] or None
+    raw: tuple | None = None
 
     @property
     def visible(self) -> torch.Tensor:  # [N] bool: projected onto the image (see the class docstring)

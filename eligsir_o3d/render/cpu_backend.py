@@ -248,12 +248,14 @@ class CpuRenderer(TileRenderer):
         warmup()
         proj = project_cpu(means, quats, scales, camera, T_world_cam, low_pass)
         offsets, flat, tiles_x = bin_tiles_csr(proj, camera.width, camera.height)
-        color_acc, depth_acc, alpha_acc = self._composite(proj, opacities, colors, offsets, flat, tiles_x,
-                                                          camera.width, camera.height, self.block)
+        acc, alpha_acc = self._accumulate(proj, opacities, colors, offsets, flat, tiles_x, camera.width,
+                                          camera.height, self.block)
+        color_acc, depth_acc = acc[..., :3], acc[..., 3]
         if background is not None:
             background = torch.as_tensor(background, dtype=color_acc.dtype, device=color_acc.device)
         color, depth, alpha = finish(color_acc, depth_acc, alpha_acc, background)
-        return RenderOutput(color, depth, alpha, proj.radii, mask_culled(proj.means2d, proj.radii))
+        return RenderOutput(color, depth, alpha, proj.radii, mask_culled(proj.means2d, proj.radii),
+                            raw=(acc, alpha_acc, background))
 
     def composite(self, proj: Projection, opacities, colors, bins: TileBins, width: int, height: int):
         warmup()
@@ -261,9 +263,14 @@ class CpuRenderer(TileRenderer):
         return self._composite(proj, opacities, colors, offsets, flat, bins.tiles_x, width, height, self.block)
 
     @staticmethod
-    def _composite(proj, opacities, colors, offsets, flat, tiles_x, width, height, block=None):
+    def _accumulate(proj, opacities, colors, offsets, flat, tiles_x, width, height, block=None):
+        """(accumulated colour and depth [H, W, 4], alpha [H, W])."""
         order = torch.argsort(offsets[1:] - offsets[:-1], descending=True, stable=True)  # heaviest tiles first
         feats = torch.cat([colors, proj.depths[:, None].to(colors.dtype)], -1)  # [N, 4]
-        acc, alpha = _Composite.apply(proj.means2d, proj.conics, opacities, feats, offsets, flat, order,
-                                      tiles_x, width, height, block)
+        return _Composite.apply(proj.means2d, proj.conics, opacities, feats, offsets, flat, order, tiles_x, width,
+                                height, block)
+
+    @classmethod
+    def _composite(cls, proj, opacities, colors, offsets, flat, tiles_x, width, height, block=None):
+        acc, alpha = cls._accumulate(proj, opacities, colors, offsets, flat, tiles_x, width, height, block)
         return acc[..., :3], acc[..., 3], alpha

@@ -112,6 +112,8 @@ class InView:
         if len(gmap) != self.n_map:
             raise RuntimeError(f"the map changed size ({self.n_map} -> {len(gmap)}) between render and step")
         cfg, seen, items, shared = gmap.adam, None, [], None
+        if gmap.device.type == "cpu" and self._adam_fused():
+            return
         for name in PARAM_NAMES:  # "means" first: its row_seen is every row's age in updates seen
             p, g = gmap.params[name], self.leaves[name].grad
             if g is None or p.numel() == 0:
@@ -159,3 +161,47 @@ class InView:
             vi = v[idx] * beta2 + w2 * g * g
             m[idx], v[idx] = mi, vi
             p.data[idx] = p.data[idx] + a_rows.view(shape) * (mi / (torch.sqrt(vi) / b_rows.view(shape) + eps))
+
+    def _adam_fused(self) -> bool:
+        """:meth:`adam_step` for float32 parameters on the CPU in one compiled pass (the row counts, step sizes and
+        bias corrections too, :func:`._cull_kernels._adam_view`); False (nothing done) where it does not apply:
+        another dtype, or no gradient on the means (whose row counts the schedule reads)."""
+        gmap, idx, cfg = self.gmap, self.idx, self.gmap.adam
+        if self.leaves["means"].grad is None:
+            return False
+        from ..optim.update_kernels import adam_state
+
+        todo = [(n, gmap.params[n], self.leaves[n].grad) for n in PARAM_NAMES]
+        todo = [(n, p, g) for n, p, g in todo if g is not None and p.numel() > 0]
+        if any(p.dtype != torch.float32 or g.dtype != torch.float32 for _, p, g in todo):
+            return False
+        ps, gs, ms, vs, rss, hyper, steps, widths = [], [], [], [], [], [], [], []
+        seen = None
+        for name, p, g in todo:
+            opt = gmap.optimizers[name]
+            group = opt.param_groups[0]
+            b1, b2 = group["betas"]
+            state = adam_state(opt, p)
+            for key in ("row_step",) + (("row_seen",) if name == "means" else ()):
+                if key not in state:  # a state without rows (torch's Adam, a checkpoint): count from now
+                    state[key] = torch.zeros(len(gmap), dtype=torch.float32, device=p.device)
+            if name == "means":
+                seen = state["row_seen"].numpy()
+            state["step"] += 1
+            ps.append(p.detach().view(-1).numpy())
+            gs.append(g.contiguous().view(-1).numpy())
+            ms.append(state["exp_avg"].view(-1).numpy())
+            vs.append(state["exp_avg_sq"].view(-1).numpy())
+            rss.append(state["row_step"].numpy())
+            hyper.append((1.0 - b1, b2, 1.0 - b2, group["eps"], group["lr"], b1))
+            steps.append(float(state["step"]))
+            widths.append(p.numel() // max(p.shape[0], 1))
+        from ..core.jit import rows_threads
+        from ._cull_kernels import _adam_view
+
+        plan = np.array([float(cfg.row_bias_correction), cfg.means_decay_to, cfg.means_decay_updates,
+                          cfg.warmup_updates], np.float64)
+        with rows_threads(len(idx)):
+            _adam_view(tuple(ps), tuple(gs), tuple(ms), tuple(vs), tuple(rss), np.array(hyper, np.float64),
+                       np.array(steps, np.float64), np.array(widths, np.int64), idx.numpy(), seen, plan)
+        return True
