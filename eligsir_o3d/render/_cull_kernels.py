@@ -4,8 +4,9 @@ Adam step over the rows one view touched.
 - :func:`frustum_rows`: the ids (ascending) of the Gaussians whose screen footprint, by a bound that is never
   smaller than the renderer's 3-sigma radius, can reach the image; one pass over the raw means and log scales.
   On a 1M-Gaussian map it is the only per-update work that grows with the map.
-- :func:`adam_rows_at`: Adam over the selected rows of every parameter (the gradient rows of a view's gathered
-  leaves), each row with its own step size and bias correction; rows outside the selection are not read or written.
+- :func:`_adam_view`: Adam over the selected rows of every parameter (the gradient rows of a view's gathered
+  leaves) with the rows' bookkeeping (step counts, step sizes, bias corrections); rows outside the selection are
+  not read or written.
 
 Both run ``prange`` over blocks of rows, so they use the threads numba may use. Compiled lazily on first use and
 cached on disk like the renderer's kernels.
@@ -105,28 +106,6 @@ def frustum_rows(means: np.ndarray, log_scales: np.ndarray, V: np.ndarray, cam: 
 
 
 @_jit
-def _adam_at(ps, gs, ms, vs, hyper, a_rows, b_rows, widths, rows):
-    """For every parameter t and selected row r (map row rows[r]): Adam on the ``widths[t]`` elements of that row
-    of ps[t]/ms[t]/vs[t] (flat, the whole map) from gradient row r of gs[t] (flat, the selected rows only), with
-    step -a_rows[t][r] / bias correction 1 folded in and b_rows[t][r] = sqrt(bias correction 2);
-    hyper[t] = (1 - beta1, beta2, 1 - beta2, eps)."""
-    for t in range(len(ps)):
-        p, g, m, v, a, b, wd = ps[t], gs[t], ms[t], vs[t], a_rows[t], b_rows[t], widths[t]
-        w, b2, w2, eps = hyper[t, 0], hyper[t, 1], hyper[t, 2], hyper[t, 3]
-        for r in prange(rows.shape[0]):
-            ar, br = a[r], b[r]
-            base = rows[r] * wd
-            for j in range(wd):
-                i = base + j
-                gi = g[r * wd + j]
-                mi = m[i] + w * (gi - m[i])
-                vi = v[i] * b2 + w2 * gi * gi
-                m[i] = mi
-                v[i] = vi
-                p[i] = p[i] + ar * (mi / (np.sqrt(vi) / br + eps))
-
-
-@_jit
 def _adam_view(ps, gs, ms, vs, row_steps, hyper, steps, widths, rows, seen, plan):
     """Adam over the view's rows ``rows`` [M] of every parameter t, with the per-row bookkeeping of
     :meth:`.culling.InView.adam_step` in the same pass: row_steps[t][row] += 1; for t = 0 (the means) first
@@ -134,7 +113,8 @@ def _adam_view(ps, gs, ms, vs, row_steps, hyper, steps, widths, rows, seen, plan
     sqrt(1 - beta2^k) with k the row's count (plan[0] = 1: exact per row) or steps[t] (the tensor's), times
     means_decay_to^min(seen / means_decay_updates, 1) for the means and min(seen / warmup_updates, 1) for every
     parameter. hyper[t] = (1 - beta1, beta2, 1 - beta2, eps, lr, beta1) (float64); plan = (row bias correction,
-    means_decay_to, means_decay_updates, warmup_updates)."""
+    means_decay_to, means_decay_updates, warmup_updates, whether t = 0 is the means: without them there are no
+    seen counts and neither schedule applies)."""
     for t in range(len(ps)):
         p, g, m, v, rs, wd = ps[t], gs[t], ms[t], vs[t], row_steps[t], widths[t]
         w, b2, w2, eps = np.float32(hyper[t, 0]), np.float32(hyper[t, 1]), np.float32(hyper[t, 2]), \
@@ -145,7 +125,8 @@ def _adam_view(ps, gs, ms, vs, row_steps, hyper, steps, widths, rows, seen, plan
         for r in prange(rows.shape[0]):
             row = rows[r]
             rs[row] += np.float32(1.0)
-            if t == 0:
+            means = t == 0 and plan[4] != 0
+            if means:
                 nz = False
                 for j in range(wd):
                     nz = nz | (g[r * wd + j] != 0)
@@ -155,11 +136,12 @@ def _adam_view(ps, gs, ms, vs, row_steps, hyper, steps, widths, rows, seen, plan
                 k = np.float64(rs[row])
                 ar = np.float32(-lr * (1.0 / (1.0 - b1 ** k)))
                 br = np.float32(math.sqrt(1.0 - b2d ** k))
-            sr = seen[row]
-            if t == 0 and plan[1] != 1.0:
-                ar = ar * np.float32(np.float32(plan[1]) ** min(sr / np.float32(plan[2]), np.float32(1.0)))
-            if plan[3] > 0:
-                ar = ar * min(sr / np.float32(plan[3]), np.float32(1.0))
+            if plan[4] != 0:
+                sr = seen[row]
+                if means and plan[1] != 1.0:
+                    ar = ar * np.float32(np.float32(plan[1]) ** min(sr / np.float32(plan[2]), np.float32(1.0)))
+                if plan[3] > 0:
+                    ar = ar * min(sr / np.float32(plan[3]), np.float32(1.0))
             base = row * wd
             for j in range(wd):
                 i = base + j
@@ -169,14 +151,3 @@ def _adam_view(ps, gs, ms, vs, row_steps, hyper, steps, widths, rows, seen, plan
                 m[i] = mi
                 v[i] = vi
                 p[i] = p[i] + ar * (mi / (np.sqrt(vi) / br + eps))
-
-
-def adam_rows_at(items, rows: np.ndarray) -> None:
-    """One Adam step per item ``(param, grad_rows, exp_avg, exp_avg_sq, a_rows, b_rows, (1 - beta1, beta2,
-    1 - beta2, eps))`` on map rows ``rows`` [M] int64: param/exp_avg/exp_avg_sq float32 CPU tensors of the whole
-    map [N, ...], grad_rows [M, ...] the selected rows' gradients, a_rows/b_rows [M] float32."""
-    if not items or rows.shape[0] == 0:
-        return
-    from ..optim.update_kernels import adam_item_arrays
-
-    _adam_at(*adam_item_arrays(items), rows)

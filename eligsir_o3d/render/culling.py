@@ -105,26 +105,67 @@ class InView:
 
     @torch.no_grad()
     def adam_step(self) -> None:
-        """Adam on the kept rows of every parameter whose leaf received a gradient; per-row step counts."""
-        from ..optim.update_kernels import adam_state
-
+        """Adam on the kept rows of every parameter whose leaf received a gradient; per-row step counts. Float32 on
+        the CPU: one compiled pass for the step and the rows' bookkeeping (:func:`._cull_kernels._adam_view`);
+        elsewhere the same in torch."""
         gmap, idx = self.gmap, self.idx
         if len(gmap) != self.n_map:
             raise RuntimeError(f"the map changed size ({self.n_map} -> {len(gmap)}) between render and step")
-        cfg, seen, items, shared = gmap.adam, None, [], None
-        if gmap.device.type == "cpu" and self._adam_fused():
-            return
-        for name in PARAM_NAMES:  # "means" first: its row_seen is every row's age in updates seen
-            p, g = gmap.params[name], self.leaves[name].grad
-            if g is None or p.numel() == 0:
-                continue
-            opt = gmap.optimizers[name]
-            group = opt.param_groups[0]
+        todo = [(n, gmap.params[n], self.leaves[n].grad) for n in PARAM_NAMES]  # "means" first: its row_seen
+        todo = [(n, p, g) for n, p, g in todo if g is not None and p.numel() > 0]  # is every row's age in updates
+        if gmap.device.type == "cpu" and all(p.dtype == g.dtype == torch.float32 for _, p, g in todo):
+            self._adam_compiled(todo)
+        else:
+            self._adam_torch(todo)
+
+    def _row_state(self, name: str, p: torch.Tensor) -> dict:
+        """Adam's state of ``p`` with its per-row counters (``row_step``; ``row_seen`` for the means)."""
+        from ..optim.update_kernels import adam_state
+
+        state = adam_state(self.gmap.optimizers[name], p)
+        for key in ("row_step",) + (("row_seen",) if name == "means" else ()):
+            if key not in state:  # a state without rows (torch's Adam, a checkpoint): count from now
+                state[key] = torch.zeros(len(self.gmap), dtype=torch.float32, device=p.device)
+        return state
+
+    def _adam_compiled(self, todo) -> None:
+        gmap, idx, cfg = self.gmap, self.idx, self.gmap.adam
+        ps, gs, ms, vs, rss, hyper, steps, widths = [], [], [], [], [], [], [], []
+        seen = None
+        for name, p, g in todo:
+            group = gmap.optimizers[name].param_groups[0]
             b1, b2 = group["betas"]
-            state = adam_state(opt, p)
-            for key in ("row_step",) + (("row_seen",) if name == "means" else ()):
-                if key not in state:  # a state without rows (torch's Adam, a checkpoint): count from now
-                    state[key] = torch.zeros(len(gmap), dtype=torch.float32, device=p.device)
+            state = self._row_state(name, p)
+            if name == "means":
+                seen = state["row_seen"].numpy()
+            state["step"] += 1
+            ps.append(p.detach().view(-1).numpy())
+            gs.append(g.contiguous().view(-1).numpy())
+            ms.append(state["exp_avg"].view(-1).numpy())
+            vs.append(state["exp_avg_sq"].view(-1).numpy())
+            rss.append(state["row_step"].numpy())
+            hyper.append((1.0 - b1, b2, 1.0 - b2, group["eps"], group["lr"], b1))
+            steps.append(float(state["step"]))
+            widths.append(p.numel() // max(p.shape[0], 1))
+        if not ps:
+            return
+        from ..core.jit import rows_threads
+        from ._cull_kernels import _adam_view
+
+        plan = np.array([float(cfg.row_bias_correction), cfg.means_decay_to, cfg.means_decay_updates,
+                         cfg.warmup_updates, float(seen is not None)], np.float64)
+        with rows_threads(len(idx)):
+            _adam_view(tuple(ps), tuple(gs), tuple(ms), tuple(vs), tuple(rss), np.array(hyper, np.float64),
+                       np.array(steps, np.float64), np.array(widths, np.int64), idx.numpy(),
+                       np.zeros(1, np.float32) if seen is None else seen, plan)
+
+    def _adam_torch(self, todo) -> None:
+        gmap, idx, cfg = self.gmap, self.idx, self.gmap.adam
+        seen, shared = None, None
+        for name, p, g in todo:
+            group = gmap.optimizers[name].param_groups[0]
+            b1, b2 = group["betas"]
+            state = self._row_state(name, p)
             state["step"] += 1
             state["row_step"][idx] += 1
             if name == "means":
@@ -146,62 +187,9 @@ class InView:
                     a_rows = a_rows * torch.pow(cfg.means_decay_to, decay)
                 if cfg.warmup_updates > 0:
                     a_rows = a_rows * torch.clamp(seen / cfg.warmup_updates, max=1.0)
-            items.append((p, g, state["exp_avg"], state["exp_avg_sq"], a_rows, b_rows,
-                          (1.0 - b1, b2, 1.0 - b2, group["eps"])))
-        if gmap.device.type == "cpu" and all(it[0].dtype == torch.float32 for it in items):
-            from ..core.jit import rows_threads
-            from ._cull_kernels import adam_rows_at
-
-            with rows_threads(len(idx)):
-                adam_rows_at(items, idx.numpy())
-            return
-        for p, g, m, v, a_rows, b_rows, (w, beta2, w2, eps) in items:
             shape = (a_rows.shape[0],) + (1,) * (p.ndim - 1)
+            m, v, w, eps = state["exp_avg"], state["exp_avg_sq"], 1.0 - b1, group["eps"]
             mi = m[idx] + w * (g - m[idx])
-            vi = v[idx] * beta2 + w2 * g * g
+            vi = v[idx] * b2 + (1.0 - b2) * g * g
             m[idx], v[idx] = mi, vi
             p.data[idx] = p.data[idx] + a_rows.view(shape) * (mi / (torch.sqrt(vi) / b_rows.view(shape) + eps))
-
-    def _adam_fused(self) -> bool:
-        """:meth:`adam_step` for float32 parameters on the CPU in one compiled pass (the row counts, step sizes and
-        bias corrections too, :func:`._cull_kernels._adam_view`); False (nothing done) where it does not apply:
-        another dtype, or no gradient on the means (whose row counts the schedule reads)."""
-        gmap, idx, cfg = self.gmap, self.idx, self.gmap.adam
-        if self.leaves["means"].grad is None:
-            return False
-        from ..optim.update_kernels import adam_state
-
-        todo = [(n, gmap.params[n], self.leaves[n].grad) for n in PARAM_NAMES]
-        todo = [(n, p, g) for n, p, g in todo if g is not None and p.numel() > 0]
-        if any(p.dtype != torch.float32 or g.dtype != torch.float32 for _, p, g in todo):
-            return False
-        ps, gs, ms, vs, rss, hyper, steps, widths = [], [], [], [], [], [], [], []
-        seen = None
-        for name, p, g in todo:
-            opt = gmap.optimizers[name]
-            group = opt.param_groups[0]
-            b1, b2 = group["betas"]
-            state = adam_state(opt, p)
-            for key in ("row_step",) + (("row_seen",) if name == "means" else ()):
-                if key not in state:  # a state without rows (torch's Adam, a checkpoint): count from now
-                    state[key] = torch.zeros(len(gmap), dtype=torch.float32, device=p.device)
-            if name == "means":
-                seen = state["row_seen"].numpy()
-            state["step"] += 1
-            ps.append(p.detach().view(-1).numpy())
-            gs.append(g.contiguous().view(-1).numpy())
-            ms.append(state["exp_avg"].view(-1).numpy())
-            vs.append(state["exp_avg_sq"].view(-1).numpy())
-            rss.append(state["row_step"].numpy())
-            hyper.append((1.0 - b1, b2, 1.0 - b2, group["eps"], group["lr"], b1))
-            steps.append(float(state["step"]))
-            widths.append(p.numel() // max(p.shape[0], 1))
-        from ..core.jit import rows_threads
-        from ._cull_kernels import _adam_view
-
-        plan = np.array([float(cfg.row_bias_correction), cfg.means_decay_to, cfg.means_decay_updates,
-                          cfg.warmup_updates], np.float64)
-        with rows_threads(len(idx)):
-            _adam_view(tuple(ps), tuple(gs), tuple(ms), tuple(vs), tuple(rss), np.array(hyper, np.float64),
-                       np.array(steps, np.float64), np.array(widths, np.int64), idx.numpy(), seen, plan)
-        return True

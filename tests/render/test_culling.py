@@ -171,23 +171,25 @@ def test_culled_and_unculled_updates_agree_on_a_map_in_view():
                                    rtol=1e-4, atol=1e-6)
 
 
-@pytest.mark.parametrize("adam", [{}, {"row_bias_correction": True}, {"means_decay_to": 0.1, "warmup_updates": 3}])
-def test_compiled_view_adam_equals_the_torch_row_path_bit_for_bit(monkeypatch, adam):
+@pytest.mark.parametrize("adam", [{}, {"row_bias_correction": True}, {"means_decay_to": 0.1, "warmup_updates": 3},
+                                  {"warmup_updates": 3, "no_means": True}])
+def test_compiled_view_adam_equals_the_torch_row_path(monkeypatch, adam):
     """InView.adam_step on the CPU runs one compiled pass (row counts, step sizes, bias corrections and the step):
-    the same parameters, moments and counters as the per-parameter torch path, over views that overlap."""
+    the same counters as the per-parameter torch path, over views that overlap, and the same parameters and
+    moments to float32 rounding (torch's vector code may fuse a multiply-add where the kernel does not)."""
     def run(compiled: bool) -> GaussianMap:
         gm = _map(300, seed=3)
         for k, v in adam.items():
-            setattr(gm.adam, k, v)
+            if k != "no_means":
+                setattr(gm.adam, k, v)
         rng = torch.Generator().manual_seed(9)
-        real = InView._adam_fused
-        monkeypatch.setattr(InView, "_adam_fused", lambda self: ran.append(real(self)) or ran[-1] if compiled
-                            else False)
+        monkeypatch.setattr(InView, "_adam_compiled", lambda self, todo: ran.append(len(todo)) or real(self, todo)
+                            if compiled else InView._adam_torch(self, todo))
         for _ in range(5):
             idx = torch.nonzero(torch.rand(len(gm), generator=rng) < 0.6).squeeze(1)
             view = InView(gm, idx)
             for name, leaf in view.leaves.items():
-                if leaf.numel():
+                if leaf.numel() and not (name == "means" and adam.get("no_means")):
                     g = torch.randn(leaf.shape, generator=rng)
                     if name == "means":
                         g[::5] = 0.0  # rows the view did not reach: not counted as seen
@@ -196,18 +198,23 @@ def test_compiled_view_adam_equals_the_torch_row_path_bit_for_bit(monkeypatch, a
         monkeypatch.undo()
         return gm
 
-    ran = []
+    ran, real = [], InView._adam_compiled
     a, b = run(True), run(False)
-    assert ran == [True] * 5  # the compiled pass did the steps of the first run
+    assert ran == [5 - bool(adam.get("no_means"))] * 5  # the compiled pass did the steps of the first run
     for name in PARAM_NAMES:
-        assert torch.equal(a.params[name], b.params[name]), name
+        torch.testing.assert_close(a.params[name], b.params[name], rtol=1e-5, atol=1e-6)
         sa, sb = a.optimizers[name].state, b.optimizers[name].state
         if a.params[name].numel() == 0:
             continue
         sa, sb = sa[a.params[name]], sb[b.params[name]]
         assert sorted(sa) == sorted(sb)
         for key in sa:
-            assert torch.equal(sa[key], sb[key]), (name, key)
+            if key in ("exp_avg", "exp_avg_sq"):
+                torch.testing.assert_close(sa[key], sb[key], rtol=1e-5, atol=1e-7)
+            else:
+                assert torch.equal(sa[key], sb[key]), (name, key)
+    if adam.get("no_means"):
+        return
     seen = a.optimizers["means"].state[a.params["means"]]["row_seen"]
     assert 0 < float(seen.max()) <= 5 and float(seen.sum()) < float(
         a.optimizers["means"].state[a.params["means"]]["row_step"].sum())
