@@ -60,14 +60,19 @@ class _DssimCPU(torch.autograd.Function):
         return grad_out * grad, None, None, None
 
 
+def _dssim_window(h: int, w: int, win: int = 11) -> int:
+    """The window D-SSIM uses on an h x w image: ``win`` taps, fewer (odd) on an image too small for it; below 3
+    D-SSIM is 0."""
+    return min(win, (min(h, w) // 2) * 2 - 1)
+
+
 def dssim(pred: torch.Tensor, ref: torch.Tensor, win: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """1 - SSIM as in 3DGS (11x11 Gaussian window, sigma 1.5, no padding); pred, ref [H, W, 3] in [0, 1].
 
     Same value as ``pytorch_msssim.ssim`` (tested). On the CPU in float32 a numba kernel computes value and gradient
     in one pass (5-25x faster than the torch formulation, :func:`dssim_torch`, which runs everywhere else).
     """
-    h, w = pred.shape[0], pred.shape[1]
-    win = min(win, (min(h, w) // 2) * 2 - 1)
+    win = _dssim_window(pred.shape[0], pred.shape[1], win)
     if win < 3:
         return torch.zeros((), device=pred.device)
     if pred.device.type == "cpu" and pred.dtype == torch.float32:
@@ -79,7 +84,7 @@ def dssim_torch(pred: torch.Tensor, ref: torch.Tensor, win: int = 11, sigma: flo
     """The torch formulation of :func:`dssim` (any device and dtype): the separable Gaussian filter of the five
     local moments as two banded matrix products (on the CPU ~5x faster than a grouped conv2d at 160x120)."""
     h, w = pred.shape[0], pred.shape[1]
-    win = min(win, (min(h, w) // 2) * 2 - 1)
+    win = _dssim_window(h, w, win)
     if win < 3:
         return torch.zeros((), device=pred.device)
     x, y = pred.permute(2, 0, 1), ref.permute(2, 0, 1)  # [3, H, W]
@@ -116,7 +121,7 @@ class _FusedLossCPU(torch.autograd.Function):
         error = torch.empty(h, w, dtype=torch.float32)
         rows = np.empty((h, 3), np.float64)
         alpha_min = f32(cfg.depth_alpha_min)
-        win = min(11, (min(h, w) // 2) * 2 - 1)
+        win = _dssim_window(h, w)
         use_dssim = cfg.lambda_dssim > 0 and win >= 3
         grad_acc = torch.empty(h, w, 4, dtype=torch.float32)
         grad_alpha = torch.empty(h, w, dtype=torch.float32)
@@ -124,16 +129,16 @@ class _FusedLossCPU(torch.autograd.Function):
             loss_terms(acc_np, a_np, bg, has_bg, color.detach().contiguous().numpy(), ref_depth, alpha_min, x, y,
                        error.numpy(), rows)
             l1_sum, depth_sum, n_valid = rows.sum(0)
-            value = (1.0 - cfg.lambda_dssim) * l1_sum / (3 * h * w)
-            d_grad = x  # unused placeholder of the right type when D-SSIM is off
+            w_l1 = (1.0 - cfg.lambda_dssim) / (3 * h * w)
+            value = w_l1 * l1_sum
+            d_grad = np.empty_like(x)  # D-SSIM's gradient; not read when D-SSIM is off (its weight 0 below)
             if use_dssim:
-                d_grad = np.empty_like(x)
                 value += cfg.lambda_dssim * dssim_value_and_grad(x, y, _window(win, 1.5), d_grad)
             w_depth = 0.0
             if cfg.lambda_depth > 0 and n_valid > 0:
                 w_depth = cfg.lambda_depth / n_valid
                 value += w_depth * depth_sum
-            loss_grad(acc_np, a_np, bg, has_bg, x, y, ref_depth, alpha_min, f32((1.0 - cfg.lambda_dssim) / (3 * h * w)),
+            loss_grad(acc_np, a_np, bg, has_bg, x, y, ref_depth, alpha_min, f32(w_l1),
                       f32(cfg.lambda_dssim if use_dssim else 0.0), d_grad, f32(w_depth), grad_acc.numpy(),
                       grad_alpha.numpy())
         ctx.save_for_backward(grad_acc, grad_alpha)

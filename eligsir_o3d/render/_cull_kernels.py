@@ -122,10 +122,10 @@ def _adam_view(ps, gs, ms, vs, row_steps, hyper, steps, widths, rows, seen, plan
         lr, b1, b2d = hyper[t, 4], hyper[t, 5], hyper[t, 1]
         a_t = np.float32(-lr * (1.0 / (1.0 - b1 ** steps[t])))  # the tensor's count: once, not per row
         b_t = np.float32(math.sqrt(1.0 - b2d ** steps[t]))
+        means = t == 0 and plan[4] != 0
         for r in prange(rows.shape[0]):
             row = rows[r]
             rs[row] += np.float32(1.0)
-            means = t == 0 and plan[4] != 0
             if means:
                 nz = False
                 for j in range(wd):

@@ -260,7 +260,8 @@ class CpuRenderer(TileRenderer):
     def composite(self, proj: Projection, opacities, colors, bins: TileBins, width: int, height: int):
         warmup()
         offsets, flat = tile_lists(bins)
-        return self._composite(proj, opacities, colors, offsets, flat, bins.tiles_x, width, height, self.block)
+        acc, alpha = self._accumulate(proj, opacities, colors, offsets, flat, bins.tiles_x, width, height, self.block)
+        return acc[..., :3], acc[..., 3], alpha
 
     @staticmethod
     def _accumulate(proj, opacities, colors, offsets, flat, tiles_x, width, height, block=None):
@@ -269,8 +270,3 @@ class CpuRenderer(TileRenderer):
         feats = torch.cat([colors, proj.depths[:, None].to(colors.dtype)], -1)  # [N, 4]
         return _Composite.apply(proj.means2d, proj.conics, opacities, feats, offsets, flat, order, tiles_x, width,
                                 height, block)
-
-    @classmethod
-    def _composite(cls, proj, opacities, colors, offsets, flat, tiles_x, width, height, block=None):
-        acc, alpha = cls._accumulate(proj, opacities, colors, offsets, flat, tiles_x, width, height, block)
-        return acc[..., :3], acc[..., 3], alpha
