@@ -162,10 +162,16 @@ def _time_compositing(row: dict, case: tuple, blocks: list[int], kern, best) -> 
         row["fwd" + sfx] = best(fwd)
         row["fwdbwd" + sfx] = best(fwdbwd)
         kf, kb = comp(blk) if comp is not None else (k.composite_forward, k.composite_backward)
-        row["comp_fwd" + sfx] = best(lambda: k.run(kf, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
-                                                   of, oa, oT, ol))
-        row["comp_bwd" + sfx] = best(lambda: k.run(kb, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
-                                                   oT, ol, gf, ga, v))
+        if hasattr(k, "gather_buffers"):  # by code version: the forward gathers the tiles once for the backward
+            gathered = k.gather_buffers(fl.shape[0], off.shape[0] - 1, blk)
+            row["comp_fwd" + sfx] = best(lambda: k.run(kf, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
+                                                       of, oa, oT, ol, *gathered))
+            row["comp_bwd" + sfx] = best(lambda: k.run(kb, *gathered, off, order, tiles_x, W, H, oT, ol, gf, ga, v))
+        else:
+            row["comp_fwd" + sfx] = best(lambda: k.run(kf, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
+                                                       of, oa, oT, ol))
+            row["comp_bwd" + sfx] = best(lambda: k.run(kb, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
+                                                       oT, ol, gf, ga, v))
 
 
 def _time_projection_and_dssim(row: dict, case: tuple, kern, best) -> None:

@@ -10,8 +10,7 @@ import numpy as np
 from numba import prange
 
 from ..core.jit import compile_kernel as _compile
-from ._cpu_kernels import (ALPHA_MAX, ALPHA_MIN, HALF, ONE, SOURCE_CRC, TILE, ZERO, conic_alpha, gather_tile,
-                           reaches)
+from ._cpu_kernels import ALPHA_MAX, ALPHA_MIN, HALF, ONE, SOURCE_CRC, TILE, ZERO, conic_alpha, reaches
 
 
 def make(bw: int, bh: int):
@@ -24,9 +23,9 @@ def make(bw: int, bh: int):
     H1, H2, H3 = NP // 2, NP // 4, NP // 8
     crc = SOURCE_CRC  # the helpers' source, in the cache key (see _cpu_kernels.SOURCE_CRC)
 
-    def composite_backward(means2d, conics, opacities, feats, bounds, offsets, flat_ids, order, tiles_x, width,
-                           height, final_T, last, grad_feats, grad_alpha, v_isect):
-        """Back-to-front gradients of the forward kernel.
+    def composite_backward(par, sub, sub_n, offsets, order, tiles_x, width, height, final_T, last, grad_feats,
+                           grad_alpha, v_isect):
+        """Back-to-front gradients of the forward kernel, on the tiles it gathered (par, sub, sub_n).
 
         grad_feats [H, W, 4], grad_alpha [H, W]: gradients of the accumulated outputs. Writes v_isect [M, 10], one
         row per intersection: d/d(mean x, mean y, conic a, conic b, conic c, opacity, r, g, b, depth).
@@ -44,9 +43,8 @@ def make(bw: int, bh: int):
             tx = t - ty * tiles_x
             s = offsets[t]
             n = offsets[t + 1] - s
-            gp, gf, sub_ids, sub_n = gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n,
-                                                 tx * TILE, ty * TILE, bw, bh)
-            v = np.zeros((n, 10), np.float32)  # this tile's rows of v_isect, written once at the end
+            v = v_isect[s:s + n]  # this tile's rows
+            v[:] = ZERO
             lx = np.empty(NP, np.float32)
             ly = np.empty(NP, np.float32)
             walked = np.empty(NP, np.float32)
@@ -93,11 +91,13 @@ def make(bw: int, bh: int):
                         g2[p] = ZERO
                         g3[p] = ZERO
                     T_final[p] = T[p]
+                first = NB * s + sb * n
                 for j in range(j_end - 1, -1, -1):
-                    k = sub_ids[sb, j]
-                    mx, my, ca, cb, cc = gp[0, k], gp[1, k], gp[2, k], gp[3, k], gp[4, k]
-                    o, smax = gp[5, k], gp[6, k]
-                    f0, f1, f2, f3 = gf[k, 0], gf[k, 1], gf[k, 2], gf[k, 3]
+                    k = sub[first + j]
+                    r = s + k
+                    mx, my, ca, cb, cc = par[r, 0], par[r, 1], par[r, 2], par[r, 3], par[r, 4]
+                    o, smax = par[r, 5], par[r, 6]
+                    f0, f1, f2, f3 = par[r, 7], par[r, 8], par[r, 9], par[r, 10]
                     jf = np.float32(j)
                     # a cheap pass without exp first, for the Gaussians of the list that miss all the block's pixels
                     # (3-9% of the backward on the benchmark scene; the same pass costs the forward 2-10%)
@@ -149,8 +149,5 @@ def make(bw: int, bh: int):
                         for p in range(H3):
                             dv[c, p] += dv[c, p + H3]
                         v[k, c] += dv[c, 0] + dv[c, 1]
-            for k in range(n):
-                for c in range(10):
-                    v_isect[s + k, c] = v[k, c]
 
     return _compile(parallel=True)(composite_backward)

@@ -22,14 +22,15 @@ def make(bw: int, bh: int):
     crc = SOURCE_CRC  # the helpers' source, in the cache key (see _cpu_kernels.SOURCE_CRC)
 
     def composite_forward(means2d, conics, opacities, feats, bounds, offsets, flat_ids, order, tiles_x, width,
-                          height, out_feats, out_alpha, out_T, out_last):
+                          height, out_feats, out_alpha, out_T, out_last, par, sub, sub_n):
         """Blend every tile front to back.
 
         means2d [N, 2], conics [N, 3], opacities [N], feats [N, 4] (r, g, b, depth), bounds [N, 3]
         (:func:`._cpu_kernels.cull_bounds`), all float32; offsets [T + 1] and flat_ids [M] (int64): tile t's
         depth-sorted Gaussians are ``flat_ids[offsets[t]:offsets[t + 1]]``; order [T]: the tiles to run, heaviest
         first. Writes out_feats [H, W, 4] (accumulated features), out_alpha [H, W] (accumulated opacity), out_T
-        [H, W] (final transmittance) and out_last [H, W] int32 (how far the pixel walked through its block's list).
+        [H, W] (final transmittance) and out_last [H, W] int32 (how far the pixel walked through its block's list),
+        and the gathered tiles (par, sub, sub_n: :func:`._cpu_kernels.gather_buffers`) that the backward pass reads.
 
         The pixels of a block advance through the block's list together, branch-free (one SIMD batch); a pixel
         whose compositing has stopped is masked out, and the block stops when all its pixels have. Every
@@ -43,8 +44,8 @@ def make(bw: int, bh: int):
             ty = t // tiles_x
             tx = t - ty * tiles_x
             s = offsets[t]
-            gp, gf, sub_ids, sub_n = gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s,
-                                                 offsets[t + 1] - s, tx * TILE, ty * TILE, bw, bh)
+            gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, offsets[t + 1] - s, tx * TILE,
+                        ty * TILE, bw, bh, par, sub, sub_n[t])
             lx = np.empty(NP, np.float32)
             ly = np.empty(NP, np.float32)
             live = np.empty(NP, np.float32)  # 1: still compositing, 0: stopped or outside the image
@@ -76,11 +77,12 @@ def make(bw: int, bh: int):
                     walked[p] = ZERO
                 if n_live == 0:
                     continue
-                for j in range(sub_n[sb]):
-                    k = sub_ids[sb, j]
-                    mx, my, ca, cb, cc = gp[0, k], gp[1, k], gp[2, k], gp[3, k], gp[4, k]
-                    o, smax = gp[5, k], gp[6, k]
-                    f0, f1, f2, f3 = gf[k, 0], gf[k, 1], gf[k, 2], gf[k, 3]
+                first = NB * s + sb * (offsets[t + 1] - s)
+                for j in range(sub_n[t, sb]):
+                    r = s + sub[first + j]
+                    mx, my, ca, cb, cc = par[r, 0], par[r, 1], par[r, 2], par[r, 3], par[r, 4]
+                    o, smax = par[r, 5], par[r, 6]
+                    f0, f1, f2, f3 = par[r, 7], par[r, 8], par[r, 9], par[r, 10]
                     jf = np.float32(j + 1)
                     alive = False
                     for p in range(NP):

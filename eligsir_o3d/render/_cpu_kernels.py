@@ -12,7 +12,8 @@ forward pass walked through, and recovers each Gaussian's transmittance by divid
 Work: pixels run in blocks (4x4, :data:`BLOCKS`), and a block walks only the part of its tile's list that can reach
 it: each tile's list is culled per block by the bounding box of the ellipse where ``o exp(-sigma) >= 1/255``
 (conservatively, so the result is the same as walking the whole list; on a real scene this cuts the walk from ~540
-to ~80 Gaussians per pixel at 160x120). The pixels of a block are processed together without branches, in float32
+to ~80 Gaussians per pixel at 160x120). The forward kernel gathers each tile's Gaussians and block lists into tables
+(:func:`gather_buffers`) that the backward kernel reads, so a training render gathers once. The pixels of a block are processed together without branches, in float32
 only (int64 or bool lanes would narrow LLVM's vectors; conditional stores become masked stores, slow on AVX2), which
 LLVM turns into SIMD code at the target's width: one AVX-512 register, two AVX2 ones; exp is a branch-free
 polynomial within 2 ulp of float32 exp (the reference's exp differs from it by rounding only, so images agree to
@@ -149,33 +150,46 @@ def cull_bounds(conics, opacities, out):
             out[g, 2] = math.sqrt(2.0 * s_box * a / det) + 1e-3
 
 
-@_jit_serial
-def gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, y0, bw, bh):
-    """Copy tile Gaussians ``flat_ids[s:s + n]`` into contiguous arrays and cull them per block of bw x bh pixels.
+PAR = 11  # per tile intersection in the gathered table: mean x, mean y, conic a, b, c, opacity, sigma bound, features
 
-    Returns gp [7, n] (mean x, mean y, conic a, b, c, opacity, sigma bound), gf [n, 4] and, per block (row-major,
-    (TILE / bw) x (TILE / bh) of them), the depth-ordered local indices of the Gaussians whose box
-    (:func:`cull_bounds`) reaches it: sub_ids [blocks, n], sub_n [blocks].
+
+def gather_buffers(m: int, n_tiles: int, block_pixels: int = 16):
+    """Empty tables for :func:`gather_tile` over a render with ``m`` intersections and ``n_tiles`` tiles: par
+    [m, PAR] float32, sub [blocks * m] int32, sub_n [n_tiles, blocks] int64 (blocks = 256 / block pixels).
+
+    The forward kernel fills them and the backward kernel reads them, so a training render gathers each tile once.
+    ``sub`` has room for every Gaussian of a tile in every block of it; only the lists' entries are written, so the
+    pages that no list reaches cost address space, not memory."""
+    blocks = TILE * TILE // block_pixels
+    return np.empty((m, PAR), np.float32), np.empty(blocks * m, np.int32), np.empty((n_tiles, blocks), np.int64)
+
+
+@_jit_serial
+def gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, y0, bw, bh, par, sub, sub_n):
+    """Copy tile Gaussians ``flat_ids[s:s + n]`` into rows ``s:s + n`` of par and cull them per block of bw x bh pixels.
+
+    par [M, PAR] rows: mean x, mean y, conic a, b, c, opacity, sigma bound, the 4 features. Per block b (row-major,
+    (TILE / bw) x (TILE / bh) of them), the depth-ordered tile-local indices (0..n-1) of the Gaussians whose box
+    (:func:`cull_bounds`) reaches it: ``sub[blocks * s + b * n:][:sub_n[b]]``, with sub_n [blocks] this tile's row
+    of the table (:func:`gather_buffers`).
     """
     nbx = TILE // bw
     nby = TILE // bh
-    gp = np.empty((7, n), np.float32)
-    gf = np.empty((n, 4), np.float32)
-    sub_ids = np.empty((nbx * nby, n), np.int32)
-    sub_n = np.zeros(nbx * nby, np.int64)
+    base = nbx * nby * s
+    sub_n[:] = 0
     for k in range(n):
         g = flat_ids[s + k]
         mx = means2d[g, 0]
         my = means2d[g, 1]
-        gp[0, k] = mx
-        gp[1, k] = my
-        gp[2, k] = conics[g, 0]
-        gp[3, k] = conics[g, 1]
-        gp[4, k] = conics[g, 2]
-        gp[5, k] = opacities[g]
-        gp[6, k] = bounds[g, 0]
+        par[s + k, 0] = mx
+        par[s + k, 1] = my
+        par[s + k, 2] = conics[g, 0]
+        par[s + k, 3] = conics[g, 1]
+        par[s + k, 4] = conics[g, 2]
+        par[s + k, 5] = opacities[g]
+        par[s + k, 6] = bounds[g, 0]
         for f in range(4):
-            gf[k, f] = feats[g, f]
+            par[s + k, 7 + f] = feats[g, f]
         if bounds[g, 0] < 0.0:
             continue
         rx = np.float64(bounds[g, 1])
@@ -194,9 +208,8 @@ def gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, y
         for by in range(sy0, sy1 + 1):
             for bx in range(sx0, sx1 + 1):
                 j = by * nbx + bx
-                sub_ids[j, sub_n[j]] = k
+                sub[base + j * n + sub_n[j]] = k
                 sub_n[j] += 1
-    return gp, gf, sub_ids, sub_n
 
 
 @_jit_serial

@@ -84,11 +84,12 @@ def warmup() -> float:
         k.bin_tiles_fill(means2d, np.array([2], np.int32), np.zeros(1, np.int64), 1, 1)
         k.cull_bounds(conics, opac, bounds)
         forward, backward = _compositors()
+        gathered = k.gather_buffers(1, 1, k.default_block())
         k.run(forward, means2d, conics, opac, feats, bounds, offsets, ids, order, 1, w, h,
-              out_f, out_a, out_T, out_last)
+              out_f, out_a, out_T, out_last, *gathered)
         v = np.empty((1, 10), f32)
-        k.run(backward, means2d, conics, opac, feats, bounds, offsets, ids, order, 1, w, h,
-              out_T, out_last, np.ones((h, w, 4), f32), np.ones((h, w), f32), v)
+        k.run(backward, *gathered, offsets, order, 1, w, h, out_T, out_last, np.ones((h, w, 4), f32),
+              np.ones((h, w), f32), v)
         pk = _proj_kernels()
         V, cam = np.eye(4), np.array([5.0, 5.0, 4.0, 4.0, 8, 8, NEAR, EPS2D])
         means = np.array([[0.0, 0.0, 2.0]], f32)
@@ -121,27 +122,27 @@ class _Composite(torch.autograd.Function):
         out_alpha = torch.empty(height, width, dtype=torch.float32)
         out_T = torch.empty(height, width, dtype=torch.float32)
         out_last = torch.empty(height, width, dtype=torch.int32)
+        gathered = k.gather_buffers(flat_ids.shape[0], offsets.shape[0] - 1, block or k.default_block())
         k.run(forward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
               flat_ids.numpy(), order.numpy(), tiles_x, width, height,
-              out_feats.numpy(), out_alpha.numpy(), out_T.numpy(), out_last.numpy())
-        ctx.save_for_backward(m, c, o, f, bounds, offsets, flat_ids, order, out_T, out_last)
-        ctx.meta = (tiles_x, width, height, [means2d.dtype, conics.dtype, opacities.dtype, feats.dtype], block)
+              out_feats.numpy(), out_alpha.numpy(), out_T.numpy(), out_last.numpy(), *gathered)
+        ctx.save_for_backward(offsets, flat_ids, order, out_T, out_last)
+        ctx.gathered = gathered  # the tiles as the forward kernel gathered them, for the backward kernel
+        ctx.meta = (tiles_x, width, height, f.shape, [means2d.dtype, conics.dtype, opacities.dtype, feats.dtype], block)
         return out_feats.to(feats.dtype), out_alpha.to(feats.dtype)
 
     @staticmethod
     def backward(ctx, grad_feats, grad_alpha):
         k = _kernels()
-        m, c, o, f, bounds, offsets, flat_ids, order, out_T, out_last = ctx.saved_tensors
-        tiles_x, width, height, dtypes, block = ctx.meta
-        n, n_feat = f.shape
+        offsets, flat_ids, order, out_T, out_last = ctx.saved_tensors
+        tiles_x, width, height, (n, n_feat), dtypes, block = ctx.meta
         if grad_feats is None:
             grad_feats = torch.zeros(height, width, n_feat)
         if grad_alpha is None:
             grad_alpha = torch.zeros(height, width)
         v_isect = torch.empty(flat_ids.shape[0], 6 + n_feat, dtype=torch.float32)
-        k.run(_compositors(block)[1], m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
-              flat_ids.numpy(), order.numpy(), tiles_x, width, height, out_T.numpy(), out_last.numpy(),
-              _f32(grad_feats).numpy(), _f32(grad_alpha).numpy(), v_isect.numpy())
+        k.run(_compositors(block)[1], *ctx.gathered, offsets.numpy(), order.numpy(), tiles_x, width, height,
+              out_T.numpy(), out_last.numpy(), _f32(grad_feats).numpy(), _f32(grad_alpha).numpy(), v_isect.numpy())
         v = torch.zeros(n, 6 + n_feat, dtype=torch.float32).index_add_(0, flat_ids, v_isect)
         grads = (v[:, 0:2], v[:, 2:5], v[:, 5], v[:, 6:])
         grads = tuple(g.to(dt) for g, dt in zip(grads, dtypes))
