@@ -13,7 +13,8 @@ Work: pixels run in blocks (4x4, :data:`BLOCKS`), and a block walks only the par
 it: each tile's list is culled per block by the bounding box of the ellipse where ``o exp(-sigma) >= 1/255``
 (conservatively, so the result is the same as walking the whole list; on a real scene this cuts the walk from ~540
 to ~80 Gaussians per pixel at 160x120). The forward kernel gathers each tile's Gaussians and block lists into tables
-(:func:`gather_buffers`) that the backward kernel reads, so a training render gathers once. The pixels of a block are processed together without branches, in float32
+(:func:`gather_shapes`) that the backward kernel reads, so a training render gathers once (the tables are reused
+from render to render: :mod:`.scratch`). The pixels of a block are processed together without branches, in float32
 only (int64 or bool lanes would narrow LLVM's vectors; conditional stores become masked stores, slow on AVX2), which
 LLVM turns into SIMD code at the target's width: one AVX-512 register, two AVX2 ones; exp is a branch-free
 polynomial within 2 ulp of float32 exp (the reference's exp differs from it by rounding only, so images agree to
@@ -153,15 +154,23 @@ def cull_bounds(conics, opacities, out):
 PAR = 11  # per tile intersection in the gathered table: mean x, mean y, conic a, b, c, opacity, sigma bound, features
 
 
-def gather_buffers(m: int, n_tiles: int, block_pixels: int = 16):
-    """Empty tables for :func:`gather_tile` over a render with ``m`` intersections and ``n_tiles`` tiles: par
-    [m, PAR] float32, sub [blocks * m] int32, sub_n [n_tiles, blocks] int64 (blocks = 256 / block pixels).
+def gather_shapes(m: int, n_tiles: int, block_pixels: int = 16) -> tuple:
+    """Shapes of the tables :func:`gather_tile` fills over a render with ``m`` intersections and ``n_tiles`` tiles:
+    par [m, PAR] float32, sub [blocks * m] int32, sub_n [n_tiles, blocks] int64 (blocks = 256 / block pixels).
 
     The forward kernel fills them and the backward kernel reads them, so a training render gathers each tile once.
     ``sub`` has room for every Gaussian of a tile in every block of it; only the lists' entries are written, so the
     pages that no list reaches cost address space, not memory."""
     blocks = TILE * TILE // block_pixels
-    return np.empty((m, PAR), np.float32), np.empty(blocks * m, np.int32), np.empty((n_tiles, blocks), np.int64)
+    return (m, PAR), (blocks * m,), (n_tiles, blocks)
+
+
+GATHER_DTYPES = (np.float32, np.int32, np.int64)
+
+
+def gather_buffers(m: int, n_tiles: int, block_pixels: int = 16) -> tuple:
+    """Fresh (empty) tables of :func:`gather_shapes`."""
+    return tuple(np.empty(s, d) for s, d in zip(gather_shapes(m, n_tiles, block_pixels), GATHER_DTYPES))
 
 
 @_jit_serial
@@ -171,7 +180,7 @@ def gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, y
     par [M, PAR] rows: mean x, mean y, conic a, b, c, opacity, sigma bound, the 4 features. Per block b (row-major,
     (TILE / bw) x (TILE / bh) of them), the depth-ordered tile-local indices (0..n-1) of the Gaussians whose box
     (:func:`cull_bounds`) reaches it: ``sub[blocks * s + b * n:][:sub_n[b]]``, with sub_n [blocks] this tile's row
-    of the table (:func:`gather_buffers`).
+    of the table (:func:`gather_shapes`).
     """
     nbx = TILE // bw
     nby = TILE // bh

@@ -5,7 +5,8 @@ Three steps, each the reference's twin and each tested against it:
   a hand-written backward pass, as a ``torch.autograd.Function`` (the torch version costs ~40% of a 160x120 render);
 - tile binning (:func:`bin_tiles_csr`): the reference's per-tile, front-to-back lists, compressed instead of padded;
 - compositing (:mod:`._cpu_forward`, :mod:`._cpu_backward`, shared parts in :mod:`._cpu_kernels`): forward and
-  backward kernels, as a ``torch.autograd.Function``.
+  backward kernels, as a ``torch.autograd.Function``; the forward's gathered tiles, which the backward reads, live
+  in tables reused from render to render (:mod:`.scratch`).
 The kernels run in parallel on the threads numba may use (``NUMBA_NUM_THREADS`` / ``numba.set_num_threads``).
 Float32 throughout; inputs of other dtypes are cast and the gradients cast back. Background and depth
 normalisation stay in torch (:func:`.base.finish`), shared with every backend.
@@ -48,6 +49,18 @@ def _compositors(block: int | None = None):
         bw, bh = k.BLOCKS[block]
         _made[block] = (_cpu_forward.make(bw, bh), _cpu_backward.make(bw, bh))
     return _made[block]
+
+
+_pool = None
+
+
+def _gather_pool():
+    """The reused gather tables of the compositing kernels (:mod:`.scratch`)."""
+    global _pool
+    if _pool is None:
+        from .scratch import ScratchPool
+        _pool = ScratchPool(_kernels().GATHER_DTYPES)
+    return _pool
 
 
 def _proj_kernels():
@@ -122,7 +135,8 @@ class _Composite(torch.autograd.Function):
         out_alpha = torch.empty(height, width, dtype=torch.float32)
         out_T = torch.empty(height, width, dtype=torch.float32)
         out_last = torch.empty(height, width, dtype=torch.int32)
-        gathered = k.gather_buffers(flat_ids.shape[0], offsets.shape[0] - 1, block or k.default_block())
+        gathered = _gather_pool().take(*k.gather_shapes(flat_ids.shape[0], offsets.shape[0] - 1,
+                                                        block or k.default_block()))
         k.run(forward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
               flat_ids.numpy(), order.numpy(), tiles_x, width, height,
               out_feats.numpy(), out_alpha.numpy(), out_T.numpy(), out_last.numpy(), *gathered)
