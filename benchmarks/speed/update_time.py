@@ -12,7 +12,12 @@ runs ``--warm`` updates untimed (Adam's moments allocated, caches warm) and time
 one; the table gives the median over all timed updates of all rounds and the ratio to the first checkout.
 
 Clock: the process's CPU time with one thread (a measure of work that holds up on a shared machine), the
-wall clock with more. ``--in-view K``: every map holds the same K Gaussians in the views (the map of size K) and
+wall clock with more. Threads: a worker with more than one thread follows each timed update with one on a single
+thread (wall clock), and the report gives the median of these pairs beside the ratio of the workers' medians; and
+each such worker times a compiled loop that parallelises perfectly, on one thread and on its threads, once a round,
+to say what the machine's threads delivered at those moments (a shared or throttled VM may give its second core
+only part of the time: one 2-core VM here ran the ideal loop 1.1x to 2.0x faster on two threads, changing within
+seconds), so that an update's speed-up is read against the machine's and not against 2. ``--in-view K``: every map holds the same K Gaussians in the views (the map of size K) and
 its remaining ``n - K`` Gaussians out of every view (copies of the kitchen's points shifted by tens of metres,
 those that some view could reach dropped), the scene of a large map whose update sees one room; the table adds
 the Gaussians the updates supervised (median). ``NAME=DIR`` names a checkout (``DIR/eligsir_o3d`` is the package timed):
@@ -50,8 +55,11 @@ def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in
     import numpy as np
     import torch
 
-    torch.set_num_threads(threads)
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    def set_threads(n: int) -> None:
+        torch.set_num_threads(n)
+        numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
+
+    set_threads(threads)
     from eligsir_o3d import Config, Reconstructor
     from eligsir_o3d.datasets import open_sequence
 
@@ -62,6 +70,7 @@ def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in
     for i in view_frames(in_view):
         rec.views._admit(seq.frame(i, depth_max=rec.config.depth_max))
     rec.warmup()
+    probe = ideal_loop()
     import eligsir_o3d
     print(json.dumps({"info": {"package": str(Path(eligsir_o3d.__file__).parent), "threads": threads,
                                "views": len(rec.views.views)}}), flush=True)
@@ -72,14 +81,57 @@ def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in
             rec.rng.manual_seed(0)
             n0 = len(rec.gmap)
             rec.optimize(warm, scale=0.25)
-            ts, seen = [], []
+            ts, ts1, seen = [], [], []
             for _ in range(updates):
                 t0 = clock()
                 rec.optimize(1, scale=0.25)
                 ts.append(clock() - t0)
                 seen.append(getattr(rec, "last_in_view", None) or len(rec.gmap))
-            rows.append({"gaussians": n0, "gaussians_end": len(rec.gmap), "seconds": ts, "in_view": seen})
-        print(json.dumps({"rows": rows}), flush=True)
+                if threads > 1:  # the paired sample: the next update on one thread, wall clock too
+                    set_threads(1)
+                    t0 = clock()
+                    rec.optimize(1, scale=0.25)
+                    ts1.append(clock() - t0)
+                    set_threads(threads)
+            rows.append({"gaussians": n0, "gaussians_end": len(rec.gmap), "seconds": ts, "in_view": seen,
+                         "seconds_1": ts1})
+        print(json.dumps({"rows": rows, "ideal": ideal_speedup(probe, threads)}), flush=True)
+
+
+def ideal_loop():
+    """A compiled loop that parallelises perfectly (80 independent items of float32 exp work, ~5 ms on one thread):
+    what the machine's threads deliver at a moment, to read an update's thread speed-up against."""
+    import numba
+    import numpy as np
+
+    @numba.njit(parallel=True, cache=False)
+    def loop(x, out, reps):
+        for i in numba.prange(x.shape[0]):
+            acc = np.float32(0.0)
+            for r in range(reps):
+                acc += np.exp(-x[i] * np.float32(r) * np.float32(1e-3))
+            out[i] = acc
+
+    x = np.random.default_rng(0).random(80 * 256).astype(np.float32)
+    out = np.empty_like(x)
+    loop(x, out, 1)
+    return lambda: loop(x, out, 100)
+
+
+def ideal_speedup(probe, threads: int) -> float:
+    """Wall time of the ideal loop on one thread over its time on ``threads``, alternated 3 times (medians)."""
+    import numba
+    if threads == 1:
+        return 1.0
+    ts = {1: [], threads: []}
+    for _ in range(3):
+        for th in ts:
+            numba.set_num_threads(th)
+            t0 = time.perf_counter()
+            probe()
+            ts[th].append(time.perf_counter() - t0)
+    numba.set_num_threads(threads)
+    return sorted(ts[1])[1] / sorted(ts[threads])[1]
 
 
 # ------------------------------------------------------------------------------------------------ driver side ----
@@ -208,15 +260,23 @@ def run_rounds(procs: dict, rounds: int) -> dict:
     print(f"# OMP_WAIT_POLICY {os.environ.get('OMP_WAIT_POLICY', 'PASSIVE (the package default)')}")
     print(f"# loadavg at start {' '.join(open('/proc/loadavg').read().split()[:3])}")
     results = {k: [] for k in procs}
+    ideal = {}
     for _ in range(rounds):
         for key, p in procs.items():
             p.stdin.write("go\n")
             p.stdin.flush()
-            results[key].append(json.loads(p.stdout.readline())["rows"])
+            answer = json.loads(p.stdout.readline())
+            results[key].append(answer["rows"])
+            ideal.setdefault(key, []).append(answer["ideal"])
     for p in procs.values():
         p.stdin.close()
         p.wait()
     print(f"# loadavg at end {' '.join(open('/proc/loadavg').read().split()[:3])}")
+    for (name, th), sp in ideal.items():
+        if th > 1:
+            sp = sorted(sp)
+            print(f"# {name}, {th} threads: an ideal parallel loop timed in each round ran {sp[len(sp) // 2]:.2f}x "
+                  f"faster than on 1 thread (rounds {sp[0]:.2f}-{sp[-1]:.2f}): what the machine's threads gave")
     return results
 
 
@@ -244,6 +304,14 @@ def report(results: dict, codes, threads) -> dict:
             ms = [table[f"{th}x{n}"][name] for n in sizes]
             print(f"# {name}, {th} thread(s): time / time at {sizes[0]} Gaussians: "
                   + " ".join(f"{n}: {m / ms[0]:.2f}" for n, m in zip(sizes, ms)))
+        for th in threads:
+            paired = [[row["seconds_1"][i] / t for row in (r[gi] for r in results[(name, th)])
+                       for i, t in enumerate(row["seconds"]) if i < len(row.get("seconds_1", []))]
+                      for gi in range(len(sizes))]
+            if th > 1 and all(paired):
+                print(f"# {name}: speed-up of {th} over 1 thread, paired (every update on {th} threads followed by one "
+                      "on 1 thread in the same process, wall clock; median of the pairs) "
+                      + "/".join(f"{float(np.median(p)):.2f}" for p in paired))
         if len(threads) > 1:
             t0 = threads[0]
             print(f"# {name}: speed-up of " + ", ".join(
