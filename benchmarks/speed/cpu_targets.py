@@ -166,7 +166,9 @@ def _time_compositing(row: dict, case: tuple, blocks: list[int], kern, best) -> 
             gathered = k.gather_buffers(fl.shape[0], off.shape[0] - 1, blk)
             row["comp_fwd" + sfx] = best(lambda: k.run(kf, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
                                                        of, oa, oT, ol, *gathered))
-            row["comp_bwd" + sfx] = best(lambda: k.run(kb, *gathered, off, order, tiles_x, W, H, oT, ol, gf, ga, v))
+            vg = np.empty((m.shape[0], 10), f32)
+            row["comp_bwd" + sfx] = best(lambda: k.run(kb, *gathered, off, fl, order, tiles_x, W, H, oT, ol, gf, ga, v,
+                                                       vg))
         else:
             row["comp_fwd" + sfx] = best(lambda: k.run(kf, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
                                                        of, oa, oT, ol))

@@ -23,12 +23,13 @@ def make(bw: int, bh: int):
     H1, H2, H3 = NP // 2, NP // 4, NP // 8
     crc = SOURCE_CRC  # the helpers' source, in the cache key (see _cpu_kernels.SOURCE_CRC)
 
-    def composite_backward(par, sub, sub_n, offsets, order, tiles_x, width, height, final_T, last, grad_feats,
-                           grad_alpha, v_isect):
+    def composite_backward(par, sub, sub_n, offsets, flat_ids, order, tiles_x, width, height, final_T, last,
+                           grad_feats, grad_alpha, v_isect, v):
         """Back-to-front gradients of the forward kernel, on the tiles it gathered (par, sub, sub_n).
 
         grad_feats [H, W, 4], grad_alpha [H, W]: gradients of the accumulated outputs. Writes v_isect [M, 10], one
-        row per intersection: d/d(mean x, mean y, conic a, conic b, conic c, opacity, r, g, b, depth).
+        row per intersection: d/d(mean x, mean y, conic a, conic b, conic c, opacity, r, g, b, depth), and their
+        sums per Gaussian into v [N, 10] (after the tiles, in intersection order: deterministic).
 
         Per pixel this is gsplat's backward: start from the final transmittance, walk the blended Gaussians back to
         front, recover each one's transmittance as ``T / (1 - alpha)`` and keep the running sums of what lies
@@ -43,8 +44,8 @@ def make(bw: int, bh: int):
             tx = t - ty * tiles_x
             s = offsets[t]
             n = offsets[t + 1] - s
-            v = v_isect[s:s + n]  # this tile's rows
-            v[:] = ZERO
+            vt = v_isect[s:s + n]  # this tile's rows
+            vt[:] = ZERO
             lx = np.empty(NP, np.float32)
             ly = np.empty(NP, np.float32)
             walked = np.empty(NP, np.float32)
@@ -148,6 +149,12 @@ def make(bw: int, bh: int):
                             dv[c, p] += dv[c, p + H2]
                         for p in range(H3):
                             dv[c, p] += dv[c, p + H3]
-                        v[k, c] += dv[c, 0] + dv[c, 1]
+                        vt[k, c] += dv[c, 0] + dv[c, 1]
+
+        v[:] = ZERO
+        for i in range(flat_ids.shape[0]):
+            g = flat_ids[i]
+            for c in range(10):
+                v[g, c] += v_isect[i, c]
 
     return _compile(parallel=True)(composite_backward)

@@ -100,9 +100,8 @@ def warmup() -> float:
         gathered = k.gather_buffers(1, 1, k.default_block())
         k.run(forward, means2d, conics, opac, feats, bounds, offsets, ids, order, 1, w, h,
               out_f, out_a, out_T, out_last, *gathered)
-        v = np.empty((1, 10), f32)
-        k.run(backward, *gathered, offsets, order, 1, w, h, out_T, out_last, np.ones((h, w, 4), f32),
-              np.ones((h, w), f32), v)
+        k.run(backward, *gathered, offsets, ids, order, 1, w, h, out_T, out_last, np.ones((h, w, 4), f32),
+              np.ones((h, w), f32), np.empty((1, 10), f32), np.empty((1, 10), f32))
         pk = _proj_kernels()
         V, cam = np.eye(4), np.array([5.0, 5.0, 4.0, 4.0, 8, 8, NEAR, EPS2D])
         means = np.array([[0.0, 0.0, 2.0]], f32)
@@ -155,9 +154,10 @@ class _Composite(torch.autograd.Function):
         if grad_alpha is None:
             grad_alpha = torch.zeros(height, width)
         v_isect = torch.empty(flat_ids.shape[0], 6 + n_feat, dtype=torch.float32)
-        k.run(_compositors(block)[1], *ctx.gathered, offsets.numpy(), order.numpy(), tiles_x, width, height,
-              out_T.numpy(), out_last.numpy(), _f32(grad_feats).numpy(), _f32(grad_alpha).numpy(), v_isect.numpy())
-        v = torch.zeros(n, 6 + n_feat, dtype=torch.float32).index_add_(0, flat_ids, v_isect)
+        v = torch.empty(n, 6 + n_feat, dtype=torch.float32)
+        k.run(_compositors(block)[1], *ctx.gathered, offsets.numpy(), flat_ids.numpy(), order.numpy(), tiles_x, width,
+              height, out_T.numpy(), out_last.numpy(), _f32(grad_feats).numpy(), _f32(grad_alpha).numpy(),
+              v_isect.numpy(), v.numpy())
         grads = (v[:, 0:2], v[:, 2:5], v[:, 5], v[:, 6:])
         grads = tuple(g.to(dt) for g, dt in zip(grads, dtypes))
         return grads + (None,) * 7
