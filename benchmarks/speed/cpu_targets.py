@@ -162,13 +162,14 @@ def _time_compositing(row: dict, case: tuple, blocks: list[int], kern, best) -> 
         row["fwd" + sfx] = best(fwd)
         row["fwdbwd" + sfx] = best(fwdbwd)
         kf, kb = comp(blk) if comp is not None else (k.composite_forward, k.composite_backward)
-        if hasattr(k, "gather_buffers"):  # by code version: the forward gathers the tiles once for the backward
+        if hasattr(k, "task_slots"):  # by code version: the forward gathers the tiles once for the backward
             gathered = k.gather_buffers(fl.shape[0], off.shape[0] - 1, blk)
-            row["comp_fwd" + sfx] = best(lambda: k.run(kf, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
-                                                       of, oa, oT, ol, *gathered))
+            slots = k.task_slots(order.shape[0])
+            row["comp_fwd" + sfx] = best(lambda: k.run(kf, m, c, o, feats, bounds, off, fl, order, slots, tiles_x, W,
+                                                       H, of, oa, oT, ol, *gathered))
             vg = np.empty((m.shape[0], 10), f32)
-            row["comp_bwd" + sfx] = best(lambda: k.run(kb, *gathered, off, fl, order, tiles_x, W, H, oT, ol, gf, ga, v,
-                                                       vg))
+            row["comp_bwd" + sfx] = best(lambda: k.run(kb, *gathered, off, fl, order, slots, tiles_x, W, H, oT, ol, gf,
+                                                       ga, v, vg))
         else:
             row["comp_fwd" + sfx] = best(lambda: k.run(kf, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
                                                        of, oa, oT, ol))

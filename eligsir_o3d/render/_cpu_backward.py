@@ -23,7 +23,7 @@ def make(bw: int, bh: int):
     H1, H2, H3 = NP // 2, NP // 4, NP // 8
     crc = SOURCE_CRC  # the helpers' source, in the cache key (see _cpu_kernels.SOURCE_CRC)
 
-    def composite_backward(par, sub, sub_n, offsets, flat_ids, order, tiles_x, width, height, final_T, last,
+    def composite_backward(par, sub, sub_n, offsets, flat_ids, order, slots, tiles_x, width, height, final_T, last,
                            grad_feats, grad_alpha, v_isect, v):
         """Back-to-front gradients of the forward kernel, on the tiles it gathered (par, sub, sub_n).
 
@@ -38,14 +38,7 @@ def make(bw: int, bh: int):
         """
         if crc < 0:  # never (a checksum is >= 0); it makes crc a closure constant of the kernel
             return
-        for i in prange(order.shape[0]):
-            t = order[i]
-            ty = t // tiles_x
-            tx = t - ty * tiles_x
-            s = offsets[t]
-            n = offsets[t + 1] - s
-            vt = v_isect[s:s + n]  # this tile's rows
-            vt[:] = ZERO
+        for task in prange(slots):
             lx = np.empty(NP, np.float32)
             ly = np.empty(NP, np.float32)
             walked = np.empty(NP, np.float32)
@@ -61,96 +54,104 @@ def make(bw: int, bh: int):
             b2 = np.empty(NP, np.float32)
             b3 = np.empty(NP, np.float32)
             dv = np.empty((10, NP), np.float32)
-            for sb in range(NB):
-                bx0 = tx * TILE + (sb % NBX) * bw
-                by0 = ty * TILE + (sb // NBX) * bh
-                j_end = 0
-                for p in range(NP):
-                    x = bx0 + p % bw
-                    y = by0 + p // bw
-                    lx[p] = np.float32(x)
-                    ly[p] = np.float32(y)
-                    b0[p] = ZERO
-                    b1[p] = ZERO
-                    b2[p] = ZERO
-                    b3[p] = ZERO
-                    if x < width and y < height:
-                        j_end = max(j_end, last[y, x])
-                        walked[p] = np.float32(last[y, x])
-                        T[p] = final_T[y, x]
-                        g_a[p] = grad_alpha[y, x]
-                        g0[p] = grad_feats[y, x, 0]
-                        g1[p] = grad_feats[y, x, 1]
-                        g2[p] = grad_feats[y, x, 2]
-                        g3[p] = grad_feats[y, x, 3]
-                    else:
-                        walked[p] = ZERO
-                        T[p] = ONE
-                        g_a[p] = ZERO
-                        g0[p] = ZERO
-                        g1[p] = ZERO
-                        g2[p] = ZERO
-                        g3[p] = ZERO
-                    T_final[p] = T[p]
-                first = NB * s + sb * n
-                for j in range(j_end - 1, -1, -1):
-                    k = sub[first + j]
-                    r = s + k
-                    mx, my, ca, cb, cc = par[r, 0], par[r, 1], par[r, 2], par[r, 3], par[r, 4]
-                    o, smax = par[r, 5], par[r, 6]
-                    f0, f1, f2, f3 = par[r, 7], par[r, 8], par[r, 9], par[r, 10]
-                    jf = np.float32(j)
-                    # a cheap pass without exp first, for the Gaussians of the list that miss all the block's pixels
-                    # (3-9% of the backward on the benchmark scene; the same pass costs the forward 2-10%)
-                    hit = False
-                    for p in range(NP):
-                        hit = hit | ((jf < walked[p]) & reaches(lx[p], ly[p], mx, my, ca, cb, cc, smax))
-                    if not hit:
-                        continue
-                    any_use = False
-                    for p in range(NP):
-                        dx, dy, sigma, vis, o_vis, alpha = conic_alpha(lx[p], ly[p], mx, my, ca, cb, cc, o)
-                        use = (jf < walked[p]) & (sigma >= ZERO) & (sigma <= smax) & (alpha >= ALPHA_MIN)
-                        ra = ONE / (ONE - alpha)
-                        Tp = T[p]
-                        Tk = Tp * ra  # transmittance in front of Gaussian k
-                        fac = alpha * Tk
-                        v_alpha = T_final[p] * ra * g_a[p] + (f0 * Tk - b0[p] * ra) * g0[p] \
-                            + (f1 * Tk - b1[p] * ra) * g1[p] + (f2 * Tk - b2[p] * ra) * g2[p] \
-                            + (f3 * Tk - b3[p] * ra) * g3[p]
-                        # the alpha clamp passes no gradient to opacity and sigma
-                        v_sigma = -o_vis * v_alpha if use & (o_vis <= ALPHA_MAX) else ZERO
-                        # d sigma / d mean = -(conic @ (pixel - mean))
-                        dv[0, p] = -v_sigma * (ca * dx + cb * dy)
-                        dv[1, p] = -v_sigma * (cb * dx + cc * dy)
-                        dv[2, p] = HALF * v_sigma * dx * dx
-                        dv[3, p] = v_sigma * dx * dy
-                        dv[4, p] = HALF * v_sigma * dy * dy
-                        dv[5, p] = vis * v_alpha if use & (o_vis <= ALPHA_MAX) else ZERO
-                        fac = fac if use else ZERO
-                        dv[6, p] = fac * g0[p]
-                        dv[7, p] = fac * g1[p]
-                        dv[8, p] = fac * g2[p]
-                        dv[9, p] = fac * g3[p]
-                        b0[p] += f0 * fac
-                        b1[p] += f1 * fac
-                        b2[p] += f2 * fac
-                        b3[p] += f3 * fac
-                        T[p] = Tp * (ra if use else ONE)  # = Tk where used, Tp (exactly) where not
-                        any_use = any_use | use
-                    if not any_use:  # most of a block's list misses most of its pixels
-                        continue
-                    # pairwise sum over the block's pixels, 16 -> 8 -> 4 -> 2 -> 1, in steps of constant length
-                    # (a loop over a varying length is vectorised with masked loads and stores on AVX2)
+            for i in range(task, order.shape[0], slots):
+                t = order[i]
+                ty = t // tiles_x
+                tx = t - ty * tiles_x
+                s = offsets[t]
+                n = offsets[t + 1] - s
+                for k in range(n):  # this tile's rows (indexed, not a view: see gather_tile)
                     for c in range(10):
-                        for p in range(H1):
-                            dv[c, p] += dv[c, p + H1]
-                        for p in range(H2):
-                            dv[c, p] += dv[c, p + H2]
-                        for p in range(H3):
-                            dv[c, p] += dv[c, p + H3]
-                        vt[k, c] += dv[c, 0] + dv[c, 1]
-
+                        v_isect[s + k, c] = ZERO
+                for sb in range(NB):
+                    bx0 = tx * TILE + (sb % NBX) * bw
+                    by0 = ty * TILE + (sb // NBX) * bh
+                    j_end = 0
+                    for p in range(NP):
+                        x = bx0 + p % bw
+                        y = by0 + p // bw
+                        lx[p] = np.float32(x)
+                        ly[p] = np.float32(y)
+                        b0[p] = ZERO
+                        b1[p] = ZERO
+                        b2[p] = ZERO
+                        b3[p] = ZERO
+                        if x < width and y < height:
+                            j_end = max(j_end, last[y, x])
+                            walked[p] = np.float32(last[y, x])
+                            T[p] = final_T[y, x]
+                            g_a[p] = grad_alpha[y, x]
+                            g0[p] = grad_feats[y, x, 0]
+                            g1[p] = grad_feats[y, x, 1]
+                            g2[p] = grad_feats[y, x, 2]
+                            g3[p] = grad_feats[y, x, 3]
+                        else:
+                            walked[p] = ZERO
+                            T[p] = ONE
+                            g_a[p] = ZERO
+                            g0[p] = ZERO
+                            g1[p] = ZERO
+                            g2[p] = ZERO
+                            g3[p] = ZERO
+                        T_final[p] = T[p]
+                    first = NB * s + sb * n
+                    for j in range(j_end - 1, -1, -1):
+                        k = sub[first + j]
+                        r = s + k
+                        mx, my, ca, cb, cc = par[r, 0], par[r, 1], par[r, 2], par[r, 3], par[r, 4]
+                        o, smax = par[r, 5], par[r, 6]
+                        f0, f1, f2, f3 = par[r, 7], par[r, 8], par[r, 9], par[r, 10]
+                        jf = np.float32(j)
+                        # a cheap pass without exp first, for the Gaussians of the list that miss all the block's pixels
+                        # (3-9% of the backward on the benchmark scene; the same pass costs the forward 2-10%)
+                        hit = False
+                        for p in range(NP):
+                            hit = hit | ((jf < walked[p]) & reaches(lx[p], ly[p], mx, my, ca, cb, cc, smax))
+                        if not hit:
+                            continue
+                        any_use = False
+                        for p in range(NP):
+                            dx, dy, sigma, vis, o_vis, alpha = conic_alpha(lx[p], ly[p], mx, my, ca, cb, cc, o)
+                            use = (jf < walked[p]) & (sigma >= ZERO) & (sigma <= smax) & (alpha >= ALPHA_MIN)
+                            ra = ONE / (ONE - alpha)
+                            Tp = T[p]
+                            Tk = Tp * ra  # transmittance in front of Gaussian k
+                            fac = alpha * Tk
+                            v_alpha = T_final[p] * ra * g_a[p] + (f0 * Tk - b0[p] * ra) * g0[p] \
+                                + (f1 * Tk - b1[p] * ra) * g1[p] + (f2 * Tk - b2[p] * ra) * g2[p] \
+                                + (f3 * Tk - b3[p] * ra) * g3[p]
+                            # the alpha clamp passes no gradient to opacity and sigma
+                            v_sigma = -o_vis * v_alpha if use & (o_vis <= ALPHA_MAX) else ZERO
+                            # d sigma / d mean = -(conic @ (pixel - mean))
+                            dv[0, p] = -v_sigma * (ca * dx + cb * dy)
+                            dv[1, p] = -v_sigma * (cb * dx + cc * dy)
+                            dv[2, p] = HALF * v_sigma * dx * dx
+                            dv[3, p] = v_sigma * dx * dy
+                            dv[4, p] = HALF * v_sigma * dy * dy
+                            dv[5, p] = vis * v_alpha if use & (o_vis <= ALPHA_MAX) else ZERO
+                            fac = fac if use else ZERO
+                            dv[6, p] = fac * g0[p]
+                            dv[7, p] = fac * g1[p]
+                            dv[8, p] = fac * g2[p]
+                            dv[9, p] = fac * g3[p]
+                            b0[p] += f0 * fac
+                            b1[p] += f1 * fac
+                            b2[p] += f2 * fac
+                            b3[p] += f3 * fac
+                            T[p] = Tp * (ra if use else ONE)  # = Tk where used, Tp (exactly) where not
+                            any_use = any_use | use
+                        if not any_use:  # most of a block's list misses most of its pixels
+                            continue
+                        # pairwise sum over the block's pixels, 16 -> 8 -> 4 -> 2 -> 1, in steps of constant length
+                        # (a loop over a varying length is vectorised with masked loads and stores on AVX2)
+                        for c in range(10):
+                            for p in range(H1):
+                                dv[c, p] += dv[c, p + H1]
+                            for p in range(H2):
+                                dv[c, p] += dv[c, p + H2]
+                            for p in range(H3):
+                                dv[c, p] += dv[c, p + H3]
+                            v_isect[s + k, c] += dv[c, 0] + dv[c, 1]
         v[:] = ZERO
         for i in range(flat_ids.shape[0]):
             g = flat_ids[i]

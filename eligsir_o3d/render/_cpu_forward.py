@@ -21,14 +21,14 @@ def make(bw: int, bh: int):
     NB = NBX * (TILE // bh)
     crc = SOURCE_CRC  # the helpers' source, in the cache key (see _cpu_kernels.SOURCE_CRC)
 
-    def composite_forward(means2d, conics, opacities, feats, bounds, offsets, flat_ids, order, tiles_x, width,
+    def composite_forward(means2d, conics, opacities, feats, bounds, offsets, flat_ids, order, slots, tiles_x, width,
                           height, out_feats, out_alpha, out_T, out_last, par, sub, sub_n):
         """Blend every tile front to back.
 
         means2d [N, 2], conics [N, 3], opacities [N], feats [N, 4] (r, g, b, depth), bounds [N, 3]
         (:func:`._cpu_kernels.cull_bounds`), all float32; offsets [T + 1] and flat_ids [M] (int64): tile t's
         depth-sorted Gaussians are ``flat_ids[offsets[t]:offsets[t + 1]]``; order [T]: the tiles to run, heaviest
-        first. Writes out_feats [H, W, 4] (accumulated features), out_alpha [H, W] (accumulated opacity), out_T
+        first, in ``slots`` parallel tasks (:func:`._cpu_kernels.task_slots`). Writes out_feats [H, W, 4] (accumulated features), out_alpha [H, W] (accumulated opacity), out_T
         [H, W] (final transmittance) and out_last [H, W] int32 (how far the pixel walked through its block's list),
         and the gathered tiles (par, sub, sub_n: :func:`._cpu_kernels.gather_shapes`) that the backward pass reads.
 
@@ -39,13 +39,7 @@ def make(bw: int, bh: int):
         """
         if crc < 0:  # never (a checksum is >= 0); it makes crc a closure constant of the kernel
             return
-        for i in prange(order.shape[0]):
-            t = order[i]
-            ty = t // tiles_x
-            tx = t - ty * tiles_x
-            s = offsets[t]
-            gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, offsets[t + 1] - s, tx * TILE,
-                        ty * TILE, bw, bh, par, sub, sub_n[t])
+        for task in prange(slots):
             lx = np.empty(NP, np.float32)
             ly = np.empty(NP, np.float32)
             live = np.empty(NP, np.float32)  # 1: still compositing, 0: stopped or outside the image
@@ -56,69 +50,76 @@ def make(bw: int, bh: int):
             a3 = np.empty(NP, np.float32)
             wsum = np.empty(NP, np.float32)
             walked = np.empty(NP, np.float32)  # exact: lists are far shorter than 2^24
-            for sb in range(NB):
-                bx0 = tx * TILE + (sb % NBX) * bw
-                by0 = ty * TILE + (sb // NBX) * bh
-                n_live = 0
-                for p in range(NP):
-                    x = bx0 + p % bw
-                    y = by0 + p // bw
-                    lx[p] = np.float32(x)
-                    ly[p] = np.float32(y)
-                    inside = x < width and y < height
-                    live[p] = ONE if inside else ZERO
-                    n_live += 1 if inside else 0
-                    T[p] = ONE
-                    a0[p] = ZERO
-                    a1[p] = ZERO
-                    a2[p] = ZERO
-                    a3[p] = ZERO
-                    wsum[p] = ZERO
-                    walked[p] = ZERO
-                if n_live == 0:
-                    continue
-                first = NB * s + sb * (offsets[t + 1] - s)
-                for j in range(sub_n[t, sb]):
-                    r = s + sub[first + j]
-                    mx, my, ca, cb, cc = par[r, 0], par[r, 1], par[r, 2], par[r, 3], par[r, 4]
-                    o, smax = par[r, 5], par[r, 6]
-                    f0, f1, f2, f3 = par[r, 7], par[r, 8], par[r, 9], par[r, 10]
-                    jf = np.float32(j + 1)
-                    alive = False
+            for i in range(task, order.shape[0], slots):
+                t = order[i]
+                ty = t // tiles_x
+                tx = t - ty * tiles_x
+                s = offsets[t]
+                gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, offsets[t + 1] - s, tx * TILE,
+                            ty * TILE, bw, bh, par, sub, sub_n, t)
+                for sb in range(NB):
+                    bx0 = tx * TILE + (sb % NBX) * bw
+                    by0 = ty * TILE + (sb // NBX) * bh
+                    n_live = 0
                     for p in range(NP):
-                        _, _, sigma, _, _, alpha = conic_alpha(lx[p], ly[p], mx, my, ca, cb, cc, o)
-                        Tp = T[p]
-                        next_T = Tp * (ONE - alpha)
-                        use = (live[p] > ZERO) & (sigma >= ZERO) & (sigma <= smax) & (alpha >= ALPHA_MIN)
-                        stop = use & (next_T <= T_MIN)  # this Gaussian is not blended, and nothing after it
-                        blend = use & (next_T > T_MIN)
-                        ab = alpha if blend else ZERO
-                        w = ab * Tp
-                        a0[p] += w * f0
-                        a1[p] += w * f1
-                        a2[p] += w * f2
-                        a3[p] += w * f3
-                        wsum[p] += w
-                        T[p] = Tp * (ONE - ab)  # = next_T where blended, Tp (exactly) where not
-                        # = jf where blended, else unchanged (exact: integers below 2^24); arithmetic, not max() or
-                        # a select, which LLVM turns into a masked store
-                        wp = walked[p]
-                        walked[p] = wp + (jf - wp) * (ONE if blend else ZERO)
-                        lp = live[p] - (ONE if stop else ZERO)  # stop implies live = 1
-                        live[p] = lp
-                        alive = alive | (lp > ZERO)
-                    if not alive:
-                        break
-                for p in range(NP):
-                    x = bx0 + p % bw
-                    y = by0 + p // bw
-                    if x < width and y < height:
-                        out_feats[y, x, 0] = a0[p]
-                        out_feats[y, x, 1] = a1[p]
-                        out_feats[y, x, 2] = a2[p]
-                        out_feats[y, x, 3] = a3[p]
-                        out_alpha[y, x] = wsum[p]  # = 1 - T up to rounding; summed like the reference
-                        out_T[y, x] = T[p]
-                        out_last[y, x] = np.int32(walked[p])
+                        x = bx0 + p % bw
+                        y = by0 + p // bw
+                        lx[p] = np.float32(x)
+                        ly[p] = np.float32(y)
+                        inside = x < width and y < height
+                        live[p] = ONE if inside else ZERO
+                        n_live += 1 if inside else 0
+                        T[p] = ONE
+                        a0[p] = ZERO
+                        a1[p] = ZERO
+                        a2[p] = ZERO
+                        a3[p] = ZERO
+                        wsum[p] = ZERO
+                        walked[p] = ZERO
+                    if n_live == 0:
+                        continue
+                    first = NB * s + sb * (offsets[t + 1] - s)
+                    for j in range(sub_n[t, sb]):
+                        r = s + sub[first + j]
+                        mx, my, ca, cb, cc = par[r, 0], par[r, 1], par[r, 2], par[r, 3], par[r, 4]
+                        o, smax = par[r, 5], par[r, 6]
+                        f0, f1, f2, f3 = par[r, 7], par[r, 8], par[r, 9], par[r, 10]
+                        jf = np.float32(j + 1)
+                        alive = False
+                        for p in range(NP):
+                            _, _, sigma, _, _, alpha = conic_alpha(lx[p], ly[p], mx, my, ca, cb, cc, o)
+                            Tp = T[p]
+                            next_T = Tp * (ONE - alpha)
+                            use = (live[p] > ZERO) & (sigma >= ZERO) & (sigma <= smax) & (alpha >= ALPHA_MIN)
+                            stop = use & (next_T <= T_MIN)  # this Gaussian is not blended, and nothing after it
+                            blend = use & (next_T > T_MIN)
+                            ab = alpha if blend else ZERO
+                            w = ab * Tp
+                            a0[p] += w * f0
+                            a1[p] += w * f1
+                            a2[p] += w * f2
+                            a3[p] += w * f3
+                            wsum[p] += w
+                            T[p] = Tp * (ONE - ab)  # = next_T where blended, Tp (exactly) where not
+                            # = jf where blended, else unchanged (exact: integers below 2^24); arithmetic, not max() or
+                            # a select, which LLVM turns into a masked store
+                            wp = walked[p]
+                            walked[p] = wp + (jf - wp) * (ONE if blend else ZERO)
+                            lp = live[p] - (ONE if stop else ZERO)  # stop implies live = 1
+                            live[p] = lp
+                            alive = alive | (lp > ZERO)
+                        if not alive:
+                            break
+                    for p in range(NP):
+                        x = bx0 + p % bw
+                        y = by0 + p // bw
+                        if x < width and y < height:
+                            out_feats[y, x, 0] = a0[p]
+                            out_feats[y, x, 1] = a1[p]
+                            out_feats[y, x, 2] = a2[p]
+                            out_feats[y, x, 3] = a3[p]
+                            out_alpha[y, x] = wsum[p]  # = 1 - T up to rounding; summed like the reference
+                            out_T[y, x] = T[p]
+                            out_last[y, x] = np.int32(walked[p])
 
     return _compile(parallel=True)(composite_forward)

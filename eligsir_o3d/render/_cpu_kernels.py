@@ -20,8 +20,9 @@ LLVM turns into SIMD code at the target's width: one AVX-512 register, two AVX2 
 polynomial within 2 ulp of float32 exp (the reference's exp differs from it by rounding only, so images agree to
 ~1e-6). No fast-math: every target computes the same bits (a map built with AVX2 kernels equals the AVX-512 one).
 
-Parallelism: one tile per task (``prange``), heaviest tiles first, in chunks of one so that the cores share uneven
-tiles dynamically. Tiles never write to the same memory: the backward pass writes one gradient row per
+Parallelism: a few tasks per thread (``prange`` over :func:`task_slots`, taken one at a time so that the cores share
+uneven work dynamically), each running every slots-th tile of the heaviest-first order with its pixel-block scratch
+allocated once; nothing shared is sliced inside the loop (a view's reference count is updated atomically). Tiles never write to the same memory: the backward pass writes one gradient row per
 (tile, Gaussian) intersection and the caller sums the rows per Gaussian (``index_add_``), so no atomics are needed.
 
 Compilation is lazy (first call) and cached on disk (``cache=True``), keyed by numba on the CPU name and features it
@@ -69,6 +70,7 @@ LOG2E = np.float32(1.4426950408889634)
 LN2_HI = np.float32(0.693145751953125)
 LN2_LO = np.float32(1.4286068203094173e-06)
 E0, E1, E2, E3, E4, E5, E6, E7 = (np.float32((-1.0) ** i / math.factorial(i)) for i in range(8))
+
 
 
 @intrinsic
@@ -174,18 +176,20 @@ def gather_buffers(m: int, n_tiles: int, block_pixels: int = 16) -> tuple:
 
 
 @_jit_serial
-def gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, y0, bw, bh, par, sub, sub_n):
+def gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, y0, bw, bh, par, sub, sub_n, t):
     """Copy tile Gaussians ``flat_ids[s:s + n]`` into rows ``s:s + n`` of par and cull them per block of bw x bh pixels.
 
     par [M, PAR] rows: mean x, mean y, conic a, b, c, opacity, sigma bound, the 4 features. Per block b (row-major,
     (TILE / bw) x (TILE / bh) of them), the depth-ordered tile-local indices (0..n-1) of the Gaussians whose box
-    (:func:`cull_bounds`) reaches it: ``sub[blocks * s + b * n:][:sub_n[b]]``, with sub_n [blocks] this tile's row
-    of the table (:func:`gather_shapes`).
+    (:func:`cull_bounds`) reaches it: ``sub[blocks * s + b * n:][:sub_n[t, b]]``, t the tile's row of the table
+    (:func:`gather_shapes`). The tables are indexed, never sliced: a view of an array that every thread shares
+    updates its reference count atomically, and those shared counters cost the parallel kernels their scaling.
     """
     nbx = TILE // bw
     nby = TILE // bh
     base = nbx * nby * s
-    sub_n[:] = 0
+    for j in range(nbx * nby):
+        sub_n[t, j] = 0
     for k in range(n):
         g = flat_ids[s + k]
         mx = means2d[g, 0]
@@ -217,8 +221,8 @@ def gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, y
         for by in range(sy0, sy1 + 1):
             for bx in range(sx0, sx1 + 1):
                 j = by * nbx + bx
-                sub[base + j * n + sub_n[j]] = k
-                sub_n[j] += 1
+                sub[base + j * n + sub_n[t, j]] = k
+                sub_n[t, j] += 1
 
 
 @_jit_serial
@@ -262,6 +266,19 @@ def bin_tiles_fill(means2d, radii, by_depth, tiles_x, tiles_y):
                 flat_ids[fill[t]] = g
                 fill[t] += 1
     return offsets, flat_ids
+
+
+# The compositing kernels' parallel tasks: this many per thread, each taking every slots-th tile of the heaviest-first
+# order and allocating its pixel-block scratch once (allocating it per tile inside the parallel loop held two threads
+# to 1.5-1.6x over one on a 1/4-scale render; once per task, 1.9-2.0x, see renderers.md "Threads"). Several tasks per
+# thread, taken dynamically, still let a core that falls behind (a busy machine) hand work to the others.
+SLOTS_PER_THREAD = 4
+
+
+def task_slots(n_tiles: int) -> int:
+    """The compositing kernels' task count for ``n_tiles`` tiles on numba's current threads (an argument of the
+    kernels, not read inside them: a kernel that calls ``numba.get_num_threads`` cannot be cached on disk)."""
+    return max(1, min(n_tiles, SLOTS_PER_THREAD * numba.get_num_threads()))
 
 
 def run(kernel, *args) -> None:

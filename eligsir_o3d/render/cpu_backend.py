@@ -98,9 +98,9 @@ def warmup() -> float:
         k.cull_bounds(conics, opac, bounds)
         forward, backward = _compositors()
         gathered = k.gather_buffers(1, 1, k.default_block())
-        k.run(forward, means2d, conics, opac, feats, bounds, offsets, ids, order, 1, w, h,
+        k.run(forward, means2d, conics, opac, feats, bounds, offsets, ids, order, 1, 1, w, h,
               out_f, out_a, out_T, out_last, *gathered)
-        k.run(backward, *gathered, offsets, ids, order, 1, w, h, out_T, out_last, np.ones((h, w, 4), f32),
+        k.run(backward, *gathered, offsets, ids, order, 1, 1, w, h, out_T, out_last, np.ones((h, w, 4), f32),
               np.ones((h, w), f32), np.empty((1, 10), f32), np.empty((1, 10), f32))
         pk = _proj_kernels()
         V, cam = np.eye(4), np.array([5.0, 5.0, 4.0, 4.0, 8, 8, NEAR, EPS2D])
@@ -137,7 +137,7 @@ class _Composite(torch.autograd.Function):
         gathered = _gather_pool().take(*k.gather_shapes(flat_ids.shape[0], offsets.shape[0] - 1,
                                                         block or k.default_block()))
         k.run(forward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
-              flat_ids.numpy(), order.numpy(), tiles_x, width, height,
+              flat_ids.numpy(), order.numpy(), k.task_slots(order.shape[0]), tiles_x, width, height,
               out_feats.numpy(), out_alpha.numpy(), out_T.numpy(), out_last.numpy(), *gathered)
         ctx.save_for_backward(offsets, flat_ids, order, out_T, out_last)
         ctx.gathered = gathered  # the tiles as the forward kernel gathered them, for the backward kernel
@@ -155,9 +155,9 @@ class _Composite(torch.autograd.Function):
             grad_alpha = torch.zeros(height, width)
         v_isect = torch.empty(flat_ids.shape[0], 6 + n_feat, dtype=torch.float32)
         v = torch.empty(n, 6 + n_feat, dtype=torch.float32)
-        k.run(_compositors(block)[1], *ctx.gathered, offsets.numpy(), flat_ids.numpy(), order.numpy(), tiles_x, width,
-              height, out_T.numpy(), out_last.numpy(), _f32(grad_feats).numpy(), _f32(grad_alpha).numpy(),
-              v_isect.numpy(), v.numpy())
+        k.run(_compositors(block)[1], *ctx.gathered, offsets.numpy(), flat_ids.numpy(), order.numpy(),
+              k.task_slots(order.shape[0]), tiles_x, width, height, out_T.numpy(), out_last.numpy(),
+              _f32(grad_feats).numpy(), _f32(grad_alpha).numpy(), v_isect.numpy(), v.numpy())
         grads = (v[:, 0:2], v[:, 2:5], v[:, 5], v[:, 6:])
         grads = tuple(g.to(dt) for g, dt in zip(grads, dtypes))
         return grads + (None,) * 7
