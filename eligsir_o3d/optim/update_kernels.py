@@ -13,8 +13,10 @@ parameter tensors took ~0.75 ms and the noise (rotation matrices, covariances, a
 - :func:`mcmc_noise` is :func:`.scheduling.mcmc.inject_noise`'s ``cov @ z * gate * scaler`` per row, with the
   random numbers still drawn by torch from the refiner's generator (the same stream as before).
 
-Serial kernels (no ``prange``): a pass over 20k rows takes tens of microseconds, less than a thread team's
-start-up. Compiled lazily on first use and cached on disk like the renderer's kernels.
+The Adam kernels are serial (no ``prange``): a pass over 20k rows takes tens of microseconds, less than a thread
+team's start-up. The noise runs its rows in parallel from :data:`.core.threads.PARALLEL_MIN_ROWS` rows on (77k rows:
+1.3 ms on one thread), on one thread below. Compiled lazily on first use and cached on disk like the renderer's
+kernels.
 """
 
 from __future__ import annotations
@@ -22,8 +24,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import prange
 
+from ..core.jit import jit as _jit
 from ..core.jit import jit_serial as _jit_serial
+from ..core.jit import rows_threads
 
 
 def adam_state(opt, p) -> dict:
@@ -75,11 +80,11 @@ def fits(opt) -> bool:
     return all(p.device.type == "cpu" and p.dtype == torch.float32 and p.is_contiguous() for p in group["params"])
 
 
-@_jit_serial
+@_jit
 def _noise_rows(means, quats, scales, opacities, z, scaler):
     """means[g] += (R diag(s)^2 R^T z[g]) * sigmoid(100 ((1 - o) - 0.995)) * scaler; quats unnormalised wxyz,
     scales in metres, opacities in (0, 1)."""
-    for g in range(means.shape[0]):
+    for g in prange(means.shape[0]):
         gate = np.float32(1.0) / (np.float32(1.0) + np.float32(math.exp(-np.float32(100.0) * (
             (np.float32(1.0) - opacities[g]) - np.float32(0.995)))))
         k = gate * scaler
@@ -102,7 +107,8 @@ def _noise_rows(means, quats, scales, opacities, z, scaler):
 def mcmc_noise(means, quats, scales, opacities, z, scaler: float) -> None:
     """In place on ``means`` [N, 3] (a float32 CPU tensor): the covariance-shaped, opacity-gated noise of ``z``."""
     f = lambda t: t.detach().contiguous().numpy()  # noqa: E731
-    _noise_rows(means.detach().numpy(), f(quats), f(scales), f(opacities), f(z), np.float32(scaler))
+    with rows_threads(means.shape[0]):
+        _noise_rows(means.detach().numpy(), f(quats), f(scales), f(opacities), f(z), np.float32(scaler))
 
 
 @_jit_serial

@@ -9,7 +9,7 @@ import torch
 
 from eligsir_o3d import Config, Reconstructor
 from eligsir_o3d.core.jit import threads_for
-from eligsir_o3d.core.threads import PARALLEL_MIN_PIXELS, torch_threads
+from eligsir_o3d.core.threads import PARALLEL_MIN_PIXELS, PARALLEL_MIN_ROWS, torch_threads
 from eligsir_o3d.datasets.synthetic import SyntheticRoom
 
 
@@ -56,6 +56,10 @@ def test_the_mapper_runs_torch_on_the_configured_threads(two_torch_threads, sett
     assert torch.get_num_threads() == 2
     assert {t for px, t in seen if px < PARALLEL_MIN_PIXELS} == {small}
     assert {t for px, t in seen if px >= PARALLEL_MIN_PIXELS} == {2}  # a large image keeps the caller's threads
+    seen.clear()
+    rec.last_in_view = PARALLEL_MIN_ROWS  # as after an update with that many Gaussians in view
+    rec._step(0.25)
+    assert seen[0][0] < PARALLEL_MIN_PIXELS and seen[0][1] == 2  # many rows in view: the caller's threads too
 
 
 def test_a_small_kernel_runs_on_one_numba_thread_with_the_same_bits():

@@ -134,6 +134,15 @@ def test_cpu_binning_equals_reference_binning(seed):
     ref_offsets, ref_flat = tile_lists(bins)
     assert tiles_x == bins.tiles_x
     assert torch.equal(offsets, ref_offsets) and torch.equal(flat, ref_flat)
+    # the binning kernel in parallel parts (a map with many Gaussians in view): the same lists for any part count
+    from eligsir_o3d.render._cpu_kernels import bin_tiles_fill
+    radii = proj.radii.to(torch.int32).numpy()
+    vis = np.flatnonzero(radii > 0)
+    by_depth = vis[np.argsort(proj.depths.numpy()[vis], kind="stable")].astype(np.int64)
+    args = (proj.means2d.float().numpy(), radii, by_depth, tiles_x, bins.tiles_y)
+    for chunks in (1, 2, 5, 64):
+        o, f = bin_tiles_fill(*args, chunks)
+        assert np.array_equal(o, ref_offsets.numpy()) and np.array_equal(f, ref_flat.numpy()), chunks
 
 
 @pytest.mark.parametrize("seed", [0, 7])
