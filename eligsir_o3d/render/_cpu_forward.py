@@ -28,9 +28,10 @@ def make(bw: int, bh: int):
         means2d [N, 2], conics [N, 3], opacities [N], feats [N, 4] (r, g, b, depth), bounds [N, 3]
         (:func:`._cpu_kernels.cull_bounds`), all float32; offsets [T + 1] and flat_ids [M] (int64): tile t's
         depth-sorted Gaussians are ``flat_ids[offsets[t]:offsets[t + 1]]``; order [T]: the tiles to run, heaviest
-        first, in ``slots`` parallel tasks (:func:`._cpu_kernels.task_slots`). Writes out_feats [H, W, 4] (accumulated features), out_alpha [H, W] (accumulated opacity), out_T
-        [H, W] (final transmittance) and out_last [H, W] int32 (how far the pixel walked through its block's list),
-        and the gathered tiles (par, sub, sub_n: :func:`._cpu_kernels.gather_shapes`) that the backward pass reads.
+        first, in ``slots`` parallel tasks (:func:`._cpu_kernels.task_slots`). Writes out_feats [H, W, 4]
+        (accumulated features), out_alpha [H, W] (accumulated opacity), out_T [H, W] (final transmittance) and
+        out_last [H, W] int32 (how far the pixel walked through its block's list), and the gathered tiles (par, sub,
+        sub_n: :func:`._cpu_kernels.gather_shapes`) that the backward pass reads.
 
         The pixels of a block advance through the block's list together, branch-free (one SIMD batch); a pixel
         whose compositing has stopped is masked out, and the block stops when all its pixels have. Every

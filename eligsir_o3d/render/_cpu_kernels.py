@@ -22,8 +22,9 @@ polynomial within 2 ulp of float32 exp (the reference's exp differs from it by r
 
 Parallelism: a few tasks per thread (``prange`` over :func:`task_slots`, taken one at a time so that the cores share
 uneven work dynamically), each running every slots-th tile of the heaviest-first order with its pixel-block scratch
-allocated once; nothing shared is sliced inside the loop (a view's reference count is updated atomically). Tiles never write to the same memory: the backward pass writes one gradient row per
-(tile, Gaussian) intersection and the caller sums the rows per Gaussian (``index_add_``), so no atomics are needed.
+allocated once; nothing shared is sliced inside the loop (a view's reference count is updated atomically). Tiles
+never write to the same memory: the backward pass writes one gradient row per (tile, Gaussian) intersection and
+sums the rows per Gaussian in one serial pass after the tiles, so no atomics are needed.
 
 Compilation is lazy (first call) and cached on disk (``cache=True``), keyed by numba on the CPU name and features it
 compiles for (``NUMBA_CPU_NAME`` / ``NUMBA_CPU_FEATURES``, else the host): numba writes next to this file when the
