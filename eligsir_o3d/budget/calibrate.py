@@ -48,8 +48,9 @@ def machine_key(device, renderer: str, pose_refine: bool = True) -> dict:
     return {"host": platform.node(), "machine": platform.machine(), "cpus": os.cpu_count(), "device": str(dev),
             "device_name": name, "renderer": renderer, "torch": torch.__version__, "eligsir_o3d": __version__,
             "pose_refine": bool(pose_refine),
-            "fit": 4}  # 2: frame_s measured (fits cached before scaled it with the updates); 3: refined updates timed;
-    # 4: updates ~1.3x cheaper on 2 threads (core.threads: small work on one thread), so older fits over-price them
+            "fit": 5}  # 2: frame_s measured (fits cached before scaled it with the updates); 3: refined updates timed;
+    # 4: updates ~1.3x cheaper on 2 threads (core.threads: small work on one thread), so older fits over-price them;
+    # 5: the compositing kernels ~1.2x cheaper on 2 threads (stop 41)
 
 
 def cache_path(key: dict) -> Path:

@@ -35,13 +35,17 @@ class CostModel:
     ``frame_s`` 1.8 -> 0.76 ms after small work stopped waking sleeping OpenMP workers (:mod:`..core.threads`): the
     default kitchen run (the same map bit for bit) mapped 1.29x faster side by side, three interleaved pairs on one
     machine, and that saving is the fixed per-update and per-frame work's; the per-Gaussian and pixel terms stand.
-    At 3k Gaussians the model now prices 80x60 / 160x120 / 320x240 / 640x480 updates at 3.4 / 6.3 / 18 / 66 ms.
+    2026-12-03 (issue 32, stop 41): the four update terms x0.82 after the compositing kernels' scratch left their
+    parallel loop and the tiles are gathered once (renderers.md): the default kitchen run's updates cost 0.82 of
+    the time of the code of the last fit (median of five interleaved pairs on one machine, mapping time 0.74-0.94,
+    per update 0.73-0.93; each run from a neutral folder so that PYTHONPATH chose the checkout), the frame terms
+    unchanged. At 3k Gaussians: 80x60 / 160x120 / 320x240 / 640x480 updates at 2.8 / 5.2 / 15 / 54 ms.
     """
 
-    update_s: float = 0.00118
-    gaussian_s: float = 4.0e-7
-    pixel_s: float = 1.28e-7
-    pixel_gaussian_s: float = 2.6e-11
+    update_s: float = 0.00097
+    gaussian_s: float = 3.3e-7
+    pixel_s: float = 1.05e-7
+    pixel_gaussian_s: float = 2.13e-11
     frame_s: float = 0.00076
 
     @classmethod
