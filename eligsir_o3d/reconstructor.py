@@ -135,8 +135,7 @@ class Reconstructor(ReconstructorState):
 
     def _threads(self, pixels: int):
         """torch's threads for work on images of ``pixels``: ``config.optim.torch_threads`` on the CPU below
-        :data:`.core.threads.PARALLEL_MIN_PIXELS` while the last update's rows in view were below
-        :data:`.core.threads.PARALLEL_MIN_ROWS`, else as the caller set them (:mod:`.core.threads`)."""
+        PARALLEL_MIN_PIXELS pixels and PARALLEL_MIN_ROWS rows last in view, else the caller's (:mod:`.core.threads`)."""
         rows = self.last_in_view or 0
         small = self.device.type == "cpu" and pixels < PARALLEL_MIN_PIXELS and rows < PARALLEL_MIN_ROWS
         return torch_threads(self.config.optim.torch_threads if small else 0)

@@ -64,6 +64,11 @@ def _gather_pool():
     return _pool
 
 
+def _binning():
+    from . import _cpu_binning
+    return _cpu_binning
+
+
 def _proj_kernels():
     from . import _cpu_projection
     return _cpu_projection
@@ -95,7 +100,7 @@ def warmup() -> float:
         out_f, out_a = np.empty((h, w, 4), f32), np.empty((h, w), f32)
         out_T, out_last = np.empty((h, w), f32), np.empty((h, w), np.int32)
         bounds = np.empty((1, 3), f32)
-        k.bin_tiles_fill(means2d, np.array([2], np.int32), np.zeros(1, np.int64), 1, 1, 1)
+        _binning().bin_tiles_fill(means2d, np.array([2], np.int32), np.zeros(1, np.int64), 1, 1, 1)
         k.cull_bounds(conics, opac, bounds)
         forward, backward = _compositors()
         gathered = k.gather_buffers(1, 1, k.default_block())
@@ -231,7 +236,8 @@ def bin_tiles_csr(proj: Projection, width: int, height: int) -> tuple[torch.Tens
     # in parallel parts from PARALLEL_MIN_ROWS visible Gaussians on (77k: 2.8 ms on one thread), else in one
     chunks = k.task_slots(vis.shape[0]) if vis.shape[0] >= PARALLEL_MIN_ROWS else 1
     with _rows_threads(vis.shape[0]):
-        offsets, flat = k.bin_tiles_fill(_f32(proj.means2d).numpy(), radii, by_depth, tiles_x, tiles_y, chunks)
+        offsets, flat = _binning().bin_tiles_fill(_f32(proj.means2d).numpy(), radii, by_depth, tiles_x, tiles_y,
+                                                  chunks)
     return torch.from_numpy(offsets), torch.from_numpy(flat), tiles_x
 
 

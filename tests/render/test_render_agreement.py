@@ -135,7 +135,7 @@ def test_cpu_binning_equals_reference_binning(seed):
     assert tiles_x == bins.tiles_x
     assert torch.equal(offsets, ref_offsets) and torch.equal(flat, ref_flat)
     # the binning kernel in parallel parts (a map with many Gaussians in view): the same lists for any part count
-    from eligsir_o3d.render._cpu_kernels import bin_tiles_fill
+    from eligsir_o3d.render._cpu_binning import bin_tiles_fill
     radii = proj.radii.to(torch.int32).numpy()
     vis = np.flatnonzero(radii > 0)
     by_depth = vis[np.argsort(proj.depths.numpy()[vis], kind="stable")].astype(np.int64)
