@@ -17,7 +17,8 @@ thread (wall clock), and the report gives the median of these pairs beside the r
 each such worker times a compiled loop that parallelises perfectly, on one thread and on its threads, once a round,
 to say what the machine's threads delivered at those moments (a shared or throttled VM may give its second core
 only part of the time: one 2-core VM here ran the ideal loop 1.1x to 2.0x faster on two threads, changing within
-seconds), so that an update's speed-up is read against the machine's and not against 2. ``--in-view K``: every map holds the same K Gaussians in the views (the map of size K) and
+seconds), so that an update's speed-up is read against the machine's and not against 2. ``--in-view K``: every
+map holds the same K Gaussians in the views (the map of size K) and
 its remaining ``n - K`` Gaussians out of every view (copies of the kitchen's points shifted by tens of metres,
 those that some view could reach dropped), the scene of a large map whose update sees one room; the table adds
 the Gaussians the updates supervised (median). ``NAME=DIR`` names a checkout (``DIR/eligsir_o3d`` is the package timed):
@@ -304,11 +305,10 @@ def report(results: dict, codes, threads) -> dict:
             ms = [table[f"{th}x{n}"][name] for n in sizes]
             print(f"# {name}, {th} thread(s): time / time at {sizes[0]} Gaussians: "
                   + " ".join(f"{n}: {m / ms[0]:.2f}" for n, m in zip(sizes, ms)))
-        for th in threads:
-            paired = [[row["seconds_1"][i] / t for row in (r[gi] for r in results[(name, th)])
-                       for i, t in enumerate(row["seconds"]) if i < len(row.get("seconds_1", []))]
+        for th in (t for t in threads if t > 1):
+            paired = [[t1 / t for r in results[(name, th)] for t, t1 in zip(r[gi]["seconds"], r[gi]["seconds_1"])]
                       for gi in range(len(sizes))]
-            if th > 1 and all(paired):
+            if all(paired):
                 print(f"# {name}: speed-up of {th} over 1 thread, paired (every update on {th} threads followed by one "
                       "on 1 thread in the same process, wall clock; median of the pairs) "
                       + "/".join(f"{float(np.median(p)):.2f}" for p in paired))

@@ -233,10 +233,11 @@ def gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, y
 SLOTS_PER_THREAD = 4
 
 
-def task_slots(n_tiles: int) -> int:
-    """The compositing kernels' task count for ``n_tiles`` tiles on numba's current threads (an argument of the
-    kernels, not read inside them: a kernel that calls ``numba.get_num_threads`` cannot be cached on disk)."""
-    return max(1, min(n_tiles, SLOTS_PER_THREAD * numba.get_num_threads()))
+def task_slots(items: int) -> int:
+    """The parallel task count for ``items`` work items (the compositing kernels' tiles, the binning's Gaussians) on
+    numba's current threads; an argument of the kernels, not read inside them: a kernel that calls
+    ``numba.get_num_threads`` cannot be cached on disk."""
+    return max(1, min(items, SLOTS_PER_THREAD * numba.get_num_threads()))
 
 
 def run(kernel, *args) -> None:

@@ -33,24 +33,20 @@ class ScratchPool:
     def take(self, *shapes: tuple) -> tuple:
         """Views of the given shapes (one per dtype) on a free set, grown (by a quarter more) when too small."""
         sizes = [math.prod(s) for s in shapes]
-        nbytes = sum(n * d.itemsize for n, d in zip(sizes, self.dtypes))
+        if sum(n * d.itemsize for n, d in zip(sizes, self.dtypes)) > self.max_bytes:
+            return tuple(np.empty(s, d) for s, d in zip(shapes, self.dtypes))  # not kept
         with self._lock:
             if self._own_refs is None:
                 probe = [np.empty(1)]
                 self._own_refs = sys.getrefcount(probe[0])
-            chosen = None
-            for i in range(len(self.sets)):
-                if all(sys.getrefcount(self.sets[i][j]) == self._own_refs for j in range(len(self.dtypes))):
-                    chosen = i
-                    break
-            if nbytes > self.max_bytes:
-                arrays = [np.empty(n, d) for n, d in zip(sizes, self.dtypes)]
-            elif chosen is not None and all(self.sets[chosen][j].size >= sizes[j] for j in range(len(sizes))):
-                arrays = self.sets[chosen]
+            free = [i for i in range(len(self.sets))
+                    if all(sys.getrefcount(self.sets[i][j]) == self._own_refs for j in range(len(self.dtypes)))]
+            if free and all(a.size >= n for a, n in zip(self.sets[free[0]], sizes)):
+                arrays = self.sets[free[0]]
             else:
                 arrays = [np.empty(n + n // 4, d) for n, d in zip(sizes, self.dtypes)]
-                if chosen is not None:
-                    self.sets[chosen] = arrays
+                if free:
+                    self.sets[free[0]] = arrays  # a free set too small: replaced by a larger one
                 elif len(self.sets) < self.keep:
                     self.sets.append(arrays)
             return tuple(a[:n].reshape(s) for a, n, s in zip(arrays, sizes, shapes))
