@@ -99,6 +99,8 @@ class GaussianMap:
         self.params = torch.nn.ParameterDict({n: torch.nn.Parameter(v.to(self.device)) for n, v in empty.items()})
         self.optimizers = {n: self._make_optimizer(n) for n in PARAM_NAMES}
         self.supervision_focal: float | None = None  # the finest focal length [px] an update supervised it at
+        self.rows_epoch = 0  # changes whenever row ids change meaning (removal, reload)
+        self.row_index = None  # a spatial index over the rows (render.cell_index), told of every change
 
     def _make_optimizer(self, name: str) -> torch.optim.Adam:
         a = self.adam
@@ -170,17 +172,24 @@ class GaussianMap:
         """Remove Gaussians where ``mask`` [N] is True."""
         keep = ~mask.to(self.device)
         self._resize(lambda name, p: p[keep], lambda name, s: s[keep])
+        self.rows_epoch += 1
 
     def assign(self, idx: torch.Tensor, values: dict[str, torch.Tensor], reset_state: bool = True) -> None:
         """Overwrite raw parameters at ``idx`` (MCMC relocation/replacement), zeroing their Adam moments."""
         with torch.no_grad():
             for name, v in values.items():
                 self.params[name][idx] = v.to(self.params[name].dtype)
+        self.touched(idx)
         if reset_state:
             for name in values:
                 for s in self.optimizers[name].state.get(self.params[name], {}).values():
                     if isinstance(s, torch.Tensor) and s.ndim > 0 and s.shape[0] == len(self):
                         s[idx] = 0
+
+    def touched(self, rows: torch.Tensor | None = None) -> None:
+        """Tell the row index that ``rows`` (ids; None: all) changed in place (Adam, position noise, assignment)."""
+        if self.row_index is not None:
+            self.row_index.mark(rows)
 
     def _resize(self, param_fn, state_fn) -> None:
         """Rewrite every parameter with ``param_fn`` and its per-Gaussian Adam moments with ``state_fn``."""
@@ -206,6 +215,7 @@ class GaussianMap:
         pass, :func:`._update_kernels.adam_step`: torch's per-optimizer overhead was most of the cost)."""
         from ..optim import update_kernels as uk
 
+        self.touched()
         if self.adam.rows():
             from ..optim.row_adam import row_adam_step
 
@@ -263,6 +273,7 @@ class GaussianMap:
         }
 
     def load_state_dict(self, state: dict) -> None:
+        self.rows_epoch += 1
         self.sh_degree = int(state["sh_degree"])
         f = state.get("supervision_focal")  # absent in maps written before it was kept
         self.supervision_focal = None if f is None else float(f)

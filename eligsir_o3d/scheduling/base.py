@@ -69,9 +69,9 @@ class MapContext:
         optim = getattr(self._owner.config, "optim", None)
         if not getattr(optim, "cull", False):
             return len(self.gmap)
-        from ..render.culling import in_view
+        from ..render.culling import map_in_view
 
-        return int(in_view(self.gmap.params["means"], self.gmap.params["scales"], camera, T_world_cam).numel())
+        return int(map_in_view(self.gmap, camera, T_world_cam).numel())
 
     @property
     def plan(self):

@@ -120,6 +120,7 @@ def inject_noise(gmap: GaussianMap, scaler: float, generator: torch.Generator | 
     if rows is not None:
         _noise_at(gmap, scaler, generator, rows)
         return
+    gmap.touched()
     if gmap.device.type == "cpu" and gmap.means.dtype == torch.float32:
         from ..optim.update_kernels import mcmc_noise
 
@@ -154,6 +155,7 @@ def _noise_at(gmap: GaussianMap, scaler: float, generator, rows: torch.Tensor) -
         M = quat_to_rotmat(quats) * scales[:, None, :]
         means += torch.einsum("nij,nj->ni", M @ M.transpose(1, 2), z) * (gate * scaler)[:, None]
     p["means"].data[rows] = means
+    gmap.touched(rows)
 
 
 class MCMCRefiner:
