@@ -201,6 +201,9 @@ def evaluate(folder: str | Path, voxel_size: float = VOXEL_SIZE, weight_threshol
             _picture(Path(pictures) / f"heldout_{i:05d}.png", g, t_color, gt)
     keys = [k for k in rows[0] if k != "index" and not k.endswith(("_dx", "_dy"))]
     summary = {k: float(np.mean([r[k] for r in rows])) for k in keys}
+    # where along the recording the map leads or trails the peer: held-out views in stream order, in thirds
+    summary["margin_by_third"] = [float(np.mean([r["gaussian_covered"] - r["tsdf_covered"] for r in part]))
+                                  for part in np.array_split(np.array(rows, dtype=object), 3) if len(part)]
     return {"results": str(folder), "sequence": str(seq.path), "frames_source": len(poses), "views": len(rows),
             "voxel_size_m": voxel_size, "weight_threshold": weight_threshold, "tsdf_blocks": int(vbg.hashmap().size()),
             "tsdf_integrate_ms_per_frame": 1e3 * per_frame_s, "tsdf_build_s": fuse_s,
@@ -250,6 +253,9 @@ def format_table(r: dict) -> str:
                  f"{r['tsdf_flat']:.2f}, broad colour {r['gaussian_lowpass']:.2f} / {r['tsdf_lowpass']:.2f}; "
                  f"best shift {r['gaussian_shift_px']:.1f} / {r['tsdf_shift_px']:.1f} px, there "
                  f"{r['gaussian_shifted']:.2f} / {r['tsdf_shifted']:.2f}")
+    if r.get("margin_by_third"):
+        lines.append("  Gaussian - TSDF on the covered pixels, held-out views in stream order by thirds (start / middle "
+                     "/ end): " + " / ".join(f"{m:+.2f}" for m in r["margin_by_third"]) + " dB")
     return "\n".join(lines)
 
 

@@ -223,7 +223,7 @@ def main(argv=None) -> int:
         if not eq or not (Path(d) / "eligsir_o3d").is_dir():
             ap.error(f"--code {name}{eq}{d}: expected NAME=DIR with DIR/eligsir_o3d")
     tmp = tempfile.TemporaryDirectory(prefix="update_time_")
-    if args.in_view is not None and min(args.gaussians) < args.in_view:
+    if args.in_view is not None and not args.maps and min(args.gaussians) < args.in_view:
         ap.error(f"--in-view {args.in_view}: every --gaussians size must be at least that")
     plys = args.maps or write_maps(args.gaussians, Path(tmp.name), args.data, in_view=args.in_view)
     results = run_rounds(start_workers(codes, args, plys), args.rounds)

@@ -41,6 +41,9 @@ def test_tsdf_peer_of_a_run(run_folder, tmp_path):
     assert {"gaussian_shift_dx", "tsdf_shift_dy"} <= set(r["per_view"][0])
     assert "gaussian_shift_dx" not in r  # a mean signed shift says nothing: per view only
     assert "where the error lies" in tb.format_table(r)
+    margins = [v["gaussian_covered"] - v["tsdf_covered"] for v in r["per_view"]]  # 4 views: thirds of 2, 1, 1
+    assert r["margin_by_third"] == pytest.approx([np.mean(margins[:2]), margins[2], margins[3]])
+    assert "by thirds" in tb.format_table(r)
     pics = sorted((tmp_path / "pics").glob("*.png"))
     assert len(pics) == 1  # Gaussian | TSDF | reference, side by side
     import imageio.v3 as iio
