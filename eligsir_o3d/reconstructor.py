@@ -141,9 +141,9 @@ class Reconstructor(ReconstructorState):
         return torch_threads(self.config.optim.torch_threads if small else 0)
 
     def finalize(self, deadline: float | None = None) -> None:
-        """The bounded drain after the stream (the paper's ME map state): ``config.clock.drain_updates`` updates,
-        or fewer if the :meth:`clock_now` ``deadline`` comes first (real-time replay bounds it in time)."""
-        self.optimize(self.config.clock.drain_updates, deadline)
+        """The bounded drain (the paper's ME state): ``clock.drain_updates`` updates, or fewer by ``deadline``."""
+        with self.views.drain():
+            self.optimize(self.config.clock.drain_updates, deadline)
 
     def refine(self, steps: int, scale: float | None = None) -> None:
         """``steps`` post-mapping updates (the paper's +N PM), at ``scale`` (default: config.optim.refine_scale)."""

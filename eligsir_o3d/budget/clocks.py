@@ -346,5 +346,6 @@ class BudgetClock(_Replay):
             rec.finalize()
             return 0.0
         t0 = self.t
-        self._updates(rec, self.drain_updates)
+        with rec.views.drain():
+            self._updates(rec, self.drain_updates)
         return self.t - t0

@@ -8,6 +8,7 @@ policy is active.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
+from contextlib import contextmanager
 from types import SimpleNamespace
 from typing import Callable
 
@@ -104,6 +105,17 @@ class ViewPolicy(Policy):
     """Which released frames are retained, and which retained view supervises the next update."""
 
     name = "views"
+    draining = False  # True while the bounded drain after the stream runs (:meth:`drain`)
+
+    @contextmanager
+    def drain(self):
+        """Around the bounded drain after the stream (``Reconstructor.finalize``, a budget clock's priced drain),
+        where a policy may select differently (:class:`.views.MapGuidedViews`: ``views.drain_replay``)."""
+        self.draining = True
+        try:
+            yield
+        finally:
+            self.draining = False
 
     @abstractmethod
     def admit(self, frame: Frame, ctx: MapContext) -> bool:

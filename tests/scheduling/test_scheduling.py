@@ -311,3 +311,43 @@ def test_retained_share_replays_every_retained_view_in_turn():
     assert len(retained) == 6 and min(counts) >= 0.8 * max(counts)  # ~60 retained picks spread evenly
     with pytest.raises(ValueError, match="retained_replay"):
         MapGuidedViews(ViewConfig(retained_replay="uniform"))
+
+
+@pytest.mark.parametrize("replay", ["stalest", "policy"])
+def test_the_drain_replays_every_retained_view_in_turn(replay):
+    """Inside ``drain()`` (the bounded drain after the stream) ``drain_replay="stalest"`` selects every retained
+    view once per round, active or not, whatever the priorities; outside it, and with "policy", the stream's
+    selection (here the active pair's priorities) decides."""
+    cfg = ViewConfig(min_novelty=0.0, active_size=2, active_share=1.0, refresh_every=1000, fresh_updates=1,
+                     drain_replay=replay)
+    views, ctx = MapGuidedViews(cfg), _ctx()
+    frames = [_plane_frame(_pose(3.0 * i), i) for i in range(8)]
+    for f in frames:
+        assert views.admit(f, ctx)
+    _, depth, cam = frames[0].at_scale(1.0)
+    rng = torch.Generator().manual_seed(1)
+
+    def picks(n):
+        out = []
+        for _ in range(n):
+            f = views.select(rng)
+            out.append(f.index)
+            views.feedback(f, None, torch.full((cam.height, cam.width), 0.01), depth, cam)
+        return out
+
+    stream = set(picks(40))
+    assert len(stream) == 2  # the stream: the active pair only (active_share 1)
+    with views.drain():
+        assert views.draining
+        drained = picks(16)
+    assert not views.draining
+    if replay == "stalest":
+        assert sorted(drained[:8]) == list(range(8)) and sorted(drained[8:]) == list(range(8))
+        assert set(drained[6:8]) == stream  # the views never updated come first, the active pair last
+    else:
+        assert len(set(drained)) == 2
+    with pytest.raises(RuntimeError), views.drain():
+        raise RuntimeError("a failing update")
+    assert not views.draining  # left on an error too
+    with pytest.raises(ValueError, match="drain_replay"):
+        MapGuidedViews(ViewConfig(drain_replay="least"))
