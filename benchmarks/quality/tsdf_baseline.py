@@ -254,8 +254,8 @@ def format_table(r: dict) -> str:
                  f"best shift {r['gaussian_shift_px']:.1f} / {r['tsdf_shift_px']:.1f} px, there "
                  f"{r['gaussian_shifted']:.2f} / {r['tsdf_shifted']:.2f}")
     if r.get("margin_by_third"):
-        lines.append("  Gaussian - TSDF on the covered pixels, held-out views in stream order by thirds (start / middle "
-                     "/ end): " + " / ".join(f"{m:+.2f}" for m in r["margin_by_third"]) + " dB")
+        lines.append("  Gaussian - TSDF on the covered pixels, held-out views in stream order by thirds "
+                     "(start / middle / end): " + " / ".join(f"{m:+.2f}" for m in r["margin_by_third"]) + " dB")
     return "\n".join(lines)
 
 

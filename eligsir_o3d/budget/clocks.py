@@ -340,8 +340,7 @@ class BudgetClock(_Replay):
         self.t = max(self.t, deadline)
 
     def drain(self, rec, acquisition_s: float) -> float:
-        """The bounded drain (``clock.drain_updates`` updates, as ``rec.finalize`` runs them), priced like any
-        update; returns its modelled seconds, so that modelled and measured mapping time cover the same work."""
+        """The bounded drain (as ``rec.finalize``), priced like any update; returns its modelled seconds."""
         if self.drain_updates is None:
             rec.finalize()
             return 0.0

@@ -40,8 +40,8 @@ def _jit_fast(fn):
 
 def _make_counts(listed: bool):
     """The view test over rows in chunks: ``listed`` False, chunk c is rows first[c]..last[c] - 1 of the map; True,
-    it is positions first[c]..last[c] - 1 of the row list ``rows`` (a cell index's groups, :mod:`.cell_index`). One kernel body for both (``listed`` is a closure constant: numba prunes the branch and
-    keys its cache on it)."""
+    it is positions first[c]..last[c] - 1 of the row list ``rows`` (a cell index's groups, :mod:`.cell_index`).
+    One kernel body for both (``listed`` is a closure constant: numba prunes the branch and keys its cache on it)."""
 
     def frustum_counts(means, log_scales, rows, first, last, V, cam, mask, counts):
         """mask[i] = 1 where the i-th row may reach the image (see :func:`frustum_rows`); counts[c] = ones in chunk

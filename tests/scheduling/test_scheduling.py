@@ -292,35 +292,10 @@ def test_fidelity_default_picks_half_scale_at_a_tenth_of_real_time():
     assert set(scales[-20:]) == {0.5}
 
 
-def test_retained_share_replays_every_retained_view_in_turn():
-    """The retained share is a round robin (stalest first): no retained view starves, whatever its priority."""
-    cfg = ViewConfig(min_novelty=0.0, active_size=2, active_share=0.5, refresh_every=1000, fresh_updates=1)
-    views, ctx = MapGuidedViews(cfg), _ctx()
-    frames = [_plane_frame(_pose(3.0 * i), i) for i in range(8)]
-    for f in frames:
-        assert views.admit(f, ctx)
-    _, depth, cam = frames[0].at_scale(1.0)
-    rng = torch.Generator().manual_seed(1)
-    picks = []
-    for _ in range(120):
-        f = views.select(rng)
-        picks.append(f.index)
-        views.feedback(f, None, torch.full((cam.height, cam.width), 0.01), depth, cam)
-    retained = [i for i in range(8) if not views.is_active(frames[i])]
-    counts = [picks.count(i) for i in retained]
-    assert len(retained) == 6 and min(counts) >= 0.8 * max(counts)  # ~60 retained picks spread evenly
-    with pytest.raises(ValueError, match="retained_replay"):
-        MapGuidedViews(ViewConfig(retained_replay="uniform"))
-
-
-@pytest.mark.parametrize("replay", ["stalest", "policy"])
-def test_the_drain_replays_every_retained_view_in_turn(replay):
-    """Inside ``drain()`` (the bounded drain after the stream) ``drain_replay="stalest"`` selects every retained
-    view once per round, active or not, whatever the priorities; outside it, and with "policy", the stream's
-    selection (here the active pair's priorities) decides."""
-    cfg = ViewConfig(min_novelty=0.0, active_size=2, active_share=1.0, refresh_every=1000, fresh_updates=1,
-                     drain_replay=replay)
-    views, ctx = MapGuidedViews(cfg), _ctx()
+def _eight_views(**cfg):
+    """A scheduler with eight admitted plane views (two active), and ``picks(n)``: n selections, each fed back."""
+    views = MapGuidedViews(ViewConfig(min_novelty=0.0, active_size=2, refresh_every=1000, fresh_updates=1, **cfg))
+    ctx = _ctx()
     frames = [_plane_frame(_pose(3.0 * i), i) for i in range(8)]
     for f in frames:
         assert views.admit(f, ctx)
@@ -335,6 +310,26 @@ def test_the_drain_replays_every_retained_view_in_turn(replay):
             views.feedback(f, None, torch.full((cam.height, cam.width), 0.01), depth, cam)
         return out
 
+    return views, frames, picks
+
+
+def test_retained_share_replays_every_retained_view_in_turn():
+    """The retained share is a round robin (stalest first): no retained view starves, whatever its priority."""
+    views, frames, pick = _eight_views(active_share=0.5)
+    picks = pick(120)
+    retained = [i for i in range(8) if not views.is_active(frames[i])]
+    counts = [picks.count(i) for i in retained]
+    assert len(retained) == 6 and min(counts) >= 0.8 * max(counts)  # ~60 retained picks spread evenly
+    with pytest.raises(ValueError, match="retained_replay"):
+        MapGuidedViews(ViewConfig(retained_replay="uniform"))
+
+
+@pytest.mark.parametrize("replay", ["stalest", "policy"])
+def test_the_drain_replays_every_retained_view_in_turn(replay):
+    """Inside ``drain()`` (the bounded drain after the stream) ``drain_replay="stalest"`` selects every retained
+    view once per round, active or not, whatever the priorities; outside it, and with "policy", the stream's
+    selection (here the active pair's priorities) decides."""
+    views, _, picks = _eight_views(active_share=1.0, drain_replay=replay)
     stream = set(picks(40))
     assert len(stream) == 2  # the stream: the active pair only (active_share 1)
     with views.drain():
