@@ -24,7 +24,7 @@ from .render.culling import InView
 from .config import Config
 from .core.frame import Frame, FrameError
 from .core.gaussians import EPS2D, GaussianMap
-from .core.threads import PARALLEL_MIN_PIXELS, PARALLEL_MIN_ROWS, torch_threads
+from .core.threads import TORCH_MIN_PIXELS, TORCH_MIN_ROWS, torch_threads
 from .optim.losses import supervision_loss
 from .pose.refine import PoseRefiner
 from .reconstructor_state import ReconstructorState
@@ -135,9 +135,9 @@ class Reconstructor(ReconstructorState):
 
     def _threads(self, pixels: int):
         """torch's threads for work on images of ``pixels``: ``config.optim.torch_threads`` on the CPU below
-        PARALLEL_MIN_PIXELS pixels and PARALLEL_MIN_ROWS rows last in view, else the caller's (:mod:`.core.threads`)."""
+        TORCH_MIN_PIXELS pixels and TORCH_MIN_ROWS rows last in view, else the caller's (:mod:`.core.threads`)."""
         rows = self.last_in_view or 0
-        small = self.device.type == "cpu" and pixels < PARALLEL_MIN_PIXELS and rows < PARALLEL_MIN_ROWS
+        small = self.device.type == "cpu" and pixels < TORCH_MIN_PIXELS and rows < TORCH_MIN_ROWS
         return torch_threads(self.config.optim.torch_threads if small else 0)
 
     def finalize(self, deadline: float | None = None) -> None:

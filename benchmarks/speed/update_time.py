@@ -12,8 +12,11 @@ runs ``--warm`` updates untimed (Adam's moments allocated, caches warm) and time
 one; the table gives the median over all timed updates of all rounds and the ratio to the first checkout.
 
 Clock: the process's CPU time with one thread (a measure of work that holds up on a shared machine), the
-wall clock with more. Threads: a worker with more than one thread follows each timed update with one on a single
-thread (wall clock), and the report gives the median of these pairs beside the ratio of the workers' medians; and
+wall clock with more. Threads: a worker with more than one thread follows each round's timed updates with as many
+on a single thread (wall clock, after one untimed), and the report gives the median over rounds of the ratio of
+their medians beside the ratio of the workers' medians (until stop 43 each timed update was followed by one on one
+thread: every update on two threads then started with the second core's caches cold from the update before, which
+hid most of what a second thread buys on consecutive updates, as a mapping run makes them); and
 each such worker times a compiled loop that parallelises perfectly, on one thread and on its threads, once a round,
 to say what the machine's threads delivered at those moments (a shared or throttled VM may give its second core
 only part of the time: one 2-core VM here ran the ideal loop 1.1x to 2.0x faster on two threads, changing within
@@ -88,12 +91,14 @@ def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in
                 rec.optimize(1, scale=0.25)
                 ts.append(clock() - t0)
                 seen.append(getattr(rec, "last_in_view", None) or len(rec.gmap))
-                if threads > 1:  # the paired sample: the next update on one thread, wall clock too
-                    set_threads(1)
+            if threads > 1:  # the paired sample: as many updates on one thread next (after one untimed), wall clock
+                set_threads(1)
+                rec.optimize(1, scale=0.25)
+                for _ in range(updates):
                     t0 = clock()
                     rec.optimize(1, scale=0.25)
                     ts1.append(clock() - t0)
-                    set_threads(threads)
+                set_threads(threads)
             rows.append({"gaussians": n0, "gaussians_end": len(rec.gmap), "seconds": ts, "in_view": seen,
                          "seconds_1": ts1})
         print(json.dumps({"rows": rows, "ideal": ideal_speedup(probe, threads)}), flush=True)
@@ -306,12 +311,12 @@ def report(results: dict, codes, threads) -> dict:
             print(f"# {name}, {th} thread(s): time / time at {sizes[0]} Gaussians: "
                   + " ".join(f"{n}: {m / ms[0]:.2f}" for n, m in zip(sizes, ms)))
         for th in (t for t in threads if t > 1):
-            paired = [[t1 / t for r in results[(name, th)] for t, t1 in zip(r[gi]["seconds"], r[gi]["seconds_1"])]
-                      for gi in range(len(sizes))]
+            paired = [[float(np.median(r[gi]["seconds_1"]) / np.median(r[gi]["seconds"]))
+                       for r in results[(name, th)] if r[gi]["seconds_1"]] for gi in range(len(sizes))]
             if all(paired):
-                print(f"# {name}: speed-up of {th} over 1 thread, paired (every update on {th} threads followed by one "
-                      "on 1 thread in the same process, wall clock; median of the pairs) "
-                      + "/".join(f"{float(np.median(p)):.2f}" for p in paired))
+                print(f"# {name}: speed-up of {th} over 1 thread, paired (each round's updates on {th} threads "
+                      "followed by as many on 1 thread in the same process, wall clock; median over rounds of the "
+                      "ratio of their medians) " + "/".join(f"{float(np.median(p)):.2f}" for p in paired))
         if len(threads) > 1:
             t0 = threads[0]
             print(f"# {name}: speed-up of " + ", ".join(

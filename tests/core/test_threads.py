@@ -9,7 +9,7 @@ import torch
 
 from eligsir_o3d import Config, Reconstructor
 from eligsir_o3d.core.jit import threads_for
-from eligsir_o3d.core.threads import PARALLEL_MIN_PIXELS, PARALLEL_MIN_ROWS, torch_threads
+from eligsir_o3d.core.threads import TORCH_MIN_PIXELS, TORCH_MIN_ROWS, torch_threads
 from eligsir_o3d.datasets.synthetic import SyntheticRoom
 
 
@@ -37,8 +37,8 @@ def test_torch_threads_sets_and_restores(two_torch_threads):
 
 @pytest.mark.parametrize("setting, small", [(1, 1), (0, 2)])
 def test_the_mapper_runs_torch_on_the_configured_threads(two_torch_threads, setting, small):
-    seq = SyntheticRoom(n_frames=4, width=480, height=320)  # 153.6k pixels: at scale 1, past PARALLEL_MIN_PIXELS
-    assert seq.camera.width * seq.camera.height >= PARALLEL_MIN_PIXELS
+    seq = SyntheticRoom(n_frames=4, width=480, height=320)  # 153.6k pixels: at scale 1, past TORCH_MIN_PIXELS
+    assert seq.camera.width * seq.camera.height >= TORCH_MIN_PIXELS
     cfg = Config(renderer="cpu")
     cfg.optim.torch_threads = setting
     rec = Reconstructor(seq.camera, "cpu", cfg, depth_scale=seq.depth_scale)
@@ -54,12 +54,12 @@ def test_the_mapper_runs_torch_on_the_configured_threads(two_torch_threads, sett
         assert torch.get_num_threads() == 2  # the caller's count, back after every call
     rec.optimize(1, scale=1.0)
     assert torch.get_num_threads() == 2
-    assert {t for px, t in seen if px < PARALLEL_MIN_PIXELS} == {small}
-    assert {t for px, t in seen if px >= PARALLEL_MIN_PIXELS} == {2}  # a large image keeps the caller's threads
+    assert {t for px, t in seen if px < TORCH_MIN_PIXELS} == {small}
+    assert {t for px, t in seen if px >= TORCH_MIN_PIXELS} == {2}  # a large image keeps the caller's threads
     seen.clear()
-    rec.last_in_view = PARALLEL_MIN_ROWS  # as after an update with that many Gaussians in view
+    rec.last_in_view = TORCH_MIN_ROWS  # as after an update with that many Gaussians in view
     rec._step(0.25)
-    assert seen[0][0] < PARALLEL_MIN_PIXELS and seen[0][1] == 2  # many rows in view: the caller's threads too
+    assert seen[0][0] < TORCH_MIN_PIXELS and seen[0][1] == 2  # many rows in view: the caller's threads too
 
 
 def test_a_small_kernel_runs_on_one_numba_thread_with_the_same_bits():
