@@ -20,10 +20,10 @@ the 4k-Gaussian kitchen map at 2 threads 16.9 -> 11.2 ms (it had been slower tha
 the compositing kernels' rework (stop 41) and with a benchmark that times consecutive updates: the kernels' limits
 down from 50k rows / 150k pixels to 10k / 16k (the 160x120 D-SSIM, ~0.8 ms on one thread, now on every thread):
 a 1/4-scale update with 16k Gaussians in view 15.9 -> 14.1 ms on 2 threads, 4k in view 7.8 -> 7.5; the kitchen's
-default run 0.92-1.01 of the time per update (four interleaved whole-run pairs, the same map bit for bit). Limits of 1k / 4k gained 10 % more on idle
-updates of the kitchen map but lost 11 % while another process kept the second core busy (every parallel region
-waits for its worker's time slice), so small kernels stay on one thread. The same bits either way
-(tests/core/test_threads.py).
+default run 0.92-1.01 of the time per update (four interleaved whole-run pairs, the same map bit for bit). Limits
+of 1k / 4k gained 10 % more on idle updates of the kitchen map but lost 11 % while another process kept the second
+core busy (every parallel region waits for its worker's time slice), so small kernels stay on one thread. The same
+bits either way (tests/core/test_threads.py).
 """
 
 from __future__ import annotations
