@@ -20,9 +20,10 @@ def make(bw: int, bh: int):
     NBX = TILE // bw
     NB = NBX * (TILE // bh)
     # Offsets of the per-pixel state in the block's scratch (one array, so that LLVM sees the rows cannot overlap
-    # and vectorises the pixel loop without run-time overlap checks: 11-14 % off the kernel, the same bits):
-    # pixel centre x, y; 1 while compositing; transmittance; accumulated r, g, b, depth; sum of weights; how far
-    # the pixel walked through the block's list.
+    # and vectorises the pixel loop without run-time overlap checks: 11-16 % off the kernel, the same bits):
+    # pixel centre x, y; 1 while compositing (0: stopped or outside the image); transmittance; accumulated r, g, b,
+    # depth; sum of weights; how far the pixel walked through the block's list (exact: lists are far shorter than
+    # 2^24).
     LX, LY, LIVE, TR, A0, A1, A2, A3, WSUM, WALKED = (i * NP for i in range(10))
     crc = SOURCE_CRC  # the helpers' source, in the cache key (see _cpu_kernels.SOURCE_CRC)
 
