@@ -262,3 +262,15 @@ def _adam_view(ps, gs, ms, vs, row_steps, hyper, steps, widths, rows, seen, plan
                 m[i] = mi
                 v[i] = vi
                 p[i] = p[i] + ar * (mi / (np.sqrt(vi) / br + eps))
+
+
+@_jit
+def _gather_view(srcs, rows, dsts):
+    """dsts[t][i] = srcs[t][rows[i]] for every parameter t (2-D float32 arrays, rows first): one pass over the
+    view's rows for all of them."""
+    for i in prange(rows.shape[0]):
+        r = rows[i]
+        for t in range(len(srcs)):
+            s, d = srcs[t], dsts[t]
+            for j in range(s.shape[1]):
+                d[i, j] = s[r, j]

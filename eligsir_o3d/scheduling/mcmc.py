@@ -142,6 +142,14 @@ def _noise_at(gmap: GaussianMap, scaler: float, generator, rows: torch.Tensor) -
     if rows.numel() == 0:
         return
     p = gmap.params
+    if gmap.device.type == "cpu" and all(p[n].dtype == torch.float32 and p[n].is_contiguous()
+                                         for n in ("means", "quats", "scales", "opacities")):
+        from ..optim.update_kernels import mcmc_noise_rows
+
+        z = torch.randn(rows.numel(), 3, generator=generator)
+        mcmc_noise_rows(p, rows, z, scaler)  # in place, the rows read where they lie
+        gmap.touched(rows)
+        return
     means = p["means"].detach()[rows]
     quats, scales = p["quats"].detach()[rows], torch.exp(p["scales"].detach()[rows])
     o = torch.sigmoid(p["opacities"].detach()[rows])

@@ -44,6 +44,7 @@ def test_tsdf_peer_of_a_run(run_folder, tmp_path):
     margins = [v["gaussian_covered"] - v["tsdf_covered"] for v in r["per_view"]]  # 4 views: thirds of 2, 1, 1
     assert r["margin_by_third"] == pytest.approx([np.mean(margins[:2]), margins[2], margins[3]])
     assert "by thirds" in tb.format_table(r)
+    assert r["pose_suspects"] == []  # exact poses: no held-out view is off
     pics = sorted((tmp_path / "pics").glob("*.png"))
     assert len(pics) == 1  # Gaussian | TSDF | reference, side by side
     import imageio.v3 as iio
@@ -85,3 +86,27 @@ def test_a_run_without_held_out_views_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="held out no views"):
         tb.evaluate(tmp_path)
     assert tb.main([str(tmp_path)]) == 2
+
+
+def test_pose_suspects_are_views_both_renders_match_shifted_alike():
+    def row(i, g, t):
+        return {"index": i, "gaussian_shift_dx": g[0], "gaussian_shift_dy": g[1], "tsdf_shift_dx": t[0],
+                "tsdf_shift_dy": t[1], "gaussian_covered": 15.0, "gaussian_shifted": 23.0, "tsdf_covered": 15.5,
+                "tsdf_shifted": 23.5}
+
+    rows = [row(0, (0, -11), (-1, -12)),  # both far and alike: the given pose is off
+            row(1, (5, 0), (-5, 0)),  # both far, opposite ways: the maps disagree, not a pose
+            row(2, (1, 0), (1, 1)),  # near
+            row(3, (6, 0), (0, 0))]  # one map only
+    tb = _baseline()
+    sus = tb.pose_suspects(rows)
+    assert [s["index"] for s in sus] == [0]
+    assert sus[0]["shift_px"] == [0, -11] and sus[0]["gaussian"] == [15.0, 23.0] and sus[0]["tsdf"] == [15.5, 23.5]
+    text = tb.format_table({"results": "r", "views": 4, "frames_source": 10, "voxel_size_m": 0.01,
+                            "tsdf_integrate_ms_per_frame": 1.0, "gaussians": 5, "tsdf_whole": 1.0, "coverage": 0.9,
+                            "tsdf_covered": 1.0, "gaussian_whole": 1.0, "gaussian_covered": 1.0,
+                            "gaussian_detail": 1.0, "tsdf_detail": 1.0, "gaussian_flat": 1.0, "tsdf_flat": 1.0,
+                            "gaussian_lowpass": 1.0, "tsdf_lowpass": 1.0, "gaussian_shift_px": 1.0,
+                            "tsdf_shift_px": 1.0, "gaussian_shifted": 1.0, "tsdf_shifted": 1.0,
+                            "pose_suspects": sus})
+    assert "frame 0 by (+0, -11) px" in text

@@ -89,3 +89,24 @@ def test_compiled_noise_is_the_torch_formula():
     inject_noise(gmap, 250.0, torch.Generator().manual_seed(7))
     torch.testing.assert_close(gmap.means.detach(), before + want, rtol=1e-6, atol=2e-7)  # float32 rounding
     assert want[:250].norm(dim=1).min() > 1e-5  # the transparent ones moved visibly
+
+
+@pytest.mark.parametrize("n_rows", [0, 37, 500])
+def test_noise_on_a_views_rows_is_the_torch_formula_there_and_nothing_elsewhere(n_rows):
+    gmap = _map(500, sh_degree=0)
+    with torch.no_grad():
+        gmap.params["opacities"][::3] = torch.logit(torch.full((167,), 0.002))  # transparent: these move
+    rows = torch.randperm(500, generator=torch.Generator().manual_seed(3))[:n_rows].sort().values
+    before = gmap.means.detach().clone()
+    z = torch.randn(n_rows, 3, generator=torch.Generator().manual_seed(7))
+    o = gmap.opacities.detach()[rows]
+    M = quat_to_rotmat(gmap.quats.detach()[rows]) * gmap.scales.detach()[rows][:, None, :]
+    want = torch.einsum("nij,nj->ni", M @ M.transpose(1, 2), z) * (torch.sigmoid(100.0 * ((1.0 - o) - 0.995)) * 250.0)[:, None]
+    inject_noise(gmap, 250.0, torch.Generator().manual_seed(7), rows=rows)
+    after = gmap.means.detach()
+    torch.testing.assert_close(after[rows], before[rows] + want, rtol=1e-6, atol=2e-7)  # float32 rounding
+    others = torch.ones(500, dtype=torch.bool)
+    others[rows] = False
+    assert torch.equal(after[others], before[others])  # rows out of the view: bit for bit
+    if n_rows == 500:
+        assert want[::3].norm(dim=1).min() > 1e-5  # the transparent ones moved visibly

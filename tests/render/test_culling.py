@@ -33,6 +33,21 @@ def _pose(yaw: float) -> np.ndarray:
     return T
 
 
+@pytest.mark.parametrize("sh_degree", [0, 2])
+def test_view_leaves_are_the_maps_rows_as_new_leaves(sh_degree):
+    gm = GaussianMap(sh_degree)
+    g = torch.Generator().manual_seed(4)
+    gm.add(torch.randn(300, 3, generator=g), torch.rand(300, 3, generator=g), torch.rand(300, generator=g) * 0.2 + 0.01,
+           0.5, torch.nn.functional.normalize(torch.randn(300, 4, generator=g), dim=-1))
+    for idx in (torch.tensor([], dtype=torch.long), torch.tensor([299, 0, 17, 5]), torch.arange(300)):
+        view = InView(gm, idx)
+        for name in PARAM_NAMES:
+            leaf, p = view.leaves[name], gm.params[name].detach()
+            assert leaf.requires_grad and leaf.is_leaf and leaf.grad is None
+            assert leaf.shape == (len(idx),) + p.shape[1:] and torch.equal(leaf, p[idx])
+            assert leaf.data_ptr() != p.data_ptr() or leaf.numel() == 0  # a copy: the map is not written through it
+
+
 @pytest.mark.parametrize("renderer", ["torch", "cpu"])
 def test_culled_render_equals_map_render_images_and_gradients(renderer):
     gm = _map()
