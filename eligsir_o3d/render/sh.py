@@ -80,10 +80,40 @@ def sh_eval(sh: torch.Tensor, dirs: torch.Tensor, degree: int | None = None) -> 
         raise ValueError(f"SH degree {degree} needs {k} coefficients, sh has {sh.shape[1]}")
     if degree == 0:
         rgb = C0 * sh[:, 0]
+    elif degree == 1 and sh.device.type == "cpu" and sh.dtype == torch.float32 and dirs.dtype == torch.float32:
+        return _Sh1Cpu.apply(sh, dirs)  # one compiled pass each way (:mod:`._sh_kernels`)
     else:
         unit = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
         rgb = (sh_bases(degree, unit.to(sh.dtype))[:, :, None] * sh[:, :k]).sum(1)
     return torch.clamp_min(rgb + 0.5, 0.0)
+
+
+class _Sh1Cpu(torch.autograd.Function):
+    """:func:`sh_eval` of degree 1 for float32 CPU tensors, forward and backward in compiled code."""
+
+    @staticmethod
+    def forward(ctx, sh, dirs):
+        from ..core.jit import rows_threads
+        from ._sh_kernels import sh1_forward
+
+        sh_c, dirs_c = sh.detach().contiguous(), dirs.detach().contiguous()
+        out = torch.empty(dirs_c.shape[0], 3, dtype=torch.float32)
+        with rows_threads(dirs_c.shape[0]):
+            sh1_forward(sh_c.numpy(), dirs_c.numpy(), out.numpy())
+        ctx.save_for_backward(sh_c, dirs_c)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad):
+        from ..core.jit import rows_threads
+        from ._sh_kernels import sh1_backward
+
+        sh_c, dirs_c = ctx.saved_tensors
+        g_sh, g_dirs = torch.empty_like(sh_c), torch.empty_like(dirs_c)
+        with rows_threads(dirs_c.shape[0]):
+            sh1_backward(sh_c.numpy(), dirs_c.numpy(), grad.to(torch.float32).contiguous().numpy(), g_sh.numpy(),
+                         g_dirs.numpy())
+        return g_sh, g_dirs
 
 
 def view_dirs(means: torch.Tensor, T_world_cam) -> torch.Tensor:

@@ -134,6 +134,29 @@ def test_sh_bases_known_values_and_norm_independence():
     torch.testing.assert_close(sh_eval(sh, d, degree=1), sh_eval(sh[:, :4], d))
 
 
+@pytest.mark.parametrize("k", [4, 9])
+def test_compiled_degree1_sh_is_the_torch_formula_values_and_gradients(k):
+    """The float32 CPU path of degree 1 (compiled, :mod:`eligsir_o3d.render._sh_kernels`) against the torch
+    formulation in float64: colours, the clamp, and the gradients of the coefficients and the directions."""
+    g = torch.Generator().manual_seed(3)
+    sh = torch.randn(300, k, 3, generator=g) * 0.8
+    sh[:40, 0] = -10.0  # clamped to black: no gradient there
+    dirs = torch.randn(300, 3, generator=g) * 2.0
+    w = torch.randn(300, 3, generator=g)
+    outs = []
+    for dt in (torch.float32, torch.float64):  # float64 takes the torch formula
+        s, d = sh.to(dt).detach().clone().requires_grad_(True), dirs.to(dt).detach().clone().requires_grad_(True)
+        c = sh_eval(s, d, degree=1)
+        (c * w.to(dt)).sum().backward()
+        outs.append((c.detach().double(), s.grad.double(), d.grad.double()))
+    (c32, gs32, gd32), (c64, gs64, gd64) = outs
+    torch.testing.assert_close(c32, c64, rtol=1e-5, atol=1e-6)
+    assert torch.all(c32[:40] == 0.0) and torch.all(gs32[:40] == 0.0)
+    torch.testing.assert_close(gs32, gs64, rtol=1e-5, atol=1e-6)
+    assert torch.all(gs32[:, 4:] == 0.0)  # the bands above degree 1 are not used
+    torch.testing.assert_close(gd32, gd64, rtol=1e-4, atol=1e-6)
+
+
 def test_sh_bases_are_orthonormal():
     """Monte-Carlo check: the 16 real SH bases are orthonormal on the sphere (4 pi E[b_i b_j] = delta_ij)."""
     g = torch.Generator().manual_seed(0)
