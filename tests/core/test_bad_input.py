@@ -290,7 +290,8 @@ CASES = [
     # --- Gaussian PLY files ---
     ("PLY missing attributes", _ply_edit(drop={"opacity", "rot_0"}), PlyError,
      r"bad\.ply: not a 3DGS Gaussian PLY, missing vertex properties \['opacity', 'rot_0'\]"),
-    ("PLY with a partial SH set", _ply_edit(add=[f"f_rest_{i}" for i in range(5)]), PlyError,
+    ("PLY with a partial SH set", _ply_edit(drop={f"f_rest_{i}" for i in range(45)},
+                                            add=[f"f_rest_{i}" for i in range(5)]), PlyError,
      r"bad\.ply: 5 f_rest_\* properties do not match any SH degree"),
     ("PLY that is not a PLY", _ply_text(b"solid cube\nendsolid\n"), PlyError, r"bad\.ply: not a readable PLY"),
     ("PLY with NaN", _ply_nan(), PlyError, r"nan\.ply: property group 'means' contains NaN"),
