@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 from numba import prange
 
@@ -83,28 +84,38 @@ def fits(opt) -> bool:
     return all(p.device.type == "cpu" and p.dtype == torch.float32 and p.is_contiguous() for p in group["params"])
 
 
+@numba.njit(inline="always", fastmath=False)
+def _move(means, g, quats, s0, s1, s2, z0, z1, z2, k):
+    """means[g] += (R diag(s0, s1, s2) R^T (z0, z1, z2)) * k, R the rotation of quats[g] (unnormalised wxyz)."""
+    w, x, y, zq = quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]
+    nq = max(np.float32(math.sqrt(w * w + x * x + y * y + zq * zq)), np.float32(1e-12))
+    w, x, y, zq = w / nq, x / nq, y / nq, zq / nq
+    r00, r01, r02 = 1 - 2 * (y * y + zq * zq), 2 * (x * y - w * zq), 2 * (x * zq + w * y)
+    r10, r11, r12 = 2 * (x * y + w * zq), 1 - 2 * (x * x + zq * zq), 2 * (y * zq - w * x)
+    r20, r21, r22 = 2 * (x * zq - w * y), 2 * (y * zq + w * x), 1 - 2 * (x * x + y * y)
+    # R^T z, scaled by s^2, then R
+    a0 = (r00 * z0 + r10 * z1 + r20 * z2) * s0
+    a1 = (r01 * z0 + r11 * z1 + r21 * z2) * s1
+    a2 = (r02 * z0 + r12 * z1 + r22 * z2) * s2
+    means[g, 0] += (r00 * a0 + r01 * a1 + r02 * a2) * k
+    means[g, 1] += (r10 * a0 + r11 * a1 + r12 * a2) * k
+    means[g, 2] += (r20 * a0 + r21 * a1 + r22 * a2) * k
+
+
+@numba.njit(inline="always", fastmath=False)
+def _gate(o, scaler):
+    """sigmoid(100 ((1 - o) - 0.995)) * scaler: MCMC's gate to (nearly) transparent Gaussians."""
+    return np.float32(1.0) / (np.float32(1.0) + np.float32(math.exp(-np.float32(100.0) * (
+        (np.float32(1.0) - o) - np.float32(0.995))))) * scaler
+
+
 @_jit
 def _noise_rows(means, quats, scales, opacities, z, scaler):
     """means[g] += (R diag(s)^2 R^T z[g]) * sigmoid(100 ((1 - o) - 0.995)) * scaler; quats unnormalised wxyz,
     scales in metres, opacities in (0, 1)."""
     for g in prange(means.shape[0]):
-        gate = np.float32(1.0) / (np.float32(1.0) + np.float32(math.exp(-np.float32(100.0) * (
-            (np.float32(1.0) - opacities[g]) - np.float32(0.995)))))
-        k = gate * scaler
-        w, x, y, zq = quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]
-        nq = max(np.float32(math.sqrt(w * w + x * x + y * y + zq * zq)), np.float32(1e-12))
-        w, x, y, zq = w / nq, x / nq, y / nq, zq / nq
-        r00, r01, r02 = 1 - 2 * (y * y + zq * zq), 2 * (x * y - w * zq), 2 * (x * zq + w * y)
-        r10, r11, r12 = 2 * (x * y + w * zq), 1 - 2 * (x * x + zq * zq), 2 * (y * zq - w * x)
-        r20, r21, r22 = 2 * (x * zq - w * y), 2 * (y * zq + w * x), 1 - 2 * (x * x + y * y)
         s0, s1, s2 = scales[g, 0] * scales[g, 0], scales[g, 1] * scales[g, 1], scales[g, 2] * scales[g, 2]
-        # R^T z, scaled by s^2, then R
-        a0 = (r00 * z[g, 0] + r10 * z[g, 1] + r20 * z[g, 2]) * s0
-        a1 = (r01 * z[g, 0] + r11 * z[g, 1] + r21 * z[g, 2]) * s1
-        a2 = (r02 * z[g, 0] + r12 * z[g, 1] + r22 * z[g, 2]) * s2
-        means[g, 0] += (r00 * a0 + r01 * a1 + r02 * a2) * k
-        means[g, 1] += (r10 * a0 + r11 * a1 + r12 * a2) * k
-        means[g, 2] += (r20 * a0 + r21 * a1 + r22 * a2) * k
+        _move(means, g, quats, s0, s1, s2, z[g, 0], z[g, 1], z[g, 2], _gate(opacities[g], scaler))
 
 
 @_jit
@@ -115,25 +126,10 @@ def _noise_view(means, quats, log_scales, logit_opacities, rows, z, scaler):
     for i in prange(rows.shape[0]):
         g = rows[i]
         o = np.float32(1.0) / (np.float32(1.0) + np.float32(math.exp(-logit_opacities[g])))
-        gate = np.float32(1.0) / (np.float32(1.0) + np.float32(math.exp(-np.float32(100.0) * (
-            (np.float32(1.0) - o) - np.float32(0.995)))))
-        k = gate * scaler
-        w, x, y, zq = quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]
-        nq = max(np.float32(math.sqrt(w * w + x * x + y * y + zq * zq)), np.float32(1e-12))
-        w, x, y, zq = w / nq, x / nq, y / nq, zq / nq
-        r00, r01, r02 = 1 - 2 * (y * y + zq * zq), 2 * (x * y - w * zq), 2 * (x * zq + w * y)
-        r10, r11, r12 = 2 * (x * y + w * zq), 1 - 2 * (x * x + zq * zq), 2 * (y * zq - w * x)
-        r20, r21, r22 = 2 * (x * zq - w * y), 2 * (y * zq + w * x), 1 - 2 * (x * x + y * y)
         e0 = np.float32(math.exp(log_scales[g, 0]))
         e1 = np.float32(math.exp(log_scales[g, 1]))
         e2 = np.float32(math.exp(log_scales[g, 2]))
-        s0, s1, s2 = e0 * e0, e1 * e1, e2 * e2
-        a0 = (r00 * z[i, 0] + r10 * z[i, 1] + r20 * z[i, 2]) * s0
-        a1 = (r01 * z[i, 0] + r11 * z[i, 1] + r21 * z[i, 2]) * s1
-        a2 = (r02 * z[i, 0] + r12 * z[i, 1] + r22 * z[i, 2]) * s2
-        means[g, 0] += (r00 * a0 + r01 * a1 + r02 * a2) * k
-        means[g, 1] += (r10 * a0 + r11 * a1 + r12 * a2) * k
-        means[g, 2] += (r20 * a0 + r21 * a1 + r22 * a2) * k
+        _move(means, g, quats, e0 * e0, e1 * e1, e2 * e2, z[i, 0], z[i, 1], z[i, 2], _gate(o, scaler))
 
 
 def mcmc_noise_rows(params: dict, rows, z, scaler: float) -> None:
