@@ -9,7 +9,8 @@ Three steps, each the reference's twin and each tested against it:
   in tables reused from render to render (:mod:`.scratch`).
 The kernels run in parallel on the threads numba may use (``NUMBA_NUM_THREADS`` / ``numba.set_num_threads``).
 Float32 throughout; inputs of other dtypes are cast and the gradients cast back. Background and depth
-normalisation stay in torch (:func:`.base.finish`), shared with every backend.
+normalisation stay in torch (:func:`.base.finish`), shared with every backend, and run when a render's colour or
+depth is first read (:class:`.base.DeferredRenderOutput`: a training update's fused loss reads the accumulations).
 
 The first use in a process loads the compiled kernels from numba's on-disk cache (~1 s), or compiles them when
 there is none yet (~15 s on a 2-core machine); :func:`warmup` does this explicitly and reports the time.
@@ -24,7 +25,7 @@ import torch
 
 from ..core.camera import Camera
 from ..core.threads import PARALLEL_MIN_ROWS
-from .base import RenderOutput, TileRenderer, finish, mask_culled, view_colors
+from .base import DeferredRenderOutput, RenderOutput, TileRenderer, mask_culled, view_colors
 from .projection import EPS2D, NEAR, TILE, Projection, TileBins, world_to_cam
 
 _warm_seconds: float | None = None
@@ -276,12 +277,10 @@ class CpuRenderer(TileRenderer):
         offsets, flat, tiles_x = bin_tiles_csr(proj, camera.width, camera.height)
         acc, alpha_acc = self._accumulate(proj, opacities, colors, offsets, flat, tiles_x, camera.width,
                                           camera.height, self.block)
-        color_acc, depth_acc = acc[..., :3], acc[..., 3]
         if background is not None:
-            background = torch.as_tensor(background, dtype=color_acc.dtype, device=color_acc.device)
-        color, depth, alpha = finish(color_acc, depth_acc, alpha_acc, background)
-        return RenderOutput(color, depth, alpha, proj.radii, mask_culled(proj.means2d, proj.radii),
-                            raw=(acc, alpha_acc, background))
+            background = torch.as_tensor(background, dtype=acc.dtype, device=acc.device)
+        return DeferredRenderOutput(alpha_acc, proj.radii, mask_culled(proj.means2d, proj.radii),
+                                    (acc, alpha_acc, background))
 
     def composite(self, proj: Projection, opacities, colors, bins: TileBins, width: int, height: int):
         warmup()

@@ -69,3 +69,33 @@ def test_mapping_never_reads_the_backend_specific_fields(ablate):
         rec.integrate(rgbd, T, timestamp=i / 30.0)
     rec.finalize()
     assert rec.stats.updates > 0 and len(rec.gmap) > 0
+
+
+def test_cpu_render_composites_colour_and_depth_when_read_as_an_eager_render_does():
+    """The cpu renderer's output defers the background composite and depth normalisation (base.finish) to the first
+    read of color or depth: the same tensors as finish() of its accumulations, gradients included."""
+    import torch
+
+    from eligsir_o3d.core.camera import Camera
+    from eligsir_o3d.render import get_renderer
+    from eligsir_o3d.render.base import DeferredRenderOutput, finish
+
+    g = torch.Generator().manual_seed(0)
+    n = 40
+    means = (torch.rand(n, 3, generator=g) - 0.5) * torch.tensor([1.0, 0.8, 0.5]) + torch.tensor([0.0, 0.0, 2.0])
+    quats = torch.nn.functional.normalize(torch.randn(n, 4, generator=g), dim=1)
+    scales = torch.full((n, 3), 0.05)
+    opac = torch.full((n,), 0.6)
+    colors = torch.rand(n, 3, generator=g).requires_grad_(True)
+    cam, bg = Camera(32, 24, 30.0, 30.0, 15.5, 11.5), torch.tensor([0.2, 0.3, 0.4])
+    out = get_renderer("cpu").render(means, quats, scales, opac, colors, cam, np.eye(4), bg)
+    assert isinstance(out, DeferredRenderOutput) and "color" not in vars(out)  # not composited yet
+    acc, alpha, background = out.raw
+    color, depth, _ = finish(acc[..., :3], acc[..., 3], alpha, background)
+    assert torch.equal(out.color, color) and torch.equal(out.depth, depth) and out.alpha is alpha
+    assert out.color is out.color  # composited once
+    out.color.sum().backward(retain_graph=True)
+    expected = torch.autograd.grad(color.sum(), colors)[0]
+    assert torch.equal(colors.grad, expected)
+    with pytest.raises(AttributeError, match="nope"):
+        out.nope
