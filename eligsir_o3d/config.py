@@ -28,6 +28,7 @@ from .scheduling.fixed_work import FixedWorkConfig
 from .scheduling.keyframes import KeyframesConfig
 from .scheduling.seeding import SeedingConfig
 from .scheduling.support import SupportConfig
+from .scheduling.supervision import SupervisionConfig
 from .scheduling.views import ViewConfig
 
 log = logging.getLogger("eligsir_o3d")
@@ -82,6 +83,7 @@ class Config:
     fidelity: FidelityConfig = field(default_factory=FidelityConfig)  # Load-Adaptive Fidelity
     growth: GrowthConfig = field(default_factory=GrowthConfig)  # Targeted Geometry Growth (+ 3DGS-MCMC)
     support: SupportConfig = field(default_factory=SupportConfig)  # the low-res support render admission and growth share
+    supervision: SupervisionConfig = field(default_factory=SupervisionConfig)  # area / point samples (measured per run)
     clock: ClockConfig = field(default_factory=ClockConfig)  # the budget: clock mode, per-frame/drain/offline budgets
     fixed_work: FixedWorkConfig = field(default_factory=FixedWorkConfig)  # per-frame fixed work scaled with the backlog (issue 18)
     pose_refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)  # per-training-view pose corrections

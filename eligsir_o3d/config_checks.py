@@ -5,6 +5,7 @@
 - Every integer (counts, periods, ``seed``) is >= 0.
 - The keys in :data:`POSITIVE` are > 0 (``max_gaussians=-5`` would map nothing and report it as a result).
 - ``sh_degree`` is 0..3, ``background`` three numbers in [0, 1].
+- ``supervision.mode`` is one of auto / area / point, with ``supervision.pairs`` and ``band_px`` >= 1.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
-POSITIVE = ("max_gaussians", "depth_max", "depth_scale", "max_image_side")
+POSITIVE = ("max_gaussians", "depth_max", "depth_scale", "max_image_side", "supervision.pairs", "supervision.band_px")
 ANY_INTEGER: tuple[str, ...] = ()  # none: numpy's generators take no negative seed
 
 
@@ -46,3 +47,7 @@ def check_values(cfg) -> None:
                                                                   for x in bg)):
         raise ValueError(f"config key background: must be three numbers in [0, 1] (red, green, blue), got "
                          f"{list(bg) if isinstance(bg, (tuple, list)) else bg!r}")
+    from .scheduling.supervision import MODES
+
+    if cfg.supervision.mode not in MODES:
+        raise ValueError(f"config key supervision.mode: choose from {', '.join(MODES)}, got {cfg.supervision.mode!r}")

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -32,6 +31,7 @@ from .render import RenderOutput, get_renderer
 from .scheduling import MapContext, get_policies
 from .scheduling.coarse_to_fine import install_means_lr_decay
 from .scheduling.fixed_work import FULL, LoadScaledChecks
+from .scheduling.supervision import SupervisionGrid
 
 
 @dataclass
@@ -79,6 +79,7 @@ class Reconstructor(ReconstructorState):
         self.offline_frames = None if offline_frames is None else int(offline_frames)
         self.views, self.fidelity, self.growth = get_policies(self.config, offline=self.offline_frames is not None,
                                                               n_source=self.offline_frames or 0)
+        self.supervision = SupervisionGrid(self.config.supervision)  # area or point samples at reduced scales
         self.pose_refine = PoseRefiner(self.config.pose_refine, self.device)  # per-training-view pose corrections
         self.fixed_work = LoadScaledChecks(self.config.fixed_work)  # how much fixed work each frame gets, from the backlog
         self.frame_plan = FULL  # the current frame's plan (read by the policies through ctx.plan)
@@ -111,6 +112,8 @@ class Reconstructor(ReconstructorState):
         with self._threads(self.camera.scaled(self.config.support.scale).pixels):
             with self.timing("admission"):
                 admitted = self.views.admit(frame, self.ctx)
+                if admitted:
+                    self.supervision.on_admitted(frame)
             self.stats.frames_admitted += int(admitted)
             with self.timing("growth"):
                 if admitted:
@@ -155,32 +158,35 @@ class Reconstructor(ReconstructorState):
     def _step(self, scale: float | None) -> None:
         t0 = time.perf_counter()
         frame = self.views.select(self.rng)
-        s = self.fidelity.scale() if scale is None else scale
-        color, depth, cam = frame.at_scale(s, self.device)
-        with self._threads(cam.pixels):
-            self._update(frame, color, depth, cam)
+        sample = self.supervision.sample(frame, self.fidelity.scale() if scale is None else scale, self.rng,
+                                         self.device)
+        with self._threads(sample.camera.pixels):
+            self._update(frame, sample)
         dt = time.perf_counter() - t0
         self.stats.updates += 1
-        self.stats.supervised_pixels += cam.pixels
+        self.stats.supervised_pixels += sample.camera.pixels
         self.stats.mapping_s += dt
         self.timing.add("update", dt)
-        self.fidelity.observe(dt, cam.pixels, self.backlog)
+        self.fidelity.observe(dt, sample.camera.pixels, self.backlog)
         if self.callbacks:
             t1 = time.perf_counter()
             for cb in self.callbacks:
                 cb(self)
             self.stats.excluded_s += time.perf_counter() - t1
 
-    def _update(self, frame: Frame, color: torch.Tensor, depth: torch.Tensor, cam: Camera) -> None:
-        """One update on ``frame``'s view at ``cam``'s scale: render the rows in view, the loss, backward, Adam, then
-        the policies' per-update steps (pose correction, growth's MCMC, the views' feedback)."""
+    def _update(self, frame: Frame, sample) -> None:
+        """One update on ``frame``'s view at the pixels of ``sample`` (:class:`.scheduling.supervision.Sample`):
+        render the rows in view, the loss, backward, Adam, then the policies' per-update steps (pose correction,
+        growth's MCMC, the views' feedback)."""
+        color, depth, cam, low_pass = sample.color, sample.depth, sample.camera, sample.low_pass
         cull = self.config.optim.cull  # only the rows that can reach the view (at its refined pose): drawn and stepped
-        self.view = InView.select(self.gmap, cam, self.pose_refine.posed(frame).T_world_cam) if cull else None
+        T_view = self.pose_refine.posed(frame).T_world_cam
+        self.view = InView.select(self.gmap, cam, T_view, low_pass) if cull else None
         rows = self.view if self.view is not None else self.gmap
         self.last_in_view = len(rows)
         args, T = self.pose_refine.render_args(frame, rows.render_args())  # at the refined pose
-        out = self.renderer.render(*args, cam, T, self._background)
-        self.gmap.note_supervision(cam)
+        out = self.renderer.render(*args, cam, T, self._background, low_pass=low_pass)
+        self.gmap.note_supervision(sample.fitted)
         loss, error = supervision_loss(out, color, depth, self.config.optim.loss)
         if (reg := self.growth.pre_backward(out, self.ctx)) is not None:
             loss = loss + reg
@@ -208,7 +214,8 @@ class Reconstructor(ReconstructorState):
     def policy_counters(self) -> dict:
         """Each policy's name and what it decided so far (admissions, seeds, insertions, relocations, scales)."""
         counters = {kind: {"policy": p.name, **p.counters()} for kind, p in self._policies()}
-        return {**counters, "fixed_work": {"policy": self.fixed_work.name, **self.fixed_work.counters()}}
+        return {**counters, "fixed_work": {"policy": self.fixed_work.name, **self.fixed_work.counters()},
+                "supervision": {"policy": self.supervision.name, **self.supervision.counters()}}
 
     def clock_now(self) -> float:
         """``time.perf_counter()`` minus the time spent in callbacks: the mapper's own clock for real-time replay."""
@@ -310,21 +317,6 @@ class Reconstructor(ReconstructorState):
         T = self._checked(T, frame.index)
         self.stats.frames_tracked += 1
         return T
-
-    # ---- persistence -----------------------------------------------------------------------------------
-    def save_ply(self, path: str | Path) -> Path:
-        """Write the map as a standard 3DGS PLY (atomic replace)."""
-        from .io.ply import save_ply
-
-        return save_ply(self.gmap, path)
-
-    def load_ply(self, path: str | Path) -> None:
-        """Replace the map with the Gaussians of a 3DGS PLY (optimizer state starts fresh)."""
-        from .io.ply import load_ply
-
-        gmap = load_ply(path, self.device, self.config.optim.lrs, self.config.optim.adam)
-        self.gmap = gmap
-        self.config.sh_degree = gmap.sh_degree
 
     # ---- geometry export -------------------------------------------------------------------------------
     def extract_point_cloud(self, min_opacity: float = 0.1, **kw) -> o3d.geometry.PointCloud:

@@ -1,7 +1,8 @@
 """The Reconstructor's state (a mixin of :class:`~eligsir_o3d.reconstructor.Reconstructor`): everything its next
 decisions depend on as one plain dict (:meth:`~ReconstructorState.state_dict`), restored by
-:meth:`~ReconstructorState.load_state_dict`, and the checkpoint file round trip (``save`` / ``load`` /
-``from_checkpoint``; :mod:`eligsir_o3d.io.checkpoint` only encodes the dict)."""
+:meth:`~ReconstructorState.load_state_dict`, the checkpoint file round trip (``save`` / ``load`` /
+``from_checkpoint``; :mod:`eligsir_o3d.io.checkpoint` only encodes the dict) and the map alone as a 3DGS PLY
+(``save_ply`` / ``load_ply``)."""
 
 from __future__ import annotations
 
@@ -18,7 +19,7 @@ from .io.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
 
 class ReconstructorState:
     """State and checkpoints of a Reconstructor (its attributes: config, camera, device, gmap, the three policies,
-    stats, backlog, rng, pose_source, fixed_work, pose_refine, offline_frames)."""
+    stats, backlog, rng, pose_source, fixed_work, pose_refine, supervision, offline_frames)."""
 
     def save(self, path: str | Path, *, extra: dict | None = None, sequence=None) -> Path:
         """Checkpoint the full mapper state (:meth:`state_dict`) to ``path``, atomically; ``extra``: a caller's
@@ -61,6 +62,20 @@ class ReconstructorState:
             raise CheckpointError(f"{path}: {e}") from None
         return rec
 
+    def save_ply(self, path: str | Path) -> Path:
+        """Write the map as a standard 3DGS PLY (atomic replace)."""
+        from .io.ply import save_ply
+
+        return save_ply(self.gmap, path)
+
+    def load_ply(self, path: str | Path) -> None:
+        """Replace the map with the Gaussians of a 3DGS PLY (optimizer state starts fresh)."""
+        from .io.ply import load_ply
+
+        gmap = load_ply(path, self.device, self.config.optim.lrs, self.config.optim.adam)
+        self.gmap = gmap
+        self.config.sh_degree = gmap.sh_degree
+
     def state_dict(self) -> dict:
         """Everything the next decisions depend on: config and camera, the Gaussians with their Adam moments, the
         three policies' states, the retained views, the counters, the random generators and the pose source's
@@ -82,6 +97,7 @@ class ReconstructorState:
             "pose_source": self.pose_source.state_dict() if hasattr(self.pose_source, "state_dict") else None,
             "fixed_work": self.fixed_work.state_dict(),
             "pose_refine": self.pose_refine.state_dict(),
+            "supervision": self.supervision.state_dict(),
             "offline_frames": self.offline_frames,  # the offline reference's policies (None: online)
         }
 
@@ -123,6 +139,7 @@ class ReconstructorState:
         self.backlog = state.get("backlog", 0)
         self.fixed_work.load_state_dict(state.get("fixed_work", {}))
         self.pose_refine.load_state_dict(state.get("pose_refine"))
+        self.supervision.load_state_dict(state.get("supervision", {}))  # older checkpoints: undecided
         self.rng.set_state(state["rng"])
         torch.set_rng_state(state["torch_rng"])
         if state.get("cuda_rng") is not None and self.device.type == "cuda":

@@ -139,6 +139,19 @@ class Frame:
         self._pyramid[key] = out
         return out
 
+    def point_sampled(self, step: int, phase_x: int, phase_y: int, device: torch.device | str = "cpu"
+                      ) -> tuple[torch.Tensor, torch.Tensor, Camera]:
+        """Colour [h, w, 3], depth [h, w] and camera of every ``step``-th source pixel from column ``phase_x`` and
+        row ``phase_y`` (not cached): as many pixels as :meth:`at_scale` at 1 / step when the size divides, but
+        samples of the source image rather than averages (:mod:`..scheduling.supervision`)."""
+        w, h = self.camera.width // step, self.camera.height // step
+        rows = slice(phase_y, phase_y + step * h, step)
+        cols = slice(phase_x, phase_x + step * w, step)
+        color = self.color[rows, cols].contiguous().to(device)
+        depth = self.depth[rows, cols].contiguous().to(device)
+        c = self.camera
+        return color, depth, Camera(w, h, c.fx / step, c.fy / step, (c.cx - phase_x) / step, (c.cy - phase_y) / step)
+
     def decoded(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(colour [H, W, 3], depth [H, W]) float32: the images themselves (a held-out view stored compactly,
         :class:`~eligsir_o3d.eval.heldout_view.HeldoutView`, decodes them here)."""

@@ -44,9 +44,9 @@ def test_the_mapper_runs_torch_on_the_configured_threads(two_torch_threads, sett
     rec = Reconstructor(seq.camera, "cpu", cfg, depth_scale=seq.depth_scale)
     seen, update = [], rec._update
 
-    def spy(frame, color, depth, cam):
-        seen.append((cam.pixels, torch.get_num_threads()))
-        return update(frame, color, depth, cam)
+    def spy(frame, sample):
+        seen.append((sample.camera.pixels, torch.get_num_threads()))
+        return update(frame, sample)
 
     rec._update = spy
     for item in seq:

@@ -69,6 +69,7 @@ def run_folder(tmp_path_factory):
     out = tmp_path_factory.mktemp("baked_run")
     cfg = Config(renderer="cpu")
     cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 2, 0
+    cfg.supervision.mode = "area"  # fitted below full size, what the bake is for (the room would measure "point")
     run_mapping("synthetic", out, cfg, RunOptions(max_frames=8, holdout_every=4, eval_every=0, progress=False,
                                                   plots=False, pictures=False, formats="ply,splat"))
     return out
