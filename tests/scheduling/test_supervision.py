@@ -122,3 +122,16 @@ def test_the_mode_is_checked_and_survives_a_checkpoint(room, tmp_path):
     assert early.supervision._last is not None and early.supervision._last.index == 0
     early.integrate(room.frame(3), room.frame(3).T_world_cam)
     assert len(early.supervision.coherence) == 1  # measured against the restored view
+
+
+def test_a_view_too_close_to_the_last_one_is_not_a_pair(room):
+    grid = SupervisionGrid(SupervisionConfig(pairs=2))
+    first = room.frame(0)
+    grid.on_admitted(first)
+    near = room.frame(0)
+    near.T_world_cam = _turned(first.T_world_cam, 2.0)  # 2 degrees, not moved: closer than 5 cm / 5 degrees
+    near.T_world_cam[:3, 3] += 0.01
+    grid.on_admitted(near)
+    assert grid.coherence == [] and grid._last is first  # still waiting for a view further on
+    grid.on_admitted(room.frame(3))
+    assert len(grid.coherence) == 1
