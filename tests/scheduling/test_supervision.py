@@ -2,6 +2,8 @@
 projects onto them; the detail coherence tells exact poses from a few pixels of misregistration; the policy decides
 once, after its pairs, and keeps its state through a checkpoint."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -135,3 +137,22 @@ def test_a_view_too_close_to_the_last_one_is_not_a_pair(room):
     assert grid.coherence == [] and grid._last is first  # still waiting for a view further on
     grid.on_admitted(room.frame(3))
     assert len(grid.coherence) == 1
+
+
+DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+needs_data = pytest.mark.skipif(not (DATA / "7scenes_redkitchen_jpg1000").is_dir(),
+                                reason="../shared/data is not available")
+
+
+@needs_data
+@pytest.mark.parametrize("name,frames,point", [
+    ("replica_office0_micro4", (0, 3, 1), True),  # rendered: its frames agree at full resolution (0.87-0.89)
+    ("7scenes_redkitchen_jpg1000", (0, 30, 50), False),  # the first views a real-time run admits (0.56, 0.30)
+    ("sun3d_mit76_studyroom_f0935", (0, 8, 13), False),  # (0.18, 0.59)
+])
+def test_real_recordings_and_a_rendered_one_decide_apart(name, frames, point):
+    seq = open_sequence(DATA / name)
+    grid = SupervisionGrid(SupervisionConfig(pair_translation_m=0.0, pair_rotation_deg=0.0))
+    for i in frames:
+        grid.on_admitted(seq.frame(i))
+    assert grid.counters()["decided"] and (grid.mode == "point") is point
