@@ -140,8 +140,12 @@ def _summary(m: dict, out: Path) -> None:
     views, growth = pol.get("views", {}), pol.get("growth", {})
     if "admitted" in views and "seeded" in growth:
         by_scale = ", ".join(f"{k}: {v}" for k, v in pol.get("fidelity", {}).get("updates_by_scale", {}).items())
-        typer.echo(f"views admitted {views['admitted']}/{views.get('released', '?')}  updates by scale {{{by_scale}}}  "
-                   f"Gaussians seeded {growth['seeded']}, inserted {growth.get('inserted', 0)}, "
+        sup = pol.get("supervision", {})
+        how = f" of {sup['mode']} samples" if sup.get("mode") else ""
+        if sup.get("coherence_median") is not None:  # the measured decision (scheduling/supervision.py)
+            how += f" (views' detail coherence {sup['coherence_median']:.2f})"
+        typer.echo(f"views admitted {views['admitted']}/{views.get('released', '?')}  updates by scale {{{by_scale}}}"
+                   f"{how}  Gaussians seeded {growth['seeded']}, inserted {growth.get('inserted', 0)}, "
                    f"relocated {growth.get('relocated', 0)}")
     typer.echo(f"mapping {m['mapping_time_s']:.1f} s  RTF {f(m['rtf'], '.2f')}  dropped {m['dropped_frames']}  "
                f"renderer {m['renderer']}  state {m['map_state']}")
