@@ -141,7 +141,7 @@ def _summary(m: dict, out: Path) -> None:
     if "admitted" in views and "seeded" in growth:
         by_scale = ", ".join(f"{k}: {v}" for k, v in pol.get("fidelity", {}).get("updates_by_scale", {}).items())
         sup = pol.get("supervision", {})
-        how = f" of {sup['mode']} samples" if sup.get("mode") else ""
+        how = f", {sup['mode']} samples below full size" if sup.get("mode") else ""
         if sup.get("coherence_median") is not None:  # the measured decision (scheduling/supervision.py)
             how += f" (views' detail coherence {sup['coherence_median']:.2f})"
         typer.echo(f"views admitted {views['admitted']}/{views.get('released', '?')}  updates by scale {{{by_scale}}}"
