@@ -8,12 +8,12 @@ same number of pixels and the same cost, but over updates the map sees every sou
 the detail of data that agrees at full resolution (rendered sequences: the embedded room at 640x480 +0.5-0.75 dB at
 the default budget, docs/evaluation.md).
 
-Which one a sequence gets is measured, not configured per dataset: :func:`detail_coherence` warps each newly
-admitted view into the one admitted before it (the later view's depth, both given poses) and correlates the two
+Which one a sequence gets is measured, not configured per dataset: :func:`detail_coherence` warps the last view
+measured into a newly admitted one (the later view's depth, both given poses) and correlates the two
 images' detail bands (image minus its box blur). Detail that agrees across views scores near 1, detail that pose,
 depth-colour registration or noise scramble scores near 0. A pair's views are at least the pose filter's default
 spacing apart (5 cm or 5 degrees), whatever spacing the budget lets the views have (closer views agree more: the
-kitchen's at ``--speed 0.1`` measure 0.72 against 0.43 in real time; the offline reference admits every frame). After
+kitchen's at ``--speed 0.1`` measured 0.72 against 0.44 in real time; the offline reference admits every frame). After
 ``pairs`` pairs the median decides, once for the run: point supervision at or above ``coherence_min``, else area.
 """
 
@@ -37,8 +37,8 @@ MODES = ("auto", "area", "point")
 class SupervisionConfig:
     mode: str = "auto"  # auto (measured per run) | area | point
     pairs: int = 2  # admitted view pairs whose median coherence decides (auto)
-    # the decision's threshold: measured medians of four pairs are 0.27-0.38 on four real recordings (7-Scenes,
-    # SUN3D) and 0.79-0.80 on the rendered room at 160x120 and 640x480
+    # the decision's threshold: the first two pairs' medians measured 0.33-0.44 on four real recordings (7-Scenes
+    # kitchen x3, SUN3D), 0.785 on the rendered room (160x120 and 640x480); Replica's office pairs 0.87-0.89
     coherence_min: float = 0.6
     band_px: int = 4  # the detail band: the image minus its band_px x band_px box blur (source pixels)
     max_pixels: int = 80_000  # the coherence uses a centre crop of the later view of at most this many pixels
