@@ -26,7 +26,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..core.camera import Camera, rotation_angle_deg
+from ..core.camera import Camera, invert_pose, rotation_angle_deg
 from ..core.frame import Frame
 from ..core.gaussians import EPS2D
 
@@ -77,13 +77,11 @@ def detail_coherence(later: Frame, earlier: Frame, band_px: int = 4, max_pixels:
     side = math.sqrt(max(1.0, max_pixels / (H * W)))  # a centre crop of at most max_pixels
     h, w = min(H, int(H * side)), min(W, int(W * side))
     y0, x0 = (H - h) // 2, (W - w) // 2
-    cam, cj = later.camera, earlier.camera
-    z = later.depth[y0:y0 + h, x0:x0 + w].double()
-    v, u = torch.meshgrid(torch.arange(y0, y0 + h, dtype=torch.float64),
-                          torch.arange(x0, x0 + w, dtype=torch.float64), indexing="ij")
-    pts = torch.stack([(u - cam.cx) * z / cam.fx, (v - cam.cy) * z / cam.fy, z], -1).reshape(-1, 3)
-    T = torch.from_numpy(np.linalg.inv(earlier.T_world_cam) @ later.T_world_cam)
-    q = pts @ T[:3, :3].T + T[:3, 3]
+    cj = earlier.camera
+    z = later.depth[y0:y0 + h, x0:x0 + w]
+    v, u = torch.meshgrid(torch.arange(y0, y0 + h), torch.arange(x0, x0 + w), indexing="ij")
+    T_earlier_later = invert_pose(earlier.T_world_cam) @ later.T_world_cam
+    q = later.camera.unproject(u.reshape(-1), v.reshape(-1), z.reshape(-1), T_earlier_later).double()
     zj = q[:, 2].clamp_min(1e-6)
     uj, vj = q[:, 0] / zj * cj.fx + cj.cx, q[:, 1] / zj * cj.fy + cj.cy
     Hj, Wj = earlier.depth.shape
