@@ -112,19 +112,26 @@ class Reconstructor(ReconstructorState):
         with self._threads(self.camera.scaled(self.config.support.scale).pixels):
             with self.timing("admission"):
                 admitted = self.views.admit(frame, self.ctx)
-                if admitted:
-                    self.supervision.on_admitted(frame)
+                decided = admitted and self.supervision.on_admitted(frame)
             self.stats.frames_admitted += int(admitted)
             with self.timing("growth"):
                 if admitted:
                     self.pose_refine.warm_start(frame)  # off unless pose_refine.warm_start
                 added = self.growth.on_frame(self.pose_refine.posed(frame), admitted, self.ctx)
+                if decided:  # seeds may have become finer (seed_scale): the views admitted before get them too
+                    added += self.growth.reseed([self.pose_refine.posed(f) for f in self.views.views
+                                                 if f.index != frame.index], self.ctx)
         self.stats.mapping_s += time.perf_counter() - t0
         if updates is None and deadline is None:
             updates = self.config.clock.updates_per_frame
         done = self.optimize(updates, deadline)
         return {"index": frame.index, "admitted": admitted, "added": added, "updates": done,
                 "gaussians": len(self.gmap)}
+
+    @property
+    def seed_scale(self) -> float | None:
+        """The scale new seeds are spaced in (``MapContext.seed_scale``): the supervision's choice at today's scale."""
+        return self.supervision.seed_scale(self.fidelity.scale())
 
     def optimize(self, updates: int | None = None, deadline: float | None = None, scale: float | None = None) -> int:
         """Run optimisation updates: ``updates`` of them, or as many as fit before ``deadline`` (:meth:`clock_now`)."""

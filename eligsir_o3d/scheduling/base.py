@@ -75,6 +75,12 @@ class MapContext:
         return int(map_in_view(self.gmap, camera, T_world_cam).numel())
 
     @property
+    def seed_scale(self) -> float | None:
+        """The image scale whose pixels new seeds are spaced in (:meth:`.supervision.SupervisionGrid.seed_scale`):
+        the updates' scale where the run's views agree at full resolution; None (the support probe's scale) else."""
+        return getattr(self._owner, "seed_scale", None)
+
+    @property
     def plan(self):
         """The current frame's :class:`~.load.FramePlan` (full admission check or not, support render scale)."""
         return getattr(self._owner, "frame_plan", FULL)
@@ -180,6 +186,11 @@ class GrowthPolicy(Policy):
 
     def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
         """After the optimizer step (relocation, noise, evidence-gated insertion)."""
+
+    def reseed(self, frames: list[Frame], ctx: MapContext) -> int:
+        """Seeds for views admitted before ``ctx.seed_scale`` became finer than what they were seeded at; returns
+        the number of Gaussians added (a policy whose seeds do not follow the seed scale adds none)."""
+        return 0
 
     def attach(self, period_s: float | None, cost=None) -> None:
         """When the load changes (``Reconstructor.set_load``): the seconds one source frame grants and the

@@ -258,6 +258,34 @@ def test_adaptive_seeding_is_as_fine_as_the_room_under_the_cap_allows():
         TargetedGrowth(GrowthConfig(seed_resolution="fine"))
 
 
+def test_seeds_are_spaced_in_pixels_of_the_seed_scale_and_earlier_views_get_the_finer_grid():
+    """With ``MapContext.seed_scale`` set (point supervision: the views agree at full resolution), seed_stride
+    counts pixels of that scale: 4 probe pixels at 1/4 (as without it), 2 at 1/2, 1 at full, never coarser than
+    without; :meth:`reseed` gives views seeded before the finer grid's seeds over all their valid depth."""
+    counts = {}
+    for scale in (None, 0.25, 0.125, 0.5, 1.0):
+        ctx = _ctx()
+        ctx._owner.seed_scale = scale
+        counts[scale] = TargetedGrowth(GrowthConfig()).on_frame(_plane_frame(_pose(), 0), True, ctx)
+    assert counts[None] == counts[0.25] == counts[0.125] == 4 * 3  # 16x12 probe pixels, every 4th
+    assert counts[0.5] == 8 * 6 and counts[1.0] == 16 * 12
+    off = _ctx()
+    off._owner.seed_scale = 1.0
+    assert TargetedGrowth(GrowthConfig(seed_follows_detail=False)).on_frame(_plane_frame(_pose(), 0), True, off) == 12
+
+    ctx = _ctx()
+    growth = TargetedGrowth(GrowthConfig())
+    frames = [_plane_frame(_pose(x=0.2 * i), i) for i in range(2)]
+    for f in frames:
+        growth.on_frame(f, True, ctx)
+    before = len(ctx.gmap)
+    assert growth.reseed(frames, ctx) == 0 and growth.counts["reseeded"] == 0  # no finer scale: nothing to add
+    ctx._owner.seed_scale = 0.5
+    added = growth.reseed(frames, ctx)
+    assert added == 2 * 8 * 6 and len(ctx.gmap) == before + added and growth.counts["reseeded"] == added
+    assert growth.counters()["reseeded"] == added
+
+
 @pytest.mark.parametrize("cap", [40, 150])
 def test_gaussian_cap_is_never_exceeded(cap):
     cfg = eo3d.Config(renderer="torch", max_gaussians=cap)

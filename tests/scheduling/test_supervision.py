@@ -90,6 +90,28 @@ def test_the_policy_decides_once_after_its_pairs(room):
     assert s.low_pass == EPS2D and s.fitted == s.camera
 
 
+def test_point_supervision_seeds_as_finely_as_the_updates_and_reseeds_the_views_before_the_decision(room):
+    """A run that decides point samples spaces seeds in pixels of the updates' scale (here a fixed 1/2: 8 source
+    pixels instead of 16) and gives the views admitted before the decision the finer grid too; one that decides
+    area keeps the probe's grid."""
+    runs = {}
+    for mode in ("auto", "area"):
+        cfg = Config(renderer="cpu", ablate=["fidelity"])
+        cfg.fidelity.fixed_scale = 0.5
+        cfg.clock.updates_per_frame = 1
+        cfg.supervision.mode = mode
+        rec = Reconstructor(room.camera, "cpu", cfg)
+        for i in range(0, 12, 3):
+            rec.integrate(room.frame(i), room.frame(i).T_world_cam)
+        runs[mode] = rec
+    auto, area = runs["auto"], runs["area"]
+    assert auto.supervision.mode == "point" and auto.seed_scale == 0.5 and area.seed_scale is None
+    grown = auto.policy_counters()["growth"]
+    assert grown["reseeded"] > 0  # the views before the decision
+    assert area.policy_counters()["growth"]["reseeded"] == 0
+    assert grown["seeded"] + grown["reseeded"] > 2 * area.policy_counters()["growth"]["seeded"]
+
+
 def test_a_misregistered_stream_keeps_area_supervision(room):
     grid = SupervisionGrid(SupervisionConfig(pairs=2))
     for k, i in enumerate((0, 2, 4)):
