@@ -145,7 +145,9 @@ def _summary(m: dict, out: Path) -> None:
         if sup.get("coherence_median") is not None:  # the measured decision (scheduling/supervision.py)
             how += f" (views' detail coherence {sup['coherence_median']:.2f})"
         typer.echo(f"views admitted {views['admitted']}/{views.get('released', '?')}  updates by scale {{{by_scale}}}"
-                   f"{how}  Gaussians seeded {growth['seeded']}, inserted {growth.get('inserted', 0)}, "
+                   f"{how}  Gaussians seeded {growth['seeded']}"
+                   + (f" (+{growth['reseeded']} finer for earlier views)" if growth.get("reseeded") else "")
+                   + f", inserted {growth.get('inserted', 0)}, "
                    f"relocated {growth.get('relocated', 0)}")
     typer.echo(f"mapping {m['mapping_time_s']:.1f} s  RTF {f(m['rtf'], '.2f')}  dropped {m['dropped_frames']}  "
                f"renderer {m['renderer']}  state {m['map_state']}")
