@@ -170,4 +170,6 @@ def test_calibration_charges_the_measured_per_frame_work():
 
     fast, _ = calibrate(eo3d.Reconstructor(seq.camera, "cpu"), frames, make_scratch=make(False), updates_per_scale=1)
     slow, _ = calibrate(eo3d.Reconstructor(seq.camera, "cpu"), frames, make_scratch=make(True), updates_per_scale=1)
-    assert slow.frame_s >= fast.frame_s + 0.03
+    # the sleep is a floor whatever else the machine runs; a difference of two measured terms is not (it failed
+    # once while three mapping runs loaded both cores of a 2-core machine)
+    assert slow.frame_s >= 0.03 and slow.frame_s > fast.frame_s
