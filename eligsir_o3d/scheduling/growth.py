@@ -45,8 +45,8 @@ class GrowthConfig:
     seed_min_stride: int = 2  # adaptive seeding: at most one seed per 2x2 source pixels
     # where the run's views agree at full resolution (point supervision, ``MapContext.seed_scale``), seed_stride
     # counts pixels of the updates' scale instead of the probe's: 8 source pixels apart at 1/2-scale updates, 4 at
-    # full scale, unchanged at 1/4. The rendered room, seeds 0 / 1: 160x120 22.30 / 22.59 -> 24.87 / 24.59 dB,
-    # at --speed 0.1 24.97 -> 27.97 (docs/evaluation.md); the real recordings decide area and keep their maps
+    # full scale, unchanged at 1/4. The rendered room, seeds 0 / 1: 160x120 22.30 / 22.59 -> 24.65 / 24.85 dB,
+    # at --speed 0.1 24.97 -> 27.75 (docs/evaluation.md); the real recordings decide area and keep their maps
     seed_follows_detail: bool = True
     insert_stride: int = 2  # evidence-gated insertion: one Gaussian per 2x2 probe pixels of a ready voxel
     max_insert_per_frame: int = 2000  # bound on one frame's insertions
@@ -159,12 +159,14 @@ class TargetedGrowth(GrowthPolicy):
         resolution), the views admitted before got seeds on the coarser grid: each gets the finer grid's seeds over
         all its valid depth, on top of what it has (the coarse seeds sit between them; relocation reuses those that
         fade). Without it the first views of the rendered room stay coarse: 160x120 23.46 / 23.23 dB instead of
-        24.87 / 24.59."""
+        24.65 / 24.85."""
         added = 0
+        if ctx.seed_scale is None or not self.cfg.seed_follows_detail or self.cfg.seed_resolution != "probe":
+            return added  # seeds on the probe's grid: nothing finer to add
         for frame in frames:
             sup = self.probe.check(frame, ctx)
             stride = self._seed_stride(sup, frame, ctx)
-            if stride >= self.cfg.seed_stride or self.cfg.seed_resolution != "probe":
+            if stride >= self.cfg.seed_stride:
                 continue
             cap = self.cap(ctx, self.pixels or sup.camera.pixels, ctx.in_view(sup.camera, frame.T_world_cam))
             vs, us = torch.nonzero(sup.valid, as_tuple=True)
