@@ -219,8 +219,18 @@ def gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, y
             sx1 = min(nbx - 1, int(math.floor(hi_x))) if hi_x < nbx else nbx - 1
             sy0 = max(0, int(math.ceil(lo_y - (bh - 1.0) / bh))) if lo_y > -1.0 else 0
             sy1 = min(nby - 1, int(math.floor(hi_y))) if hi_y < nby else nby - 1
+        ca, cb, cc, smax = par[s + k, 2], par[s + k, 3], par[s + k, 4], par[s + k, 6]
         for by in range(sy0, sy1 + 1):
             for bx in range(sx0, sx1 + 1):
+                # the box's blocks whose pixel centres the ellipse misses (its corners, or a pixel row it only grazes):
+                # 42 % of a kitchen map's block entries at 1/4 scale. The kernels' own per-pixel test, in the same
+                # float32, so a block left out is one where every pixel skips the Gaussian anyway
+                hit = False
+                for p in range(bw * bh):
+                    hit = hit | reaches(np.float32(x0 + bx * bw + p % bw), np.float32(y0 + by * bh + p // bw), mx, my,
+                                        ca, cb, cc, smax)
+                if not hit:
+                    continue
                 j = by * nbx + bx
                 sub[base + j * n + sub_n[t, j]] = k
                 sub_n[t, j] += 1
