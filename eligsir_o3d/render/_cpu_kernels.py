@@ -223,8 +223,8 @@ def gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, y
         for by in range(sy0, sy1 + 1):
             for bx in range(sx0, sx1 + 1):
                 # the box's blocks whose pixel centres the ellipse misses (its corners, or a pixel row it only grazes):
-                # 42 % of a kitchen map's block entries at 1/4 scale. The kernels' own per-pixel test, in the same
-                # float32, so a block left out is one where every pixel skips the Gaussian anyway
+                # 45 % of a kitchen map's block entries at 1/4 scale (3.53M -> 1.95M). The kernels' own per-pixel
+                # test, in the same float32, so a block left out is one where every pixel skips the Gaussian anyway
                 hit = False
                 for p in range(bw * bh):
                     hit = hit | reaches(np.float32(x0 + bx * bw + p % bw), np.float32(y0 + by * bh + p // bw), mx, my,
