@@ -55,6 +55,7 @@ def view_frames(in_view: int | None) -> tuple:
 # ------------------------------------------------------------------------------------------------ worker side ----
 
 def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in_view: int | None) -> None:
+    import eligsir_o3d  # noqa: F401  first, as in a mapping run: it picks numba's threading layer (eligsir_o3d/_tbb.py)
     import numba
     import numpy as np
     import torch

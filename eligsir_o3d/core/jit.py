@@ -13,16 +13,23 @@ from contextlib import contextmanager
 
 import numba
 
+from .. import _tbb
+
 uncached: list[str] = []  # names of the kernels that compile in every process (no writable cache)
 
 
-def _select_threading_layer() -> None:
-    """Prefer OpenMP over an old system TBB (numba warns and skips TBB < 2021.6 anyway); the user's choice wins."""
-    if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
-        numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+def _select_threading_layer() -> bool:
+    """TBB where a recent enough one is loaded (:mod:`.._tbb`: its workers need no wake-up per parallel region),
+    else OpenMP, never an old system TBB (numba would warn and skip it); the user's choice wins. True when the
+    kernels will run on TBB."""
+    if "NUMBA_THREADING_LAYER" in os.environ or "NUMBA_THREADING_LAYER_PRIORITY" in os.environ:
+        return os.environ.get("NUMBA_THREADING_LAYER", "").lower() == "tbb"
+    tbb = _tbb.usable()
+    numba.config.THREADING_LAYER_PRIORITY = (["tbb", "omp"] if tbb else ["omp", "tbb"]) + ["workqueue"]
+    return tbb
 
 
-_select_threading_layer()
+ON_TBB = _select_threading_layer()
 
 
 def compile_kernel(parallel: bool):
@@ -44,7 +51,9 @@ def compile_kernel(parallel: bool):
 jit = compile_kernel(parallel=True)
 jit_serial = compile_kernel(parallel=False)
 
-from .threads import PARALLEL_MIN_PIXELS, PARALLEL_MIN_ROWS  # noqa: E402
+from .threads import PARALLEL_MIN_PIXELS, PARALLEL_MIN_ROWS, PARALLEL_MIN_ROWS_TBB  # noqa: E402
+
+ROWS_LIMIT = PARALLEL_MIN_ROWS_TBB if ON_TBB else PARALLEL_MIN_ROWS  # rows from which a per-Gaussian kernel runs parallel
 
 
 @contextmanager
@@ -64,7 +73,7 @@ def threads_for(work: int, min_work: int):
 
 def rows_threads(rows: int):
     """:func:`threads_for` a per-Gaussian kernel (projection, culling, Adam) over ``rows`` Gaussians."""
-    return threads_for(rows, PARALLEL_MIN_ROWS)
+    return threads_for(rows, ROWS_LIMIT)
 
 
 def pixels_threads(pixels: int):

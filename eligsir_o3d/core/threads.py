@@ -9,8 +9,9 @@ the Gaussians in view.
   :class:`~eligsir_o3d.Reconstructor` for frames' admission and growth and for updates on images below
   :data:`TORCH_MIN_PIXELS` with fewer than :data:`TORCH_MIN_ROWS` Gaussians in view (the last update's);
   larger ones keep the caller's count (77k Gaussians in view at 1/4 scale: 0.96 of the time on 2 threads, 16k even);
-- :func:`.jit.threads_for`: one numba thread for a kernel over less than :data:`PARALLEL_MIN_ROWS` Gaussians or a
-  D-SSIM over less than :data:`PARALLEL_MIN_PIXELS` pixels. The compositing kernels always run on every thread.
+- :func:`.jit.threads_for`: one numba thread for a kernel over less than :data:`PARALLEL_MIN_ROWS` Gaussians
+  (:data:`PARALLEL_MIN_ROWS_TBB` on numba's TBB layer, the default where the ``tbb`` wheel installs) or a D-SSIM
+  over less than :data:`PARALLEL_MIN_PIXELS` pixels. The compositing kernels always run on every thread.
 
 Measured side by side in one process (2 threads, updates of the kitchen map, benchmarks/speed/update_time.py for
 whole updates), stop 39: torch's ops on one thread made 1/4- and 1/2-scale updates 20 % and 15 % faster and
@@ -33,6 +34,9 @@ from contextlib import contextmanager
 import torch
 
 PARALLEL_MIN_ROWS = 10_000  # Gaussians: compiled kernels over the rows in view (projection, culling, Adam, noise)
+# the same on numba's TBB layer (eligsir_o3d/_tbb.py), whose workers need no wake-up: 4k in view at 1/4 scale,
+# 2 threads, stop 47: 7.6-7.9 -> 6.8-7.0 ms a quiet update (500-4000 alike), 14.4-16.6 -> 14.7-16.0 beside a busy process
+PARALLEL_MIN_ROWS_TBB = 2_000
 PARALLEL_MIN_PIXELS = 16_000  # image pixels: the compiled D-SSIM
 TORCH_MIN_ROWS = 50_000  # Gaussians last in view: torch's ops of an update on the caller's threads from here
 TORCH_MIN_PIXELS = 150_000  # image pixels: the same

@@ -24,7 +24,6 @@ import numpy as np
 import torch
 
 from ..core.camera import Camera
-from ..core.threads import PARALLEL_MIN_ROWS
 from .base import DeferredRenderOutput, RenderOutput, TileRenderer, mask_culled, view_colors
 from .projection import EPS2D, NEAR, TILE, Projection, TileBins, world_to_cam
 
@@ -234,8 +233,9 @@ def bin_tiles_csr(proj: Projection, width: int, height: int) -> tuple[torch.Tens
     keys.sort()
     by_depth = keys & 0xFFFFFFFF
     k = _kernels()
-    # in parallel parts from PARALLEL_MIN_ROWS visible Gaussians on (77k: 2.8 ms on one thread), else in one
-    chunks = k.task_slots(vis.shape[0]) if vis.shape[0] >= PARALLEL_MIN_ROWS else 1
+    # in parallel parts from ROWS_LIMIT visible Gaussians on (77k: 2.8 ms on one thread), else in one
+    from ..core.jit import ROWS_LIMIT
+    chunks = k.task_slots(vis.shape[0]) if vis.shape[0] >= ROWS_LIMIT else 1
     with _rows_threads(vis.shape[0]):
         offsets, flat = _binning().bin_tiles_fill(_f32(proj.means2d).numpy(), radii, by_depth, tiles_x, tiles_y,
                                                   chunks)
