@@ -55,3 +55,19 @@ def torch_threads(n: int):
         yield
     finally:
         torch.set_num_threads(old)
+
+
+def report() -> dict:
+    """The threads a run had, for metrics.json: torch's count, and numba's count and threading layer once a
+    compiled kernel has run (``tbb`` where the ``tbb`` wheel loaded first, eligsir_o3d/_tbb.py; else ``omp``)."""
+    import sys
+
+    out = {"torch": torch.get_num_threads()}
+    numba = sys.modules.get("numba")
+    if numba is not None:
+        out["numba"] = numba.get_num_threads()
+        try:
+            out["numba_layer"] = numba.threading_layer()
+        except ValueError:  # no parallel kernel has run in this process
+            pass
+    return out

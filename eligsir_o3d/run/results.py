@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .options import RunOptions
+from ..core.threads import report as threads_report
 
 RUN_FILE = "run.json"  # read back by read_run
 CELLS_FILE = "cells.json"
@@ -87,6 +88,7 @@ def collect_metrics(r: RunResult) -> dict:
         "frames_source": r.frames_source,
         "device": str(rec.device),
         "renderer": rec.config.renderer,
+        "threads": threads_report(),
         "map_state": r.map_state,
         "pose_source": r.pose_name,
         "clock": r.clock,

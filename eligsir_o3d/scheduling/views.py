@@ -33,9 +33,9 @@ class ViewConfig:
     min_translation_m: float = 0.05  # pose pre-filter: a candidate closer than this AND ...
     min_rotation_deg: float = 5.0  # ... rotated less than this from some retained view is a near-duplicate
     # both thresholds shrink as the budget grows (scheduling.spacing): by sqrt(spacing_updates / u) where one source
-    # frame buys u > spacing_updates updates at 1/4 scale (never in real time on the shipped cost model: u ~5-9 on a
-    # room's map, < 11 on an empty one; --speed 0.1: ~0.4, about 2 cm / 2 deg). 0: the thresholds above at every budget
-    spacing_updates: float = 11.0
+    # frame buys u > spacing_updates updates at 1/4 scale (never in real time on the shipped cost model: u ~6-11 on
+    # a room's map, 13.3 on an empty one; --speed 0.1: ~0.4, about 2 cm / 2 deg). 0: the thresholds above at every budget
+    spacing_updates: float = 13.5
     min_novelty: float = 0.10  # admit when at least this fraction of the frame's depth is not explained by the map
     max_gap_s: float = 1.0  # admit the next non-redundant view when none was admitted for this long
     active_size: int = 16  # views in the active supervision set

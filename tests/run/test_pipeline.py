@@ -55,6 +55,9 @@ def test_results_folder_contract_and_heldout_never_supervise(tmp_path, monkeypat
         assert key in saved, key
     assert saved["frames_heldout"] == len(held) and saved["map_state"] == "ME"
     assert saved["updates"] == 12 * 3 + 10
+    assert saved["threads"]["torch"] >= 1  # and, after the cpu renderer's kernels, numba's count and layer
+    if saved["renderer"] == "cpu":
+        assert saved["threads"]["numba"] >= 1 and saved["threads"]["numba_layer"] in ("tbb", "omp", "workqueue")
     pol = saved["policies"]  # what each policy decided, consistent with the run's own counts
     assert pol["views"]["policy"] == "map_guided" and pol["views"]["released"] == 12
     assert pol["views"]["admitted"] == saved["frames_admitted"] == pol["views"]["retained"]
