@@ -7,10 +7,10 @@ import os
 # idle. It only takes effect if set before torch is first imported; a user's own setting wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from . import _tbb  # noqa: E402
+from . import tbb_runtime  # noqa: E402
 from ._open3d_check import import_open3d  # noqa: E402
 
-_tbb.preload()  # before Open3D loads its older TBB (eligsir_o3d/_tbb.py): numba's kernels then run on TBB
+tbb_runtime.preload()  # before Open3D loads its older TBB (eligsir_o3d/tbb_runtime.py): numba's kernels then run on TBB
 import_open3d()  # a missing system library (libusb, libGL, ...) fails here with one line naming the package
 
 from .core.camera import Camera  # noqa: E402

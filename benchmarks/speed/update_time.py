@@ -55,7 +55,8 @@ def view_frames(in_view: int | None) -> tuple:
 # ------------------------------------------------------------------------------------------------ worker side ----
 
 def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in_view: int | None) -> None:
-    import eligsir_o3d  # noqa: F401  first, as in a mapping run: it picks numba's threading layer (eligsir_o3d/_tbb.py)
+    # first, as in a mapping run: it picks numba's threading layer (eligsir_o3d/tbb_runtime.py)
+    import eligsir_o3d  # noqa: F401
     import numba
     import numpy as np
     import torch

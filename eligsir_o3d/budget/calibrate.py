@@ -52,7 +52,7 @@ def machine_key(device, renderer: str, pose_refine: bool = True) -> dict:
     # 4: updates ~1.3x cheaper on 2 threads (core.threads: small work on one thread), so older fits over-price them;
     # 5: the compositing kernels ~1.2x cheaper on 2 threads (stop 41); 6: tighter block lists and numba on TBB
     # (stop 47: updates ~1.2x cheaper on 2 threads). The layer is a key of its own: a process that imported Open3D
-    # before eligsir_o3d runs numba on OpenMP (eligsir_o3d/_tbb.py), slower on 2 threads
+    # before eligsir_o3d runs numba on OpenMP (eligsir_o3d/tbb_runtime.py), slower on 2 threads
 
 
 def _on_tbb() -> bool:

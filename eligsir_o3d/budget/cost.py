@@ -41,8 +41,8 @@ class CostModel:
     per update 0.73-0.93; each run from a neutral folder so that PYTHONPATH chose the checkout), the frame terms
     unchanged. At 3k Gaussians: 80x60 / 160x120 / 320x240 / 640x480 updates at 2.8 / 5.2 / 15 / 54 ms.
     2026-12-04 (issue 32, stop 47): the four update terms x0.82 again, after the forward gather's tighter block
-    lists (stop 46) and numba's kernels on TBB (:mod:`.._tbb`): the default kitchen run's updates, against the code
-    of the last fit (db912e2), three warm interleaved pairs, 7.16 / 7.24 / 7.23 -> 5.84 / 5.83 / 5.95 ms per update
+    lists (stop 46) and numba's kernels on TBB (:mod:`..tbb_runtime`): the default kitchen run's updates, against the
+    code of the last fit (db912e2), three warm interleaved pairs, 7.16 / 7.24 / 7.23 -> 5.84 / 5.83 / 5.95 ms per update
     (0.81-0.82; a map of 3.9k Gaussians against 3.7k), the frame terms unchanged. At 3k Gaussians: 80x60 /
     160x120 / 320x240 / 640x480 updates at 2.3 / 4.3 / 12 / 44 ms.
     """

@@ -13,18 +13,18 @@ from contextlib import contextmanager
 
 import numba
 
-from .. import _tbb
+from .. import tbb_runtime
 
 uncached: list[str] = []  # names of the kernels that compile in every process (no writable cache)
 
 
 def _select_threading_layer() -> bool:
-    """TBB where a recent enough one is loaded (:mod:`.._tbb`: its workers need no wake-up per parallel region),
+    """TBB where a recent enough one is loaded (:mod:`..tbb_runtime`: its workers need no wake-up per parallel region),
     else OpenMP, never an old system TBB (numba would warn and skip it); the user's choice wins. True when the
     kernels will run on TBB."""
     if "NUMBA_THREADING_LAYER" in os.environ or "NUMBA_THREADING_LAYER_PRIORITY" in os.environ:
         return os.environ.get("NUMBA_THREADING_LAYER", "").lower() == "tbb"
-    tbb = _tbb.usable()
+    tbb = tbb_runtime.usable()
     numba.config.THREADING_LAYER_PRIORITY = (["tbb", "omp"] if tbb else ["omp", "tbb"]) + ["workqueue"]
     return tbb
 

@@ -34,8 +34,9 @@ from contextlib import contextmanager
 import torch
 
 PARALLEL_MIN_ROWS = 10_000  # Gaussians: compiled kernels over the rows in view (projection, culling, Adam, noise)
-# the same on numba's TBB layer (eligsir_o3d/_tbb.py), whose workers need no wake-up: 4k in view at 1/4 scale,
-# 2 threads, stop 47: 7.6-7.9 -> 6.8-7.0 ms a quiet update (500-4000 alike), 14.4-16.6 -> 14.7-16.0 beside a busy process
+# the same on numba's TBB layer (eligsir_o3d/tbb_runtime.py), whose workers need no wake-up: 4k in view at 1/4
+# scale, 2 threads, stop 47: 7.6-7.9 -> 6.8-7.0 ms a quiet update (500-4000 alike), 14.4-16.6 -> 14.7-16.0 beside
+# a busy process
 PARALLEL_MIN_ROWS_TBB = 2_000
 PARALLEL_MIN_PIXELS = 16_000  # image pixels: the compiled D-SSIM
 TORCH_MIN_ROWS = 50_000  # Gaussians last in view: torch's ops of an update on the caller's threads from here
@@ -59,7 +60,7 @@ def torch_threads(n: int):
 
 def report() -> dict:
     """The threads a run had, for metrics.json: torch's count, and numba's count and threading layer once a
-    compiled kernel has run (``tbb`` where the ``tbb`` wheel loaded first, eligsir_o3d/_tbb.py; else ``omp``)."""
+    compiled kernel has run (``tbb`` where the ``tbb`` wheel loaded first, eligsir_o3d/tbb_runtime.py; else ``omp``)."""
     import sys
 
     out = {"torch": torch.get_num_threads()}

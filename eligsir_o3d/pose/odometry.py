@@ -247,7 +247,14 @@ class OdometrySource(PoseSource):
         centres = (keys.numpy().astype(np.float64) + 0.5) * self.voxel_size * 8
         far = np.linalg.norm(centres - T[:3, 3], axis=1) > self.keep_radius
         if far.any():
-            hashmap.erase(o3c.Tensor(keys.numpy()[far]))
+            gone = o3c.Tensor(keys.numpy()[far])
+            # Open3D's hash map hands an erased block's buffer slot to the next block it activates without
+            # clearing it: zero the slots first, or a new block starts with a far block's distances and weights.
+            slots = hashmap.find(gone)[0].to(o3c.int64)
+            for name in ("tsdf", "weight"):
+                values = self._vbg.attribute(name)
+                values[slots] = o3c.Tensor.zeros((len(slots),) + tuple(values.shape[1:]), values.dtype)
+            hashmap.erase(gone)
 
     @property
     def model_blocks(self) -> int:

@@ -1,4 +1,4 @@
-"""numba's threading layer (eligsir_o3d/_tbb.py): TBB when the ``tbb`` wheel is installed and eligsir_o3d is
+"""numba's threading layer (eligsir_o3d/tbb_runtime.py): TBB when the ``tbb`` wheel is installed and eligsir_o3d is
 imported before Open3D, OpenMP otherwise (silently), the user's NUMBA_THREADING_LAYER first; and the same map bit
 for bit on either layer. Each case runs in a fresh interpreter: a process picks its layer once."""
 
@@ -12,7 +12,7 @@ import sys
 
 import pytest
 
-from eligsir_o3d import _tbb
+from eligsir_o3d import tbb_runtime
 
 
 def _has_tbb_wheel() -> bool:
@@ -97,7 +97,8 @@ def test_the_same_map_bit_for_bit_on_tbb_and_openmp():
 
 
 def test_the_interface_version_is_read_from_the_library_that_loaded_first():
-    code = "import {first}\nfrom eligsir_o3d import _tbb\nprint(_tbb.interface_version(), _tbb.usable())"
+    code = ("import {first}\nfrom eligsir_o3d import tbb_runtime\n"
+            "print(tbb_runtime.interface_version(), tbb_runtime.usable())")
     got = {}
     for first in ("eligsir_o3d", "open3d"):
         r = _run(code.format(first=first))
@@ -105,6 +106,6 @@ def test_the_interface_version_is_read_from_the_library_that_loaded_first():
         version, usable = r.stdout.split()[-2:]
         got[first] = (None if version == "None" else int(version), usable == "True")
     if _has_tbb_wheel():
-        assert got["eligsir_o3d"][0] >= _tbb.MIN_INTERFACE and got["eligsir_o3d"][1]
+        assert got["eligsir_o3d"][0] >= tbb_runtime.MIN_INTERFACE and got["eligsir_o3d"][1]
     if got["open3d"][0] is not None:  # Open3D's own TBB, where its wheel bundles one
-        assert got["open3d"][1] == (got["open3d"][0] >= _tbb.MIN_INTERFACE)
+        assert got["open3d"][1] == (got["open3d"][0] >= tbb_runtime.MIN_INTERFACE)

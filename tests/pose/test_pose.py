@@ -233,13 +233,34 @@ def test_lost_tracking_is_reported(room, spec, options):
 
 
 def test_odometry_model_stays_small(room):
-    """Past max_blocks, TSDF blocks far from the camera are dropped; tracking goes on."""
-    full = get_pose_source("odometry", scale=1.0)
-    err_full = np.linalg.norm(run_source(full, room, 8)[-1][:3, 3] - room.poses[7][:3, 3])
-    small = get_pose_source("odometry", scale=1.0, max_blocks=100, keep_radius=3.0)
-    err_small = np.linalg.norm(run_source(small, room, 8)[-1][:3, 3] - room.poses[7][:3, 3])
-    assert small.model_blocks < full.model_blocks
-    assert err_small < err_full + 0.02, (err_small, err_full)
+    """Past max_blocks, TSDF blocks far from the camera are dropped; tracking goes on.
+
+    Three 8-frame windows, compared by their median: Open3D's ray cast of a small model is not deterministic (the
+    same grid cast twice differs on ~1 % of pixels), and one window in a few then ends 0.03-0.08 m off (measured
+    2026-12-04, 5 windows x 4 processes; the full model: 0.016-0.041 m)."""
+    err = {"full": [], "small": []}
+    for start in (0, 60, 120):
+        for name, kw in (("full", {}), ("small", {"max_blocks": 100, "keep_radius": 3.0})):
+            src = get_pose_source("odometry", scale=1.0, **kw)
+            last = run_source(src, room, 8, start)[-1]
+            err[name].append(np.linalg.norm(last[:3, 3] - room.poses[start + 7][:3, 3]))
+            if name == "small":
+                assert src.model_blocks < blocks_full
+            else:
+                blocks_full = src.model_blocks
+    assert np.median(err["small"]) < np.median(err["full"]) + 0.02, err
+
+
+def test_odometry_pruned_blocks_leave_no_values_behind(room):
+    """Open3D's hash map gives an erased block's buffer slot to the next new block as it was: pruning clears it."""
+    src = get_pose_source("odometry", scale=1.0, max_blocks=100, keep_radius=3.0)
+    run_source(src, room, 3)
+    hashmap = src._vbg.hashmap()
+    live = hashmap.active_buf_indices().to(o3c.int64).numpy()
+    dead = np.setdiff1d(np.arange(hashmap.capacity()), live)
+    assert len(dead) > 0
+    for name in ("tsdf", "weight"):
+        assert not np.asarray(src._vbg.attribute(name).numpy())[dead].any(), name
 
 
 def test_odometry_input_errors(room):
