@@ -71,6 +71,11 @@ def threads_for(work: int, min_work: int):
         numba.set_num_threads(n)
 
 
+def parallel_rows(rows: int) -> bool:
+    """Whether a per-Gaussian kernel over ``rows`` Gaussians runs on numba's threads (else on one)."""
+    return rows >= ROWS_LIMIT
+
+
 def rows_threads(rows: int):
     """:func:`threads_for` a per-Gaussian kernel (projection, culling, Adam) over ``rows`` Gaussians."""
     return threads_for(rows, ROWS_LIMIT)

@@ -74,9 +74,13 @@ def _proj_kernels():
     return _cpu_projection
 
 
+def _jit():
+    from ..core import jit  # numba loads with the kernels, not with eligsir_o3d.render
+    return jit
+
+
 def _rows_threads(rows: int):
-    from ..core.jit import rows_threads  # numba loads with the kernels, not with eligsir_o3d.render
-    return rows_threads(rows)
+    return _jit().rows_threads(rows)
 
 
 def warmup() -> float:
@@ -233,9 +237,8 @@ def bin_tiles_csr(proj: Projection, width: int, height: int) -> tuple[torch.Tens
     keys.sort()
     by_depth = keys & 0xFFFFFFFF
     k = _kernels()
-    # in parallel parts from ROWS_LIMIT visible Gaussians on (77k: 2.8 ms on one thread), else in one
-    from ..core.jit import ROWS_LIMIT
-    chunks = k.task_slots(vis.shape[0]) if vis.shape[0] >= ROWS_LIMIT else 1
+    # in parallel parts where the per-Gaussian kernels run parallel (77k: 2.8 ms on one thread), else in one
+    chunks = k.task_slots(vis.shape[0]) if _jit().parallel_rows(vis.shape[0]) else 1
     with _rows_threads(vis.shape[0]):
         offsets, flat = _binning().bin_tiles_fill(_f32(proj.means2d).numpy(), radii, by_depth, tiles_x, tiles_y,
                                                   chunks)
