@@ -1,30 +1,27 @@
 """One mapping update at 1/4 scale, timed side by side for two (or more) checkouts of the package.
 
 What :class:`Reconstructor` does per update (``rec.optimize(1, scale=0.25)``: view selection, the view's 160x120
-supervision, render, L1 + D-SSIM + depth loss, regularisers, backward, Adam, MCMC noise/relocation, the views'
-feedback), on the *same* map in every checkout: the driver writes one 3DGS PLY per map size (``--gaussians``)
-from the kitchen's depth (frames 0..190, every 10th, back-projected; ``n`` points drawn at random; scales the
-nearest-neighbour distance, as ``benchmarks/render.py``'s scene; opacity 0.5, colour of the pixel), and every
-worker loads it (``rec.load_ply``) into a fresh Reconstructor of its own code whose views are the same 20
-kitchen frames. One worker process per checkout and thread count; the workers take turns round after round
-(A, B, A, B, ...) so that the load of a shared machine falls on all of them alike. Each round reloads the map,
-runs ``--warm`` updates untimed (Adam's moments allocated, caches warm) and times ``--updates`` updates one by
-one; the table gives the median over all timed updates of all rounds and the ratio to the first checkout.
+supervision, render, loss, regularisers, backward, Adam, MCMC, the views' feedback), on the *same* map in every
+checkout: the driver writes one 3DGS PLY per map size (``--gaussians``) from the kitchen's depth (frames 0..190,
+every 10th, back-projected; ``n`` points at random; scales the nearest-neighbour distance; opacity 0.5, colour of
+the pixel), and every worker loads it into a fresh Reconstructor of its own code whose views are the same 20
+kitchen frames. One worker process per checkout and thread count; the workers take turns round after round so
+that the load of a shared machine falls on all alike. Each round reloads the map, runs ``--warm`` updates untimed
+and times ``--updates`` one by one; the table gives the median over all timed updates of all rounds and the ratio
+to the first checkout.
 
 Clock: the process's CPU time with one thread (a measure of work that holds up on a shared machine), the
 wall clock with more. Threads: a worker with more than one thread follows each round's timed updates with as many
-on a single thread (wall clock, after one untimed), and the report gives the median over rounds of the ratio of
-their medians beside the ratio of the workers' medians (until stop 43 each timed update was followed by one on one
-thread: every update on two threads then started with the second core's caches cold from the update before, which
-hid most of what a second thread buys on consecutive updates, as a mapping run makes them); and
-each such worker times a compiled loop that parallelises perfectly, on one thread and on its threads, once a round,
-to say what the machine's threads delivered at those moments (a shared or throttled VM may give its second core
-only part of the time: one 2-core VM here ran the ideal loop 1.1x to 2.0x faster on two threads, changing within
-seconds), so that an update's speed-up is read against the machine's and not against 2. ``--in-view K``: every
-map holds the same K Gaussians in the views (the map of size K) and
-its remaining ``n - K`` Gaussians out of every view (copies of the kitchen's points shifted by tens of metres,
-those that some view could reach dropped), the scene of a large map whose update sees one room; the table adds
-the Gaussians the updates supervised (median). ``NAME=DIR`` names a checkout (``DIR/eligsir_o3d`` is the package timed):
+on a single thread (wall clock, after one untimed; consecutive updates, as a mapping run makes them, so the second
+core's caches stay warm), and the report gives the median over rounds of the ratio of their medians beside the
+ratio of the workers' medians; each such worker also times a compiled loop that parallelises perfectly, on one
+thread and on its threads, once a round: what the machine's threads delivered at those moments (one shared 2-core
+VM here ran it 1.1x to 2.0x faster on two threads, changing within seconds), to read an update's speed-up
+against. ``--phases``: each phase's share and speed-up besides (``update_phases.py``). ``--in-view K``: every
+map holds the same K Gaussians in the views (the map of size K) and its remaining ``n - K`` Gaussians out of every
+view (copies of the kitchen's points shifted by tens of metres, those that some view could reach dropped), the
+scene of a large map whose update sees one room; the table adds the Gaussians the updates supervised (median).
+``NAME=DIR`` names a checkout (``DIR/eligsir_o3d`` is the package timed):
 
     git -C . worktree add /tmp/old c6a5f9a      # or: mkdir /tmp/old && git archive c6a5f9a | tar -x -C /tmp/old
     python benchmarks/speed/update_time.py --code old=/tmp/old --code new=. --gaussians 5000 20000 --threads 1 2
@@ -34,6 +31,7 @@ the Gaussians the updates supervised (median). ``NAME=DIR`` names a checkout (``
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import subprocess
@@ -48,13 +46,24 @@ VIEW_FRAMES = tuple(range(0, 200, 10))
 NEAR_FRAMES = tuple(range(0, 25, 5))  # --in-view: views (and the in-view map's points) from nearby frames
 
 
+@functools.lru_cache(maxsize=None)
+def _phases():
+    """update_phases.py beside this file (the ideal loop, the ``--phases`` timer and table), however this one runs."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("update_phases", Path(__file__).with_name("update_phases.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def view_frames(in_view: int | None) -> tuple:
     return VIEW_FRAMES if in_view is None else NEAR_FRAMES
 
 
 # ------------------------------------------------------------------------------------------------ worker side ----
 
-def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in_view: int | None) -> None:
+def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in_view: int | None,
+           phases: bool = False) -> None:
     # first, as in a mapping run: it picks numba's threading layer (eligsir_o3d/tbb_runtime.py)
     import eligsir_o3d  # noqa: F401
     import numba
@@ -76,7 +85,15 @@ def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in
     for i in view_frames(in_view):
         rec.views._admit(seq.frame(i, depth_max=rec.config.depth_max))
     rec.warmup()
-    probe = ideal_loop()
+    probe = _phases().ideal_loop()
+    timing = _phases().phase_timer(rec) if phases else None
+
+    def phases_since():  # --phases: the seconds per phase since the last call (None without --phases)
+        out = None if timing is None else dict(timing.seconds)
+        if timing is not None:
+            timing.seconds.clear()
+        return out
+
     import eligsir_o3d
     print(json.dumps({"info": {"package": str(Path(eligsir_o3d.__file__).parent), "threads": threads,
                                "views": len(rec.views.views)}}), flush=True)
@@ -88,58 +105,27 @@ def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in
             n0 = len(rec.gmap)
             rec.optimize(warm, scale=0.25)
             ts, ts1, seen = [], [], []
+            phases_since()  # the warm-up's out
+            phase_s1 = None
             for _ in range(updates):
                 t0 = clock()
                 rec.optimize(1, scale=0.25)
                 ts.append(clock() - t0)
                 seen.append(getattr(rec, "last_in_view", None) or len(rec.gmap))
+            phase_s = phases_since()
             if threads > 1:  # the paired sample: as many updates on one thread next (after one untimed), wall clock
                 set_threads(1)
                 rec.optimize(1, scale=0.25)
+                phases_since()
                 for _ in range(updates):
                     t0 = clock()
                     rec.optimize(1, scale=0.25)
                     ts1.append(clock() - t0)
+                phase_s1 = phases_since()
                 set_threads(threads)
             rows.append({"gaussians": n0, "gaussians_end": len(rec.gmap), "seconds": ts, "in_view": seen,
-                         "seconds_1": ts1})
-        print(json.dumps({"rows": rows, "ideal": ideal_speedup(probe, threads)}), flush=True)
-
-
-def ideal_loop():
-    """A compiled loop that parallelises perfectly (80 independent items of float32 exp work, ~5 ms on one thread):
-    what the machine's threads deliver at a moment, to read an update's thread speed-up against."""
-    import numba
-    import numpy as np
-
-    @numba.njit(parallel=True, cache=False)
-    def loop(x, out, reps):
-        for i in numba.prange(x.shape[0]):
-            acc = np.float32(0.0)
-            for r in range(reps):
-                acc += np.exp(-x[i] * np.float32(r) * np.float32(1e-3))
-            out[i] = acc
-
-    x = np.random.default_rng(0).random(80 * 256).astype(np.float32)
-    out = np.empty_like(x)
-    loop(x, out, 1)
-    return lambda: loop(x, out, 100)
-
-
-def ideal_speedup(probe, threads: int) -> float:
-    """Wall time of the ideal loop on one thread over its time on ``threads``, alternated 3 times (medians)."""
-    import numba
-    if threads == 1:
-        return 1.0
-    ts = {1: [], threads: []}
-    for _ in range(3):
-        for th in ts:
-            numba.set_num_threads(th)
-            t0 = time.perf_counter()
-            probe()
-            ts[th].append(time.perf_counter() - t0)
-    numba.set_num_threads(threads)
-    return sorted(ts[1])[1] / sorted(ts[threads])[1]
+                         "seconds_1": ts1, "phases": phase_s, "phases_1": phase_s1})
+        print(json.dumps({"rows": rows, "ideal": _phases().ideal_speedup(probe, threads)}), flush=True)
 
 
 # ------------------------------------------------------------------------------------------------ driver side ----
@@ -154,7 +140,7 @@ def _out_of_view(pts, cols, n: int, frames, seed: int):
     g = torch.Generator().manual_seed(seed + 1)
     shifts = torch.tensor([[x, y, z] for x in (-60, 0, 60) for y in (-60, 0, 60) for z in (-60, 0, 60)
                            if (x, y, z) != (0, 0, 0)], dtype=torch.float32)
-    got_p, got_c, have = [], [], 0
+    got_p, got_c, have = [pts[:0]], [cols[:0]], 0  # n = 0 (every map the size of the in-view part): none
     while have < n:
         sel = torch.randint(0, pts.shape[0], (n - have + 1024,), generator=g)
         p = pts[sel] + shifts[torch.randint(0, len(shifts), (sel.numel(),), generator=g)]
@@ -218,12 +204,15 @@ def main(argv=None) -> int:
     ap.add_argument("--in-view", type=int, help="every map holds this many Gaussians in view, the rest out of view")
     ap.add_argument("--maps", type=Path, nargs="+", help="time these 3DGS PLYs (e.g. mapped maps) instead")
     ap.add_argument("--data", type=Path, default=KITCHEN)
+    ap.add_argument("--phases", action="store_true",
+                    help="also time the phases of the updates (view test, render, loss, backward, Adam, MCMC, ...) "
+                         "and report each one's speed-up from 1 thread, paired as the whole updates are")
     ap.add_argument("--json", type=Path, help="write every timed update here")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--plys", nargs="*", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
-        worker(args.threads[0], args.plys, args.warm, args.updates, str(args.data), args.in_view)
+        worker(args.threads[0], args.plys, args.warm, args.updates, str(args.data), args.in_view, args.phases)
         return 0
     codes = [c.partition("=") for c in args.code] or [("this", "=", str(ROOT))]
     for name, eq, d in codes:
@@ -235,6 +224,8 @@ def main(argv=None) -> int:
     plys = args.maps or write_maps(args.gaussians, Path(tmp.name), args.data, in_view=args.in_view)
     results = run_rounds(start_workers(codes, args, plys), args.rounds)
     table = report(results, codes, args.threads)
+    if args.phases:
+        _phases().report_phases(results, codes, args.threads)
     if args.json:
         args.json.write_text(json.dumps({"median_ms": table, "rounds": {f"{k[0]}@{k[1]}": v
                                                                          for k, v in results.items()}}) + "\n")
@@ -252,6 +243,7 @@ def start_workers(codes, args, plys) -> dict:
             cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--threads", str(th), "--warm",
                    str(args.warm), "--updates", str(args.updates), "--data", str(args.data),
                    *(["--in-view", str(args.in_view)] if args.in_view is not None else []),
+                   *(["--phases"] if args.phases else []),
                    "--plys", *map(str, plys)]
             procs[(name, th)] = subprocess.Popen(cmd, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                                  text=True, cwd=str(ROOT))
