@@ -78,7 +78,7 @@ class Reconstructor(ReconstructorState):
         self.gmap = GaussianMap(self.config.sh_degree, self.device, self.config.optim.lrs, self.config.optim.adam)
         self.offline_frames = None if offline_frames is None else int(offline_frames)
         self.views, self.fidelity, self.growth = get_policies(self.config, offline=self.offline_frames is not None,
-                                                              n_source=self.offline_frames or 0)
+                                                              n_source=self.offline_frames or 0, camera=self.camera)
         self.supervision = SupervisionGrid(self.config.supervision)  # area or point samples at reduced scales
         self.pose_refine = PoseRefiner(self.config.pose_refine, self.device)  # per-training-view pose corrections
         self.fixed_work = LoadScaledChecks(self.config.fixed_work)  # how much fixed work each frame gets, from the backlog
@@ -109,7 +109,7 @@ class Reconstructor(ReconstructorState):
         self.stats.last_timestamp = frame.timestamp
         self.stats.frames_released += 1
         self.frame_plan = self.fixed_work.plan(self.backlog, self.fidelity.at_lowest_scale())
-        with self._threads(self.camera.scaled(self.config.support.scale).pixels):
+        with self._threads(self.camera.scaled(self.config.support.scale_for(self.camera)).pixels):
             with self.timing("admission"):
                 admitted = self.views.admit(frame, self.ctx)
                 decided = admitted and self.supervision.on_admitted(frame)

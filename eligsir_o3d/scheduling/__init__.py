@@ -23,14 +23,16 @@ __all__ = ["ABLATIONS", "FidelityConfig", "FidelityPolicy", "FixedWorkConfig", "
 ABLATIONS = ("views", "fidelity", "growth")
 
 
-def get_policies(cfg, offline: bool = False, n_source: int = 0) -> tuple[ViewPolicy, FidelityPolicy, GrowthPolicy]:
+def get_policies(cfg, offline: bool = False, n_source: int = 0,
+                 camera=None) -> tuple[ViewPolicy, FidelityPolicy, GrowthPolicy]:
     """The (views, fidelity, growth) policies for a Config: EliGSiR's, or the plain one for each mechanism named in
     ``cfg.ablate`` (views -> fixed-stride keyframes with uniform replay, fidelity -> fixed native resolution,
     growth -> dense per-frame depth insertion). Views and growth share one support probe (one render per frame).
 
     ``offline``: the offline reference over ``n_source`` source frames instead: every frame retained (stride 1) and
     seeded where the map is empty, supervised by one coarse-to-fine schedule of ``clock.offline_updates`` (or
-    ``offline_updates_per_frame`` per source frame) updates."""
+    ``offline_updates_per_frame`` per source frame) updates. ``camera``: the stream's (the fidelity floor follows
+    its resolution, :mod:`.resolution`)."""
     unknown = [a for a in cfg.ablate if a not in ABLATIONS]
     if unknown:
         raise ValueError(f"unknown ablation(s) {unknown}; choose from {', '.join(ABLATIONS)}")
@@ -44,7 +46,7 @@ def get_policies(cfg, offline: bool = False, n_source: int = 0) -> tuple[ViewPol
     if "fidelity" in cfg.ablate:
         fidelity = FixedFidelity(cfg.fidelity.fixed_scale)
     else:
-        fidelity = LoadAdaptiveFidelity(cfg.fidelity)
+        fidelity = LoadAdaptiveFidelity(cfg.fidelity, camera)
     if "growth" in cfg.ablate:
         growth = NewSpaceSeeding(dataclasses.replace(cfg.seeding, dense=True), seed=cfg.seed, probe=cfg.support)
     else:

@@ -25,6 +25,7 @@ from ..render import RenderOutput
 from .base import GrowthPolicy, MapContext
 from .capacity import BudgetCap
 from .mcmc import MCMCConfig, MCMCRefiner
+from .resolution import coarser_for
 from .microcells import VoxelHash, grow
 from .seeding import seeds_from_depth
 from .support import SupportProbe
@@ -63,6 +64,9 @@ class GrowthConfig:
     # the scale of the moment (0: the current update's scale; then a growing map pushes the controller to coarser
     # scales, which lift the cap again: SUN3D at --speed 0.1 ran away to 105k Gaussians at 1/4, -0.28 dB)
     budget_scale: float = 0.25
+    # ... times a power of two on a camera larger than 640x480, as the fidelity floor (FidelityConfig.
+    # floor_follows_camera); False: budget_scale whatever the camera
+    budget_follows_camera: bool = True
     budget_min_gaussians: int = 1000  # the budget cap never goes below this
     budget_fill: float = 0.0  # with a budget cap: each MCMC densification adds at least this share of the room left
     mcmc: MCMCConfig = field(default_factory=MCMCConfig)
@@ -110,7 +114,7 @@ class TargetedGrowth(GrowthPolicy):
             return 0  # evidence comes from distinct (admitted) views only; near-duplicates would double count
         sup = self.probe.check(frame, ctx)
         if self.cfg.budget_scale > 0:
-            self.pixels = _pixels_at(frame.camera, self.cfg.budget_scale)
+            self.pixels = self._budget_pixels(frame.camera)
         cap = self.cap(ctx, self.pixels or sup.camera.pixels, ctx.in_view(sup.camera, frame.T_world_cam))
         vs, us = torch.nonzero(sup.valid, as_tuple=True)
         if vs.numel() == 0:
@@ -172,6 +176,12 @@ class TargetedGrowth(GrowthPolicy):
             vs, us = torch.nonzero(sup.valid, as_tuple=True)
             added += self._insert(sup, frame, vs, us, stride, self.cfg.max_seeds_per_frame, ctx, "reseeded", cap)
         return added
+
+    def _budget_pixels(self, camera: Camera) -> int:
+        """Supervised pixels that price the budget cap: an update at ``budget_scale``, coarser on a camera larger
+        than 640x480 (``budget_follows_camera``)."""
+        scale = self.cfg.budget_scale
+        return _pixels_at(camera, coarser_for(scale, camera) if self.cfg.budget_follows_camera else scale)
 
     def _seed_stride(self, sup, frame: Frame, ctx: MapContext) -> int:
         """New-space seeds' stride in probe pixels: ``seed_stride``, or that many pixels of ``ctx.seed_scale`` where
@@ -253,7 +263,7 @@ class TargetedGrowth(GrowthPolicy):
         return self.mcmc.regulariser(ctx.gmap)
 
     def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
-        self.pixels = _pixels_at(frame.camera, self.cfg.budget_scale) if self.cfg.budget_scale > 0 else camera.pixels
+        self.pixels = self._budget_pixels(frame.camera) if self.cfg.budget_scale > 0 else camera.pixels
         view = ctx.view
         cap = self.cap(ctx, self.pixels, None if view is None else len(view))
         fill = 0

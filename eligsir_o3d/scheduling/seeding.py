@@ -65,7 +65,7 @@ class NewSpaceSeeding(GrowthPolicy):
         if self.cfg.dense or len(ctx.gmap) == 0:
             mask = depth > 0
         else:
-            mask = unsupported_mask(frame, ctx, self.probe.scale, self.probe.alpha_min)
+            mask = unsupported_mask(frame, ctx, self.probe.scale_for(frame.camera), self.probe.alpha_min)
         room = ctx.max_gaussians - len(ctx.gmap)
         if room <= 0:
             return 0

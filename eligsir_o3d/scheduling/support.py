@@ -10,14 +10,23 @@ import torch
 from ..core.camera import Camera
 from ..core.frame import Frame
 from .base import MapContext
+from .resolution import following
 
 
 @dataclass
 class SupportConfig:
-    scale: float = 0.25  # render scale of the support check (160x120 for a 640x480 stream)
+    scale: float = 0.25  # render scale of the support check for a 640x480 stream (160x120)
+    # ... times a power of two on another camera (:func:`.resolution.following`: 1/2 at 320x240, 1/8 at 1280x960,
+    # never finer than 1/2 unless ``scale`` is), so the render samples the scene as finely, and seeds and insertions
+    # (strides in its pixels) come as dense, whatever the camera's resolution; False: ``scale`` of every camera
+    follow_camera: bool = True
     alpha_min: float = 0.5  # rendered opacity below this: the map does not support the pixel
     depth_tol_m: float = 0.05  # rendered depth further than tol_m + tol_rel * z from the observation: misplaced
     depth_tol_rel: float = 0.03  # (Kinect-class depth noise is ~1-3 cm at 2 m)
+
+    def scale_for(self, camera: Camera) -> float:
+        """The support render's scale for frames of ``camera``."""
+        return following(self.scale, camera, finest=0.5) if self.follow_camera else float(self.scale)
 
 
 ProbeConfig = SupportConfig  # the class's name before the config vocabulary matched the key (issue 27)
@@ -54,7 +63,7 @@ class SupportProbe:
 
     @torch.no_grad()
     def check(self, frame: Frame, ctx: MapContext) -> Support:
-        scale = self.cfg.scale * ctx.plan.probe_factor  # lower under load (scheduling.load)
+        scale = self.cfg.scale_for(frame.camera) * ctx.plan.probe_factor  # lower under load (scheduling.load)
         key = (id(frame), frame.index, len(ctx.gmap), ctx.updates, scale)
         if key == self._key and self._value is not None:
             return self._value

@@ -11,9 +11,10 @@ import pytest
 from helpers import SEVEN
 from helpers.scripts import ROOT, load_script
 
-pytestmark = pytest.mark.skipif(not SEVEN.is_dir(), reason="needs ../shared/data/7scenes_redkitchen_jpg1000")
+needs_kitchen = pytest.mark.skipif(not SEVEN.is_dir(), reason="needs ../shared/data/7scenes_redkitchen_jpg1000")
 
 
+@needs_kitchen
 def test_phases_add_up_to_the_update(tmp_path):
     out = subprocess.run(
         [sys.executable, str(ROOT / "benchmarks/speed/update_time.py"), "--gaussians", "400", "--in-view", "400",
