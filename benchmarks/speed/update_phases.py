@@ -67,37 +67,23 @@ def phase_timer(rec):
     from eligsir_o3d.render import culling
 
     timing = StageTimes()
-
-    def timed(fn, name):
-        def run(*a, **kw):
-            t0 = time.perf_counter()
-            try:
-                return fn(*a, **kw)
-            finally:
-                timing.add(name, time.perf_counter() - t0)
-        return run
-
     for path, attr, name in (("views", "select", "select view"), ("supervision", "sample", "supervision"),
                              ("renderer", "render", "render"), ("growth", "pre_backward", "regulariser"),
                              ("", "_adam_step", "adam"), ("growth", "post_step", "mcmc"),
                              ("views", "feedback", "feedback")):
         _wrap(timing, getattr(rec, path, None) if path else rec, attr, name)  # absent in a checkout: not timed
-    # module-level steps, where the checkout timed has them (an older one may not: that phase is then not reported)
-    if hasattr(culling, "map_in_view"):
-        culling.map_in_view = timed(culling.map_in_view, "rows in view: test")
-    if hasattr(getattr(culling, "InView", None), "_gather"):
-        culling.InView._gather = staticmethod(timed(culling.InView._gather, "rows in view: gather"))
-    if hasattr(recmod, "supervision_loss"):
-        recmod.supervision_loss = timed(recmod.supervision_loss, "loss")
-    torch.Tensor.backward = timed(torch.Tensor.backward, "backward")
+    # module-level steps (those an older checkout lacks are not timed; the view test and gather of the rows in view
+    # is one classmethod, which stays one when wrapped: the class hands out the wrapper unbound)
+    for obj, attr, name in ((getattr(culling, "InView", None), "select", "rows in view"),
+                            (recmod, "supervision_loss", "loss"), (torch.Tensor, "backward", "backward")):
+        _wrap(timing, obj, attr, name)
     return timing
 
 
 def report_phases(results: dict, codes, threads) -> None:
     """Per checkout, thread count above 1 and map: each phase's ms per update on N threads and, paired, on 1
     thread in the same rounds, its speed-up and its share of the N-thread update; "the rest" is the update less
-    the named phases (view choice, Python between the steps). Nested phases (the gather inside the view test's
-    caller, nothing else) are reported as they are."""
+    the named phases (Python between the steps)."""
     import numpy as np
 
     for name, _, _ in codes:
