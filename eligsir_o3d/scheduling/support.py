@@ -10,15 +10,14 @@ import torch
 from ..core.camera import Camera
 from ..core.frame import Frame
 from .base import MapContext
-from .resolution import following
+from .resolution import coarser_for
 
 
 @dataclass
 class SupportConfig:
     scale: float = 0.25  # render scale of the support check for a 640x480 stream (160x120)
-    # ... times a power of two on another camera (:func:`.resolution.following`: 1/2 at 320x240, 1/8 at 1280x960,
-    # never finer than 1/2 unless ``scale`` is), so the render samples the scene as finely, and seeds and insertions
-    # (strides in its pixels) come as dense, whatever the camera's resolution; False: ``scale`` of every camera
+    # ... times a power of two on a larger camera (:func:`.resolution.coarser_for`: 1/8 at 1280x960), so the render
+    # costs a frame what it costs a 640x480 stream's; False: ``scale`` of every camera
     follow_camera: bool = True
     alpha_min: float = 0.5  # rendered opacity below this: the map does not support the pixel
     depth_tol_m: float = 0.05  # rendered depth further than tol_m + tol_rel * z from the observation: misplaced
@@ -26,7 +25,7 @@ class SupportConfig:
 
     def scale_for(self, camera: Camera) -> float:
         """The support render's scale for frames of ``camera``."""
-        return following(self.scale, camera, finest=0.5) if self.follow_camera else float(self.scale)
+        return coarser_for(self.scale, camera) if self.follow_camera else float(self.scale)
 
 
 ProbeConfig = SupportConfig  # the class's name before the config vocabulary matched the key (issue 27)

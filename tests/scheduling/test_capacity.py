@@ -69,7 +69,6 @@ def _plane(T, index, cam=CAM, depth=2.0):
 def _map_size(period_s, budget_updates):
     """Gaussians after mapping 4 frames of a plane with dense seeding and fast MCMC growth at a frame period."""
     cfg = eo3d.Config(renderer="torch", max_gaussians=400)
-    cfg.support.follow_camera = False  # the support render at 1/4 of these small frames, as the bounds assume
     cfg.growth.seed_stride = 1
     cfg.growth.min_views = 1
     cfg.growth.budget_updates = budget_updates

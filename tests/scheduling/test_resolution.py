@@ -1,6 +1,7 @@
-"""Scales that follow the camera's resolution (scheduling/resolution.py): the support render, the fidelity
-controller's idle floor and the budget cap's pricing do the work they do on a 640x480 stream whatever the camera, so
-a 320x240 stream is seeded as densely and a 1280x960 stream's idle updates cost no more than a 640x480 stream's."""
+"""Scales that follow the camera's resolution (scheduling/resolution.py): on a camera larger than 640x480 the
+support render, the fidelity controller's idle floor and the budget cap's pricing do the work they do on a 640x480
+stream, so a 1280x960 stream's frames and idle updates cost no more than a 640x480 stream's; smaller cameras keep
+the set scales."""
 
 import pytest
 
@@ -19,11 +20,11 @@ def _cam(w, h):
 @pytest.mark.parametrize("size, probe, floor, budget_px", [
     ((640, 480), 0.25, 0.25, 19200),  # the stream the defaults were measured on: nothing changes
     ((848, 480), 0.25, 0.25, 25440),
-    ((320, 240), 0.5, 0.25, 4800),  # a finer render; the floor stays (the controller rises when it can afford)
-    ((256, 192), 0.5, 0.25, 3072),
     ((1280, 960), 0.125, 0.125, 19200),  # coarser render, floor and pricing
     ((1280, 720), 0.125, 0.125, 14400),
-    ((160, 120), 0.5, 0.25, 1200),  # never a full-resolution render (it averages 2x2 source pixels or more)
+    ((2560, 1920), 0.0625, 0.125, 19200),  # the floor stops at the controller's coarsest scale
+    ((320, 240), 0.25, 0.25, 4800),  # smaller cameras keep the set scales
+    ((160, 120), 0.25, 0.25, 1200),
 ])
 def test_each_scale_follows_the_cameras_pixels(size, probe, floor, budget_px):
     cam = _cam(*size)
@@ -40,8 +41,7 @@ def test_switched_off_the_set_scales_hold_and_set_scales_follow_the_camera_too()
     assert f.scales[f.floor_level] == 0.25
     assert TargetedGrowth(GrowthConfig(budget_follows_camera=False))._budget_pixels(big) == 320 * 240
     assert LoadAdaptiveFidelity().scales[LoadAdaptiveFidelity().floor_level] == 0.25  # no camera: the scale
-    # a set scale means the same image size: 1/2 of 640x480 is 1/4 of 1280x960; a finer set scale is kept on a
-    # small camera (a full-resolution render stays full resolution)
+    # a set scale means the same image size: 1/2 of 640x480 is 1/4 of 1280x960; a small camera keeps it
     assert SupportConfig(scale=0.5).scale_for(vga) == 0.5 and SupportConfig(scale=0.5).scale_for(big) == 0.25
     assert SupportConfig(scale=1.0).scale_for(_cam(64, 48)) == 1.0
     f = LoadAdaptiveFidelity(FidelityConfig(idle_floor_scale=0.5), camera=vga)
@@ -50,20 +50,22 @@ def test_switched_off_the_set_scales_hold_and_set_scales_follow_the_camera_too()
         == [1.0, 1.0, 2.0, 0.5, 0.25]
 
 
-def test_a_smaller_camera_seeds_new_space_as_densely():
-    """The first frame of the rendered room at 320x240 and at 640x480: as many seeds from the same view (at the old
-    fixed 1/4 render the smaller camera got a quarter as many)."""
+def test_a_larger_camera_renders_and_seeds_as_a_640x480_one():
+    """The first frame of the rendered room at 1280x960 and at 640x480: the same 160x120 support render and about
+    as many seeds from the same view (with the set 1/4 the larger camera's render is 320x240 and seeds four times
+    as many)."""
     from eligsir_o3d.datasets import open_sequence
 
     seeded = {}
-    for w, h, follow in ((640, 480, True), (320, 240, True), (320, 240, False)):
+    for w, h, follow in ((640, 480, True), (1280, 960, True), (1280, 960, False)):
         seq = open_sequence("synthetic", n_frames=1, width=w, height=h)
         cfg = eo3d.Config(renderer="cpu")
         cfg.support.follow_camera = follow
+        cfg.growth.max_seeds_per_frame = 10_000  # no bound below the grid's count
         rec = eo3d.Reconstructor(seq.camera, "cpu", cfg)
         rec.integrate(seq.frame(0), updates=0)
         seeded[(w, follow)] = rec.growth.counts["seeded"]
         probe = rec.views.probe.check(seq.frame(0), rec.ctx).camera
-        assert probe.pixels == (160 * 120 if follow else 80 * 60)
-    assert seeded[(320, True)] == pytest.approx(seeded[(640, True)], rel=0.15), seeded
-    assert seeded[(320, False)] < 0.4 * seeded[(640, True)], seeded
+        assert probe.pixels == (160 * 120 if follow else 320 * 240)
+    assert seeded[(1280, True)] == pytest.approx(seeded[(640, True)], rel=0.15), seeded
+    assert seeded[(1280, False)] > 3 * seeded[(640, True)], seeded

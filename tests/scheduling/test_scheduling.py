@@ -12,7 +12,6 @@ from eligsir_o3d.render import get_renderer
 from eligsir_o3d.scheduling import (FidelityConfig, GrowthConfig, LoadAdaptiveFidelity, MapContext, MapGuidedViews,
                                     TargetedGrowth, ViewConfig, get_policies)
 from eligsir_o3d.scheduling.plain import FixedFidelity, NewSpaceSeeding, StrideKeyframes
-from eligsir_o3d.scheduling.support import SupportConfig, SupportProbe
 
 CAM = Camera(64, 48, 50.0, 50.0, 31.5, 23.5)
 
@@ -33,12 +32,6 @@ def _pose(x=0.0, y=0.0, z=0.0, yaw_deg=0.0):
     T[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
     T[:3, 3] = [x, y, z]
     return T
-
-
-def _quarter_probe():
-    """The support render at a fixed 1/4 (16x12 of these 64x48 frames): these tests count seeds on its grid; how the
-    render's scale follows the camera is tests/scheduling/test_resolution.py's."""
-    return SupportProbe(SupportConfig(follow_camera=False))
 
 
 def _plane_frame(T, index, depth=2.0, ts=None, cam=CAM):
@@ -214,7 +207,7 @@ def test_get_policies_swaps_each_ablated_mechanism():
 
 def test_growth_needs_repeated_evidence_before_inserting():
     ctx = _ctx()
-    growth = TargetedGrowth(GrowthConfig(min_views=2, seed_resolution="probe"), _quarter_probe())  # sparse grid
+    growth = TargetedGrowth(GrowthConfig(min_views=2, seed_resolution="probe"))  # the probe's sparse grid
     T = _pose()
     seeded = growth.on_frame(_plane_frame(T, 0), True, ctx)
     assert seeded > 0 and growth.counts["seeded"] == seeded  # sparse support for space seen the first time
@@ -259,7 +252,7 @@ def test_adaptive_seeding_is_as_fine_as_the_room_under_the_cap_allows():
     coarse = small.gmap.scales.detach()  # about ceil(sqrt(64 * 48 / 100)) = 6 source pixels per seed
     assert torch.allclose(coarse, coarse[0, 0]) and 2.0 * 5 / 50 * 0.5 < float(coarse[0, 0]) < 2.0 * 7 / 50 * 0.5
     sparse = _ctx()
-    n_probe = TargetedGrowth(GrowthConfig(seed_resolution="probe"), _quarter_probe()).on_frame(f, True, sparse)
+    n_probe = TargetedGrowth(GrowthConfig(seed_resolution="probe")).on_frame(f, True, sparse)
     assert 0 < n_probe < n_full // 16  # the probe's grid (one seed per 16x16 source pixels) is far sparser
     with pytest.raises(ValueError, match="seed_resolution"):
         TargetedGrowth(GrowthConfig(seed_resolution="fine"))
@@ -273,16 +266,15 @@ def test_seeds_are_spaced_in_pixels_of_the_seed_scale_and_earlier_views_get_the_
     for scale in (None, 0.25, 0.125, 0.5, 1.0):
         ctx = _ctx()
         ctx._owner.seed_scale = scale
-        counts[scale] = TargetedGrowth(GrowthConfig(), _quarter_probe()).on_frame(_plane_frame(_pose(), 0), True, ctx)
+        counts[scale] = TargetedGrowth(GrowthConfig()).on_frame(_plane_frame(_pose(), 0), True, ctx)
     assert counts[None] == counts[0.25] == counts[0.125] == 4 * 3  # 16x12 probe pixels, every 4th
     assert counts[0.5] == 8 * 6 and counts[1.0] == 16 * 12
     off = _ctx()
     off._owner.seed_scale = 1.0
-    assert TargetedGrowth(GrowthConfig(seed_follows_detail=False), _quarter_probe()).on_frame(
-        _plane_frame(_pose(), 0), True, off) == 12
+    assert TargetedGrowth(GrowthConfig(seed_follows_detail=False)).on_frame(_plane_frame(_pose(), 0), True, off) == 12
 
     ctx = _ctx()
-    growth = TargetedGrowth(GrowthConfig(), _quarter_probe())
+    growth = TargetedGrowth(GrowthConfig())
     frames = [_plane_frame(_pose(x=0.2 * i), i) for i in range(2)]
     for f in frames:
         growth.on_frame(f, True, ctx)

@@ -100,7 +100,6 @@ def test_point_supervision_seeds_as_finely_as_the_updates_and_reseeds_the_views_
         cfg.fidelity.fixed_scale = 0.5
         cfg.clock.updates_per_frame = 1
         cfg.supervision.mode = mode
-        cfg.support.follow_camera = False  # the support render at 1/4 (40x30): the 1/2-scale updates' grid is finer
         rec = Reconstructor(room.camera, "cpu", cfg)
         for i in range(0, 12, 3):
             rec.integrate(room.frame(i), room.frame(i).T_world_cam)
