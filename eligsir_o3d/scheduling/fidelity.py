@@ -48,7 +48,7 @@ class FidelityConfig:
     idle_floor_scale: float = 0.25
     # ... times a power of two on a camera larger than 640x480 (:func:`.resolution.coarser_for`: 1/8 at 1280x960,
     # whose 1/4-scale updates cost four times a 640x480 stream's: a 7-Scenes stretch resampled to 1280x960 ran 788
-    # updates, 21.58 dB; with floor, cap pricing and support render at 160x120, 2020 updates, 22.60); never finer.
+    # updates, 21.58 dB; with floor, cap pricing and support render at 160x120, 2006 updates, 22.46); never finer.
     # False: the scale above whatever the camera
     floor_follows_camera: bool = True
     floor_backlog: float = 0.5

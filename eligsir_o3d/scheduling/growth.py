@@ -25,8 +25,8 @@ from ..render import RenderOutput
 from .base import GrowthPolicy, MapContext
 from .capacity import BudgetCap
 from .mcmc import MCMCConfig, MCMCRefiner
-from .resolution import coarser_for
 from .microcells import VoxelHash, grow
+from .resolution import coarser_for
 from .seeding import seeds_from_depth
 from .support import SupportProbe
 
