@@ -97,9 +97,9 @@ class Scorer:
         return {"covered": float(np.mean(covered)), "whole": float(np.mean(whole))}
 
 
-def continue_map(seq, cfg, poses: dict, views: list[int], start, scale: float, seconds: float, chunk: int = 5):
-    """A Reconstructor over the run's views and the map ``start`` (a PLY path or a GaussianMap), updated at
-    ``scale`` until ``seconds`` of process time are spent (whole chunks). Returns (map, updates, cpu seconds)."""
+def reconstructor_over(seq, cfg, poses: dict, views: list[int], start):
+    """A Reconstructor whose views are the frames ``views`` at the run's poses and whose map is ``start`` (a PLY
+    path or a GaussianMap): the run's state to continue from, without its stream."""
     from eligsir_o3d import Reconstructor
 
     rec = Reconstructor(seq.camera, "cpu", cfg)
@@ -109,6 +109,13 @@ def continue_map(seq, cfg, poses: dict, views: list[int], start, scale: float, s
         rec.load_ply(start)
     else:
         rec.gmap = start
+    return rec
+
+
+def continue_map(seq, cfg, poses: dict, views: list[int], start, scale: float, seconds: float, chunk: int = 5):
+    """:func:`reconstructor_over` the run's views and the map ``start``, updated at ``scale`` until ``seconds`` of
+    process time are spent (whole chunks). Returns (map, updates, cpu seconds)."""
+    rec = reconstructor_over(seq, cfg, poses, views, start)
     done, t0 = 0, time.process_time()
     while time.process_time() - t0 < seconds:
         done += rec.optimize(chunk, scale=scale)
