@@ -24,6 +24,8 @@ the groups that can reach the view: the same ids, in ~0.7 ms instead of ~9 ms at
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
@@ -197,7 +199,7 @@ class InView:
 
     def _adam_torch(self, todo) -> None:
         gmap, idx, cfg = self.gmap, self.idx, self.gmap.adam
-        seen, shared = None, None
+        seen = None
         for name, p, g in todo:
             group = gmap.optimizers[name].param_groups[0]
             b1, b2 = group["betas"]
@@ -210,13 +212,14 @@ class InView:
             # exact per row (row_bias_correction), else torch's count of the tensor's steps (what the map-wide update
             # did: a row that is in view in few updates takes the larger, uncorrected first steps, which measured
             # better on short online schedules, README "Adam per Gaussian")
-            k = state["row_step"][idx] if cfg.row_bias_correction else state["step"].reshape(1).to(p.device)
-            if shared is None or shared[0] != (b1, b2) or not torch.equal(shared[1], k):
-                kd = k.double()  # the parameters' counts agree unless a state was restored without them
-                shared = ((b1, b2), k, 1.0 / (1.0 - b1 ** kd), torch.sqrt(1.0 - b2 ** kd).float())
-            a_rows = (-group["lr"] * shared[2]).float()
-            b_rows = shared[3].expand(len(idx)).contiguous() if k.numel() == 1 else shared[3]
-            a_rows = a_rows.expand(len(idx)).contiguous() if a_rows.numel() == 1 else a_rows
+            if cfg.row_bias_correction:
+                kd = state["row_step"][idx].double()
+                a_rows = (-group["lr"] * (1.0 / (1.0 - b1 ** kd))).float()
+                b_rows = torch.sqrt(1.0 - b2 ** kd).float()
+            else:  # the tensor's count, read on the host (a CPU scalar): no round trip to the device per parameter
+                k = float(state["step"])
+                a_rows = torch.full((len(idx),), -group["lr"] * (1.0 / (1.0 - b1 ** k)), device=p.device)
+                b_rows = torch.full((len(idx),), math.sqrt(1.0 - b2 ** k), device=p.device)
             if seen is not None:
                 if name == "means" and cfg.means_decay_to != 1.0:
                     decay = torch.clamp(seen / cfg.means_decay_updates, max=1.0)

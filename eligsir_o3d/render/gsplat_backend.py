@@ -87,6 +87,8 @@ class GsplatRenderer:
         [N, K, 3] SH coefficients (degree ``sh_degree``, default all that K holds, at most 3)."""
         rasterization = self._load()
         dtype, device = means.dtype, means.device
+        if means.shape[0] == 0:  # gsplat's launch for zero Gaussians divides by zero (SIGFPE kills the process)
+            return self._empty(camera, background, dtype, device)
         if colors.dim() == 3 and sh_degree is None:
             from .sh import sh_degree_of
 
@@ -110,3 +112,14 @@ class GsplatRenderer:
         radii = radii.to(torch.int32)
         means2d = mask_culled(meta["means2d"][0] - 0.5, radii)  # [N, 2], integer pixel centres, NaN where culled
         return RenderOutput(color, depth, alpha, radii, means2d)
+
+    @staticmethod
+    def _empty(camera: Camera, background, dtype, device) -> RenderOutput:
+        """The render of a map with no Gaussians (before the first seeds, or a view that culled every row): the
+        background, zero alpha and depth, no radii."""
+        zeros = torch.zeros(camera.height, camera.width, dtype=dtype, device=device)
+        if background is not None:
+            background = torch.as_tensor(background, dtype=dtype, device=device)
+        color, depth, alpha = finish(zeros[..., None].expand(-1, -1, 3), zeros, zeros, background)
+        return RenderOutput(color, depth, alpha, torch.zeros(0, dtype=torch.int32, device=device),
+                            torch.zeros(0, 2, dtype=dtype, device=device))

@@ -139,6 +139,19 @@ def test_sh_colour_is_evaluated_by_gsplat_and_matches(gs, degree):
     assert float((flat.color - out.color.detach()).abs().max()) > 0.05
 
 
+def test_an_empty_map_never_reaches_gsplat():
+    """gsplat's projection launch divides by the Gaussian count: with none it raised SIGFPE and killed the process
+    on an H200 (stop 50). An empty map (before the first seeds, a view that culled every row) renders without it."""
+    def rasterization(*args, **kwargs):
+        raise AssertionError("gsplat called with no Gaussians")
+
+    camera, T = VIEWS["axis"]
+    out = GsplatRenderer("cpu", rasterization=rasterization).render(
+        torch.zeros(0, 3), torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0, 3), camera, T, BG)
+    torch.testing.assert_close(out.color, BG.expand_as(out.color))
+    assert out.radii.shape == (0,) and out.means2d.shape == (0, 2) and torch.all(out.alpha == 0)
+
+
 def test_empty_map_and_no_grad(gs):
     camera, T = VIEWS["oblique"]
     empty = dict(means=torch.zeros(0, 3), quats=torch.zeros(0, 4), scales=torch.zeros(0, 3), opacities=torch.zeros(0),
