@@ -217,9 +217,9 @@ class InView:
                 a_rows = (-group["lr"] * (1.0 / (1.0 - b1 ** kd))).float()
                 b_rows = torch.sqrt(1.0 - b2 ** kd).float()
             else:  # the tensor's count, read on the host (a CPU scalar): no round trip to the device per parameter
-                k = float(state["step"])
-                a_rows = torch.full((len(idx),), -group["lr"] * (1.0 / (1.0 - b1 ** k)), device=p.device)
-                b_rows = torch.full((len(idx),), math.sqrt(1.0 - b2 ** k), device=p.device)
+                k, f32 = float(state["step"]), dict(dtype=torch.float32, device=p.device)
+                a_rows = torch.full((len(idx),), -group["lr"] * (1.0 / (1.0 - b1 ** k)), **f32)
+                b_rows = torch.full((len(idx),), math.sqrt(1.0 - b2 ** k), **f32)
             if seen is not None:
                 if name == "means" and cfg.means_decay_to != 1.0:
                     decay = torch.clamp(seen / cfg.means_decay_updates, max=1.0)
