@@ -87,6 +87,17 @@ setup() {
   "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$SITE" "$whl" \
     .gpu_b/*.whl || return 1
   echo "$SITE" > "$("$PY" -c 'import site; print(site.getsitepackages()[0])')/gpu_site.pth"
+  # pip --target leaves out the tbb wheel's data files (its libtbb.so.12): put them where tbb_runtime looks for them,
+  # the interpreter's lib/, so that numba runs on TBB as it does on users' machines
+  "$PY" - .gpu_b/tbb-*.whl <<'EOF'
+import sys, zipfile
+from pathlib import Path
+lib = Path(sys.prefix) / "lib"
+with zipfile.ZipFile(sys.argv[1]) as z:
+    for name in z.namelist():
+        if "/data/lib/libtbb" in name:
+            (lib / Path(name).name).write_bytes(z.read(name))
+EOF
   # open3d imports plotly and dash for its Plotly viewer: stand-ins where they are missing (the viewer is not used)
   mkdir -p "$SITE-stubs"
   if ! "$PY" -c "import plotly.graph_objects" 2>/dev/null; then
