@@ -81,9 +81,7 @@ class LoadAdaptiveFidelity(FidelityPolicy):
             raise ValueError(f"fidelity scales must lie in (0, 1], got {self.cfg.scales}")
         self.scales = scales
         self.level = min(range(len(scales)), key=lambda i: abs(scales[i] - self.cfg.start_scale))
-        floor = self.cfg.idle_floor_scale
-        if camera is not None and self.cfg.floor_follows_camera:
-            floor = coarser_for(floor, camera)
+        floor = coarser_for(self.cfg.idle_floor_scale, camera, self.cfg.floor_follows_camera)
         self.floor_level = min(range(len(scales)), key=lambda i: abs(scales[i] - floor))
         self.period_s = DEFAULT_FRAME_PERIOD_S  # until the Reconstructor hands over the real one (set_load)
         self.cost_fn: Callable[[int], float] | None = None

@@ -180,8 +180,7 @@ class TargetedGrowth(GrowthPolicy):
     def _budget_pixels(self, camera: Camera) -> int:
         """Supervised pixels that price the budget cap: an update at ``budget_scale``, coarser on a camera larger
         than 640x480 (``budget_follows_camera``)."""
-        scale = self.cfg.budget_scale
-        return _pixels_at(camera, coarser_for(scale, camera) if self.cfg.budget_follows_camera else scale)
+        return _pixels_at(camera, coarser_for(self.cfg.budget_scale, camera, self.cfg.budget_follows_camera))
 
     def _seed_stride(self, sup, frame: Frame, ctx: MapContext) -> int:
         """New-space seeds' stride in probe pixels: ``seed_stride``, or that many pixels of ``ctx.seed_scale`` where

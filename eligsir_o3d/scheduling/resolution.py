@@ -26,6 +26,9 @@ def camera_factor(camera: Camera, pixels: int = REFERENCE_PIXELS) -> float:
     return 2.0 ** round(0.5 * math.log2(pixels / max(1, camera.pixels)))
 
 
-def coarser_for(scale: float, camera: Camera) -> float:
-    """``scale`` (set for a 640x480 stream) for ``camera``: coarser on a larger image, as set on a smaller one."""
+def coarser_for(scale: float, camera: Camera | None, follow: bool = True) -> float:
+    """``scale`` (set for a 640x480 stream) for ``camera``: coarser on a larger image, as set on a smaller one;
+    ``scale`` itself without a camera or with ``follow`` off (each scale's ``*_follow*_camera`` switch)."""
+    if camera is None or not follow:
+        return float(scale)
     return scale * min(1.0, camera_factor(camera))

@@ -25,7 +25,7 @@ class SupportConfig:
 
     def scale_for(self, camera: Camera) -> float:
         """The support render's scale for frames of ``camera``."""
-        return coarser_for(self.scale, camera) if self.follow_camera else float(self.scale)
+        return coarser_for(self.scale, camera, self.follow_camera)
 
 
 ProbeConfig = SupportConfig  # the class's name before the config vocabulary matched the key (issue 27)
