@@ -51,3 +51,7 @@ def check_values(cfg) -> None:
 
     if cfg.supervision.mode not in MODES:
         raise ValueError(f"config key supervision.mode: choose from {', '.join(MODES)}, got {cfg.supervision.mode!r}")
+    from .kernels import KERNEL_SETS
+
+    if cfg.optim.kernels not in KERNEL_SETS:
+        raise ValueError(f"config key optim.kernels: choose from {', '.join(KERNEL_SETS)}, got {cfg.optim.kernels!r}")

@@ -19,11 +19,11 @@ import torch
 from .core.camera import Camera, check_pose
 from .budget.stages import StageTimes
 from .budget.cost import priced_gaussians
-from .render.culling import InView
 from .config import Config
 from .core.frame import Frame, FrameError
 from .core.gaussians import EPS2D, GaussianMap
 from .core.threads import TORCH_MIN_PIXELS, TORCH_MIN_ROWS, torch_threads
+from .kernels import get_kernels
 from .optim.losses import supervision_loss
 from .pose.refine import PoseRefiner
 from .reconstructor_state import ReconstructorState
@@ -73,6 +73,7 @@ class Reconstructor(ReconstructorState):
         self.device = torch.device(self.config.device)
         self.camera = intrinsic if isinstance(intrinsic, Camera) else Camera.from_o3d(intrinsic)
         self.renderer = get_renderer(self.config.renderer, self.device)
+        self.kernels = get_kernels(self.config.optim.kernels, self.device)  # the update's select/backward/step
         torch.manual_seed(self.config.seed)
         self.rng = torch.Generator().manual_seed(self.config.seed)
         self.gmap = GaussianMap(self.config.sh_degree, self.device, self.config.optim.lrs, self.config.optim.adam)
@@ -159,9 +160,6 @@ class Reconstructor(ReconstructorState):
         """``steps`` post-mapping updates (the paper's +N PM), at ``scale`` (default: config.optim.refine_scale)."""
         self.optimize(int(steps), scale=self.config.optim.refine_scale if scale is None else scale)
 
-    def _adam_step(self) -> None:  # the view's rows (culled) or the whole map; timed as update.adam
-        self.view.adam_step() if self.view is not None else self.gmap.step()
-
     def _step(self, scale: float | None) -> None:
         t0 = time.perf_counter()
         frame = self.views.select(self.rng)
@@ -183,29 +181,38 @@ class Reconstructor(ReconstructorState):
 
     def _update(self, frame: Frame, sample) -> None:
         """One update on ``frame``'s view at the pixels of ``sample`` (:class:`.scheduling.supervision.Sample`):
-        render the rows in view, the loss, backward, Adam, then the policies' per-update steps (pose correction,
-        growth's MCMC, the views' feedback)."""
+        the kernel set selects the rows in view, the renderer draws them, the kernel set back-propagates the loss
+        and steps the rows (with the growth policy's regulariser and noise), then the policies' per-update steps
+        (pose correction, growth's MCMC rounds, the views' feedback)."""
         color, depth, cam, low_pass = sample.color, sample.depth, sample.camera, sample.low_pass
-        cull = self.config.optim.cull  # only the rows that can reach the view (at its refined pose): drawn and stepped
-        T_view = self.pose_refine.posed(frame).T_world_cam
-        self.view = InView.select(self.gmap, cam, T_view, low_pass) if cull else None
-        rows = self.view if self.view is not None else self.gmap
-        self.last_in_view = len(rows)
-        args, T = self.pose_refine.render_args(frame, rows.render_args())  # at the refined pose
-        out = self.renderer.render(*args, cam, T, self._background, low_pass=low_pass)
+        posed = self.pose_refine.posed(frame)  # the pose the view is rendered at (before its correction steps)
+        self.view, out = self._draw_view(posed.T_world_cam, cam, low_pass,
+                                         lambda args, T: self.pose_refine.render_args(frame, args))
+        self.last_in_view = len(self.view)
         self.gmap.note_supervision(sample.fitted)
-        loss, error = supervision_loss(out, color, depth, self.config.optim.loss)
-        if (reg := self.growth.pre_backward(out, self.ctx)) is not None:
-            loss = loss + reg
-        self.gmap.zero_grad()
-        if loss.requires_grad:  # an empty view (every row out of it) leaves nothing to differentiate
-            loss.backward()
-        self._adam_step()
-        posed = self.pose_refine.posed(frame)  # the pose the view was rendered at (before its correction steps)
+        terms = self.growth.step_terms(self.ctx)
+        error = self.kernels.backward(out, color, depth, self.config.optim.loss, self.view, terms)
+        self.kernels.step(self.gmap, self.view, terms)
         self.pose_refine.step()
         self.growth.post_step(posed, out, depth, cam, self.ctx)
         self.view = None
         self.views.feedback(frame, out, error, depth, cam)
+
+    def _draw_view(self, T_world_cam, cam: Camera, low_pass: float, posing=None):
+        """(view, render) of the rows that can reach ``cam`` at ``T_world_cam``, the view's leaves requiring grad;
+        ``posing(args, T)`` may move the render's arguments and pose. A fused view that held fewer rows than
+        passed its test (known once the render synchronised) is selected again with room for them all."""
+        capacity = 0
+        for _ in range(2):
+            view = self.kernels.select(self.gmap, cam, T_world_cam, low_pass, cull=self.config.optim.cull,
+                                       capacity=capacity)
+            args, T = (view.render_args(), T_world_cam) if posing is None else posing(view.render_args(),
+                                                                                      T_world_cam)
+            out = self.renderer.render(*args, cam, T, self._background, low_pass=low_pass)
+            if not view.overflowed():
+                break
+            capacity = view.hits()
+        return view, out
 
     def set_load(self, backlog: int, period_s: float | None = None, cost=None) -> None:
         """The load a clock reports: ``backlog`` frames waiting, ``period_s`` seconds that one source frame grants
@@ -258,11 +265,13 @@ class Reconstructor(ReconstructorState):
 
     # ---- rendering -------------------------------------------------------------------------------------
     def _render(self, camera: Camera, T_world_cam, low_pass: float = EPS2D) -> RenderOutput:
-        """The map at ``camera``/``T_world_cam`` (differentiable); with ``config.optim.cull`` only the rows in view
-        are drawn (the same image; per-Gaussian outputs such as radii are then the kept rows')."""
-        cull = self.config.optim.cull
-        rows = InView.select(self.gmap, camera, T_world_cam, low_pass) if cull else self.gmap
-        return self.renderer.render(*rows.render_args(), camera, T_world_cam, self._background, low_pass=low_pass)
+        """The map at ``camera``/``T_world_cam``; with ``config.optim.cull`` only the rows in view are drawn (the
+        same image; per-Gaussian outputs such as radii are then the kept rows')."""
+        with torch.no_grad():
+            view = self.kernels.select(self.gmap, camera, T_world_cam, low_pass, cull=self.config.optim.cull,
+                                       grad=False)
+            return self.renderer.render(*view.render_args(), camera, T_world_cam, self._background,
+                                        low_pass=low_pass)
 
     @torch.no_grad()
     def render(self, pose, intrinsic: o3d.camera.PinholeCameraIntrinsic | Camera | None = None,

@@ -70,7 +70,8 @@ def phase_timer(rec):
     for path, attr, name in (("views", "select", "select view"), ("supervision", "sample", "supervision"),
                              ("renderer", "render", "render"), ("growth", "pre_backward", "regulariser"),
                              ("", "_adam_step", "adam"), ("growth", "post_step", "mcmc"),
-                             ("views", "feedback", "feedback")):
+                             ("views", "feedback", "feedback"), ("kernels", "select", "rows in view"),
+                             ("kernels", "backward", "loss and backward"), ("kernels", "step", "step")):
         _wrap(timing, getattr(rec, path, None) if path else rec, attr, name)  # absent in a checkout: not timed
     # module-level steps (those an older checkout lacks are not timed; the view test and gather of the rows in view
     # is one classmethod, which stays one when wrapped: the class hands out the wrapper unbound)

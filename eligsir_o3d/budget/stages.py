@@ -87,7 +87,9 @@ DETAIL = (
     ("growth.voxels", "lookup", "growth.voxel_hash"),
     ("growth", "_insert", "growth.insert"),
     ("growth", "post_step", "update.mcmc"),
-    ("", "_adam_step", "update.adam"),  # the Reconstructor's own: the culled rows' step or the map's
+    ("kernels", "select", "update.select"),  # the rows in view, gathered
+    ("kernels", "backward", "update.backward"),  # loss, error map and gradient through the renderer
+    ("kernels", "step", "update.step"),  # chain rule, regulariser, Adam and noise on the rows in view
     ("renderer", "render", "render"),
 )
 

@@ -172,6 +172,12 @@ def supervision_loss(out: RenderOutput, color: torch.Tensor, depth: torch.Tensor
     if _fused(out, color):
         acc, alpha, background = out.raw
         return _FusedLossCPU.apply(acc, alpha, background, color, depth, cfg)
+    return torch_loss(out, color, depth, cfg)
+
+
+def torch_loss(out: RenderOutput, color: torch.Tensor, depth: torch.Tensor, cfg: LossConfig):
+    """:func:`supervision_loss` in torch operators from the finished render (any device and dtype). The depth term's
+    valid-pixel count stays a tensor: the mean over the valid pixels needs no read on the host."""
     abs_err = (out.color - color).abs()  # [h, w, 3]
     l1 = abs_err.mean()
     loss = (1.0 - cfg.lambda_dssim) * l1
@@ -179,9 +185,9 @@ def supervision_loss(out: RenderOutput, color: torch.Tensor, depth: torch.Tensor
         loss = loss + cfg.lambda_dssim * dssim(out.color, color)
     if cfg.lambda_depth > 0:
         valid = (depth > 0) & (out.alpha.detach() > cfg.depth_alpha_min)
-        n_valid = int(valid.sum())
-        if n_valid:  # the mean over valid pixels, without gathering them (a masked gather's backward is slow)
-            err = torch.where(valid, (out.depth - depth).abs(), torch.zeros((), dtype=out.depth.dtype,
-                                                                               device=out.depth.device))
-            loss = loss + (cfg.lambda_depth / n_valid) * err.sum()
+        # the mean over valid pixels, without gathering them (a masked gather's backward is slow); 0 without any
+        err = torch.where(valid, (out.depth - depth).abs(), torch.zeros((), dtype=out.depth.dtype,
+                                                                           device=out.depth.device))
+        n_valid = valid.sum().clamp_min(1).to(err.dtype)
+        loss = loss + err.sum() * (cfg.lambda_depth / n_valid)
     return loss, abs_err.detach().mean(-1)

@@ -17,6 +17,7 @@ import torch
 from ..core.camera import Camera
 from ..core.frame import Frame
 from ..core.gaussians import GaussianMap
+from ..kernels.base import StepTerms
 from ..render import RenderOutput
 from .fixed_work import FULL
 
@@ -60,7 +61,7 @@ class MapContext:
 
     @property
     def view(self):
-        """The current update's :class:`~..culling.InView` (the rows it supervises) while a view-culled update
+        """The current update's :class:`~..kernels.RowView` (the rows it supervises) while a view-culled update
         runs; None otherwise (the update covers the whole map)."""
         return getattr(self._owner, "view", None)
 
@@ -70,9 +71,12 @@ class MapContext:
         optim = getattr(self._owner.config, "optim", None)
         if not getattr(optim, "cull", False):
             return len(self.gmap)
-        from ..render.culling import map_in_view
+        kernels = getattr(self._owner, "kernels", None)
+        if kernels is None:
+            from ..kernels import get_kernels
 
-        return int(map_in_view(self.gmap, camera, T_world_cam).numel())
+            kernels = get_kernels("auto", self.gmap.device, self.gmap.means.dtype)
+        return kernels.count_in_view(self.gmap, camera, T_world_cam)
 
     @property
     def seed_scale(self) -> float | None:
@@ -180,9 +184,9 @@ class GrowthPolicy(Policy):
         """Called once per released source frame; returns the number of Gaussians added."""
         raise NotImplementedError
 
-    def pre_backward(self, out: RenderOutput, ctx: MapContext) -> torch.Tensor | None:
-        """Optional regulariser added to the loss (for example MCMC's opacity/scale terms)."""
-        return None
+    def step_terms(self, ctx: MapContext) -> StepTerms:
+        """What the update's step adds on the rows in view: regularisers' weights and position noise (none here)."""
+        return StepTerms()
 
     def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
         """After the optimizer step (relocation, noise, evidence-gated insertion)."""

@@ -21,6 +21,7 @@ import torch
 
 from ..core.camera import Camera
 from ..core.frame import Frame
+from ..kernels.base import StepTerms
 from ..render import RenderOutput
 from .base import GrowthPolicy, MapContext
 from .capacity import BudgetCap
@@ -256,10 +257,11 @@ class TargetedGrowth(GrowthPolicy):
         return m
 
     # ---- around every update --------------------------------------------------------------------------------
-    def pre_backward(self, out: RenderOutput, ctx: MapContext) -> torch.Tensor | None:
-        if ctx.view is not None:  # a view-culled update: the rows in view carry the regulariser's gradient
-            return ctx.view.regulariser(self.cfg.mcmc.opacity_reg, self.cfg.mcmc.scale_reg)
-        return self.mcmc.regulariser(ctx.gmap)
+    def step_terms(self, ctx: MapContext) -> StepTerms:
+        """3DGS-MCMC's regularisers and, unless this update ends in a relocation round (whose noise follows the
+        relocation), its position noise: both applied by the update's step on the rows in view."""
+        m = self.cfg.mcmc
+        return StepTerms(m.opacity_reg, m.scale_reg, self.mcmc.step_noise(ctx.gmap), self.mcmc.generator(ctx.device))
 
     def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
         self.pixels = self._budget_pixels(frame.camera) if self.cfg.budget_scale > 0 else camera.pixels
@@ -268,7 +270,7 @@ class TargetedGrowth(GrowthPolicy):
         fill = 0
         if self.cfg.budget_updates > 0 and self.cfg.budget_fill > 0:
             fill = math.ceil(self.cfg.budget_fill * max(0, cap - len(ctx.gmap)))
-        self.mcmc.post_step(ctx.gmap, cap, fill, None if view is None else view.idx)
+        self.mcmc.post_step(ctx.gmap, cap, fill, None if view is None else view.rows)
 
     def counters(self) -> dict:
         return {**self.counts, **self.mcmc.counts, "evidence_voxels": len(self.voxels)}

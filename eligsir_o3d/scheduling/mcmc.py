@@ -204,22 +204,37 @@ class MCMCRefiner:
             return None
         return self.cfg.opacity_reg * gmap.opacities.mean() + self.cfg.scale_reg * gmap.scales.mean()
 
+    def refines_next(self, gmap: GaussianMap) -> bool:
+        """Whether the next :meth:`post_step` is a relocation/densification round."""
+        c, k = self.cfg, self.steps + 1
+        return k >= c.refine_start and k % c.refine_every == 0 and len(gmap) > 0
+
+    def step_noise(self, gmap: GaussianMap) -> float:
+        """The position noise's scale for the update's own step to apply (``lr_means * noise_lr``), or 0 when the
+        next :meth:`post_step` relocates first and adds the noise itself after the relocation."""
+        if self.cfg.noise_lr <= 0 or self.refines_next(gmap):
+            return 0.0
+        return gmap.lrs.means * self.cfg.noise_lr
+
     def post_step(self, gmap: GaussianMap, cap: int, min_add: int = 0, rows: torch.Tensor | None = None) -> None:
         """Relocation and densification every ``refine_every`` updates (densification adds ``growth_rate`` of the
-        map, at least ``min_add``, never beyond ``cap``), then the position noise. ``rows`` (ids [M], a culled
-        update's view): all of it acts on those rows only (relocation among them, copies of them, noise on them;
-        densification adds ``growth_rate`` of M), so the rows out of view stay untouched."""
-        self.steps += 1
+        map, at least ``min_add``, never beyond ``cap``), then the position noise, which every other update's step
+        applied already (:meth:`step_noise`). ``rows`` (ids [M], a culled update's view): all of it acts on those
+        rows only (relocation among them, copies of them, noise on them; densification adds ``growth_rate`` of M),
+        so the rows out of view stay untouched."""
         c = self.cfg
         rng = self.generator(gmap.device)
-        if self.steps >= c.refine_start and self.steps % c.refine_every == 0 and len(gmap):
-            if rows is None:
-                dead = gmap.opacities.detach() <= c.min_opacity
-            else:
-                dead = torch.sigmoid(gmap.params["opacities"].detach()[rows]) <= c.min_opacity
-            self.counts["relocated"] += relocate(gmap, dead, rng, c.min_opacity, c.n_max, rows)
-            n_add = max(math.ceil(c.growth_rate * (len(gmap) if rows is None else rows.numel())), int(min_add))
-            self.counts["added"] += sample_add(gmap, n_add, cap, rng, c.min_opacity, c.n_max, rows)
+        refine = self.refines_next(gmap)
+        self.steps += 1
+        if not refine:
+            return
+        if rows is None:
+            dead = gmap.opacities.detach() <= c.min_opacity
+        else:
+            dead = torch.sigmoid(gmap.params["opacities"].detach()[rows]) <= c.min_opacity
+        self.counts["relocated"] += relocate(gmap, dead, rng, c.min_opacity, c.n_max, rows)
+        n_add = max(math.ceil(c.growth_rate * (len(gmap) if rows is None else rows.numel())), int(min_add))
+        self.counts["added"] += sample_add(gmap, n_add, cap, rng, c.min_opacity, c.n_max, rows)
         if c.noise_lr > 0:
             inject_noise(gmap, gmap.lrs.means * c.noise_lr, rng, rows)
 

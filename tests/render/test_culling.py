@@ -1,5 +1,6 @@
-"""View-culled updates (eligsir_o3d.culling): the culled render equals the map's render (the torch reference is
-the oracle), the per-row Adam is exact Adam for every row, and an update leaves the rows out of view untouched."""
+"""View-culled updates (eligsir_o3d.render.culling, the kernel sets' select and step): the culled render equals the
+map's render (the torch reference is the oracle), the compiled and torch kernel sets step the rows alike, and an
+update leaves the rows out of view untouched."""
 
 import numpy as np
 import pytest
@@ -7,7 +8,10 @@ import torch
 
 from eligsir_o3d import Config, Reconstructor
 from eligsir_o3d.core.camera import Camera
-from eligsir_o3d.render.culling import InView, in_view
+from eligsir_o3d.render.culling import in_view
+from eligsir_o3d.kernels import StepTerms, get_kernels
+from eligsir_o3d.kernels.base import RowView, moments
+from eligsir_o3d.kernels.cpu import gather_raw
 from eligsir_o3d.core.frame import Frame
 from eligsir_o3d.core.gaussians import PARAM_NAMES, GaussianMap
 from eligsir_o3d.render import get_renderer
@@ -40,7 +44,7 @@ def test_view_leaves_are_the_maps_rows_as_new_leaves(sh_degree):
     gm.add(torch.randn(300, 3, generator=g), torch.rand(300, 3, generator=g), torch.rand(300, generator=g) * 0.2 + 0.01,
            0.5, torch.nn.functional.normalize(torch.randn(300, 4, generator=g), dim=-1))
     for idx in (torch.tensor([], dtype=torch.long), torch.tensor([299, 0, 17, 5]), torch.arange(300)):
-        view = InView(gm, idx)
+        view = RowView(gm, idx, gather_raw(gm, idx, True), activated=False)
         for name in PARAM_NAMES:
             leaf, p = view.leaves[name], gm.params[name].detach()
             assert leaf.requires_grad and leaf.is_leaf and leaf.grad is None
@@ -48,8 +52,8 @@ def test_view_leaves_are_the_maps_rows_as_new_leaves(sh_degree):
             assert leaf.data_ptr() != p.data_ptr() or leaf.numel() == 0  # a copy: the map is not written through it
 
 
-@pytest.mark.parametrize("renderer", ["torch", "cpu"])
-def test_culled_render_equals_map_render_images_and_gradients(renderer):
+@pytest.mark.parametrize("renderer,kernels", [("torch", "torch"), ("cpu", "numba"), ("cpu", "torch")])
+def test_culled_render_equals_map_render_images_and_gradients(renderer, kernels):
     gm = _map()
     r = get_renderer(renderer, "cpu")
     T = _pose(0.3)
@@ -61,7 +65,7 @@ def test_culled_render_equals_map_render_images_and_gradients(renderer):
     out = r.render(*full, CAM, T)
     ((out.color - target).abs().mean() + out.depth.mean() + out.alpha.mean()).backward()
 
-    view = InView.select(gm, CAM, T)
+    view = get_kernels(kernels).select(gm, CAM, T)
     assert 0 < len(view) < len(gm)  # the test map reaches beyond the view
     out_c = r.render(*view.render_args(), CAM, T)
     ((out_c.color - target).abs().mean() + out_c.depth.mean() + out_c.alpha.mean()).backward()
@@ -89,30 +93,27 @@ def test_compiled_view_test_keeps_the_torch_bound_and_little_more():
         assert len(exact) > 100
 
 
-def test_row_adam_of_a_view_is_exact_adam_per_row():
-    """With ``row_bias_correction``, a row stepped in k of the updates ends where torch's Adam ends after those k
-    steps of its gradients."""
+def test_view_adam_on_rows_stepped_every_update_is_torch_adam():
+    """Rows in view in every update end where torch's Adam ends after the same gradients (the tensor's step count
+    is then every row's)."""
     gm = _map(50)
-    gm.adam.row_bias_correction = True
     rng = torch.Generator().manual_seed(5)
-    rows_seen = {r: [] for r in range(len(gm))}
-    start = gm.params["sh0"].detach().clone()
+    idx = torch.arange(0, 50, 2)
+    start = gm.params["sh0"].detach()[idx].clone()
+    p = torch.nn.Parameter(start.clone())
+    opt = torch.optim.Adam([p], lr=gm.lrs.sh0, betas=(0.9, 0.999), eps=1e-15)
+    kernels = get_kernels("numba")
     for _ in range(6):
-        idx = torch.nonzero(torch.rand(len(gm), generator=rng) < 0.5).squeeze(1)
-        view = InView(gm, idx)
+        view = RowView(gm, idx, gather_raw(gm, idx, True), activated=False)
         g = torch.randn(len(idx), 1, 3, generator=rng)
         view.leaves["sh0"].grad = g
-        view.adam_step()
-        for k, r in enumerate(idx.tolist()):
-            rows_seen[r].append(g[k])
-    for r in (0, 7, 21, 49):
-        p = torch.nn.Parameter(start[r:r + 1].clone())
-        opt = torch.optim.Adam([p], lr=gm.lrs.sh0, betas=(gm.adam.beta1, gm.adam.beta2), eps=gm.adam.eps)
-        for g in rows_seen[r]:
-            p.grad = g[None].clone()
-            opt.step()
-        torch.testing.assert_close(gm.params["sh0"].detach()[r:r + 1], p.detach(), rtol=2e-6, atol=1e-7)
-        assert float(gm.optimizers["sh0"].state[gm.params["sh0"]]["row_step"][r]) == len(rows_seen[r])
+        kernels.step(gm, view, StepTerms())
+        p.grad = g.clone()
+        opt.step()
+    torch.testing.assert_close(gm.params["sh0"].detach()[idx], p.detach(), rtol=2e-6, atol=1e-7)
+    others = torch.ones(50, dtype=torch.bool)
+    others[idx] = False
+    assert not moments(gm, "sh0")[0][others].any()  # rows never in view: no moments
 
 
 def _scene_rec(tmp_cull=True):
@@ -140,29 +141,27 @@ def test_update_leaves_rows_out_of_view_bit_for_bit_untouched():
     assert out_rows.sum() > 100 and not bool(torch.isin(torch.nonzero(out_rows).squeeze(1), idx).any())
     n0 = len(rec.gmap)
     before = {n: rec.gmap.params[n].detach()[:n0][out_rows].clone() for n in PARAM_NAMES}
-    moments = {n: {k: v[:n0][out_rows].clone() for k, v in rec.gmap.optimizers[n].state[rec.gmap.params[n]].items()
-                   if isinstance(v, torch.Tensor) and v.ndim > 0} for n in PARAM_NAMES}
+    saved = {n: [m[:n0][out_rows].clone() for m in moments(rec.gmap, n)] for n in PARAM_NAMES}
     rec.optimize(4, scale=1.0)  # includes relocation and densification rounds and the noise
     assert rec.growth.mcmc.counts["relocated"] > 0
     rec.gmap.check_aligned()
     for n in PARAM_NAMES:
         assert torch.equal(rec.gmap.params[n].detach()[:n0][out_rows], before[n]), n
-        state = rec.gmap.optimizers[n].state[rec.gmap.params[n]]
-        for k, v in moments[n].items():
-            assert torch.equal(state[k][:n0][out_rows], v), (n, k)
-    steps = rec.gmap.optimizers["sh0"].state[rec.gmap.params["sh0"]]["row_step"]
-    assert float(steps[idx].max()) == 5  # the view's rows were stepped in every update
+        for k, (m, v) in enumerate(zip(moments(rec.gmap, n), saved[n])):
+            assert torch.equal(m[:n0][out_rows], v), (n, k)
+    assert moments(rec.gmap, "sh0")[1][idx].any()  # the view's rows were stepped
 
 
-def test_relocation_resets_the_rows_step_count():
+def test_relocation_resets_the_moments_of_the_relocated_rows():
     rec, T = _scene_rec()
-    rec.optimize(2, scale=1.0)  # update 2 is a refinement round: relocated rows get zeroed moments and counts
-    state = rec.gmap.optimizers["means"].state[rec.gmap.params["means"]]
-    steps = state["row_step"]
-    assert steps.shape == (len(rec.gmap),)
+    dead = torch.nonzero(torch.sigmoid(rec.gmap.params["opacities"].detach()) <= 0.005).squeeze(1)
     idx = in_view(rec.gmap.params["means"], rec.gmap.params["scales"], CAM, T)
-    assert set(torch.unique(steps).tolist()) <= {0.0, 1.0, 2.0}
-    assert float(steps[idx].max()) == 2.0 and bool((steps == 0).any())
+    dead_in_view = dead[torch.isin(dead, idx)]
+    assert len(dead_in_view) > 0
+    rec.optimize(2, scale=1.0)  # update 2 is a refinement round: relocated rows get zeroed moments
+    assert rec.growth.mcmc.counts["relocated"] > 0
+    m, v = moments(rec.gmap, "means")
+    assert not v[dead_in_view].any() and v[idx].any()
 
 
 def test_culled_and_unculled_updates_agree_on_a_map_in_view():
@@ -186,50 +185,25 @@ def test_culled_and_unculled_updates_agree_on_a_map_in_view():
                                    rtol=1e-4, atol=1e-6)
 
 
-@pytest.mark.parametrize("adam", [{}, {"row_bias_correction": True}, {"means_decay_to": 0.1, "warmup_updates": 3},
-                                  {"warmup_updates": 3, "no_means": True}])
-def test_compiled_view_adam_equals_the_torch_row_path(monkeypatch, adam):
-    """InView.adam_step on the CPU runs one compiled pass (row counts, step sizes, bias corrections and the step):
-    the same counters as the per-parameter torch path, over views that overlap, and the same parameters and
-    moments to float32 rounding (torch's vector code may fuse a multiply-add where the kernel does not)."""
-    def run(compiled: bool) -> GaussianMap:
+@pytest.mark.parametrize("noise", [0.0, 50.0])
+def test_numba_and_torch_kernel_sets_step_the_same_rows_alike(noise):
+    """The numba set's step (one compiled Adam pass, the noise where the rows lie) equals the torch set's over
+    views that overlap: parameters and moments to float32 rounding, the rows out of every view untouched."""
+    def run(name: str) -> GaussianMap:
         gm = _map(300, seed=3)
-        for k, v in adam.items():
-            if k != "no_means":
-                setattr(gm.adam, k, v)
-        rng = torch.Generator().manual_seed(9)
-        monkeypatch.setattr(InView, "_adam_compiled", lambda self, todo: ran.append(len(todo)) or real(self, todo)
-                            if compiled else InView._adam_torch(self, todo))
+        kernels = get_kernels(name)
+        rng, noise_rng = torch.Generator().manual_seed(9), torch.Generator().manual_seed(2)
         for _ in range(5):
             idx = torch.nonzero(torch.rand(len(gm), generator=rng) < 0.6).squeeze(1)
-            view = InView(gm, idx)
-            for name, leaf in view.leaves.items():
-                if leaf.numel() and not (name == "means" and adam.get("no_means")):
-                    g = torch.randn(leaf.shape, generator=rng)
-                    if name == "means":
-                        g[::5] = 0.0  # rows the view did not reach: not counted as seen
-                    leaf.grad = g
-            view.adam_step()
-        monkeypatch.undo()
+            view = RowView(gm, idx, gather_raw(gm, idx, True), activated=False)
+            for leaf in view.leaves.values():
+                if leaf.numel():
+                    leaf.grad = torch.randn(leaf.shape, generator=rng)
+            kernels.step(gm, view, StepTerms(noise_scaler=noise, generator=noise_rng))
         return gm
 
-    ran, real = [], InView._adam_compiled
-    a, b = run(True), run(False)
-    assert ran == [5 - bool(adam.get("no_means"))] * 5  # the compiled pass did the steps of the first run
+    a, b = run("numba"), run("torch")
     for name in PARAM_NAMES:
         torch.testing.assert_close(a.params[name], b.params[name], rtol=1e-5, atol=1e-6)
-        sa, sb = a.optimizers[name].state, b.optimizers[name].state
-        if a.params[name].numel() == 0:
-            continue
-        sa, sb = sa[a.params[name]], sb[b.params[name]]
-        assert sorted(sa) == sorted(sb)
-        for key in sa:
-            if key in ("exp_avg", "exp_avg_sq"):
-                torch.testing.assert_close(sa[key], sb[key], rtol=1e-5, atol=1e-7)
-            else:
-                assert torch.equal(sa[key], sb[key]), (name, key)
-    if adam.get("no_means"):
-        return
-    seen = a.optimizers["means"].state[a.params["means"]]["row_seen"]
-    assert 0 < float(seen.max()) <= 5 and float(seen.sum()) < float(
-        a.optimizers["means"].state[a.params["means"]]["row_step"].sum())
+        for ma, mb in zip(moments(a, name), moments(b, name)):
+            torch.testing.assert_close(ma, mb, rtol=1e-5, atol=1e-7)

@@ -143,7 +143,7 @@ def test_stage_times_add_up_and_detail_wraps_the_sub_stages():
         rec.integrate(f, updates=2)
     s = rec.timing.summary(len(frames))
     for name in ("admission", "growth", "update", "support_render", "scheduling.select", "growth.voxel_hash",
-                 "update.adam", "render"):
+                 "update.step", "render"):
         assert s[name]["calls"] > 0, name
     assert s["update"]["calls"] == rec.stats.updates == 12
     assert s["admission"]["s"] + s["growth"]["s"] + s["update"]["s"] <= rec.stats.mapping_s + 1e-6
