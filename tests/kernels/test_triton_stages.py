@@ -1,0 +1,54 @@
+"""The Triton stages of the device step (eligsir_o3d.kernels.triton_*) against their torch references, run by
+Triton's interpreter on CPU tensors; their launch counts; and each kernel compiled for a CUDA target (no GPU
+needed: Triton compiles to a cubin on the CPU)."""
+
+import pytest
+import torch
+from helpers.device_step import make_map, pose, view_scalars
+
+from eligsir_o3d.core.gaussians import PARAM_NAMES
+from eligsir_o3d.kernels import device_reference as ref
+
+triton = pytest.importorskip("triton")
+
+from eligsir_o3d.kernels import triton_step  # noqa: E402
+from eligsir_o3d.kernels.triton_launch import counting  # noqa: E402
+
+
+def _selection(gm, T, extra):
+    V, cam = view_scalars(T)
+    p = {n: gm.params[n].detach() for n in PARAM_NAMES}
+    args = (p["means"], p["scales"], p["quats"], p["opacities"], p["sh0"], p["shN"], V, cam)
+    n_hits = int(ref.select_rows(*args, 1, gm.sh_degree).count)
+    return ref.select_rows(*args, max(n_hits + extra, 0), gm.sh_degree)
+
+
+def _state(gm, seed):
+    g = torch.Generator().manual_seed(seed)
+    p = {n: gm.params[n].detach().clone() for n in PARAM_NAMES}
+    m = {n: torch.randn(t.shape, generator=g) * 0.01 for n, t in p.items()}
+    v = {n: torch.rand(t.shape, generator=g) * 1e-4 for n, t in p.items()}
+    return p, m, v
+
+
+@pytest.mark.parametrize("sh_degree", [0, 1])
+@pytest.mark.parametrize("extra,drop,scaler", [(5, (), 5e3), (-10, (), 0.0), (0, ("means", "colors"), 1e3),
+                                               (3, ("quats", "scales", "opacities"), 0.0)])
+def test_step_kernel_is_the_reference(sh_degree, extra, drop, scaler):
+    gm = make_map(300, seed=3, sh_degree=sh_degree)
+    sel = _selection(gm, pose(0.3), extra)
+    C = sel.idx.shape[0]
+    g = torch.Generator().manual_seed(7)
+    grads = {k: torch.randn(t.shape, generator=g) for k, t in zip(("means", "quats", "scales", "opacities",
+                                                                    "colors"), sel[2:]) if k not in drop}
+    z = torch.randn(C, 3, generator=g)
+    adam = {n: ref.adam_scalars(0.01 * (i + 1), 0.9, 0.999, 1e-15, 3) for i, n in enumerate(PARAM_NAMES)}
+    states = [_state(gm, 1), _state(gm, 1)]
+    regs = dict(opacity_reg=0.01, scale_reg=0.02, n_map=len(gm), scaler=scaler, z=z)
+    ref.step_rows(*states[0], sel.idx, sel.count, grads, adam, **regs)
+    with counting() as c:
+        triton_step.step_rows(*states[1], sel.idx, sel.count, grads, adam, **regs)
+    assert c.n == 1
+    for want, got in zip(*states):
+        for n in PARAM_NAMES:
+            torch.testing.assert_close(got[n], want[n], rtol=1e-5, atol=1e-6)  # the noise: float32 rounding
