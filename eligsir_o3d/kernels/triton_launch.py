@@ -17,6 +17,7 @@ import contextlib
 import functools
 
 _LAUNCHES = 0  # launches of our kernels since import
+_RECORDS: list | None = None  # (kernel, args, meta) of each launch inside recording()
 
 
 def available() -> bool:
@@ -111,6 +112,8 @@ def launch(k: Kernel, grid, *args, **meta) -> None:
     if device is None:
         raise ValueError(f"{k.__name__}: no tensor argument to take the device from")
     _LAUNCHES += 1
+    if _RECORDS is not None:
+        _RECORDS.append((k, args, meta))
     if device.type == "cpu":
         with _interpreting():
             k.interpreted[tuple(grid)](*args, **meta)
@@ -143,3 +146,46 @@ def counting():
         yield c
     finally:
         c.stop = _LAUNCHES
+
+
+@contextlib.contextmanager
+def recording():
+    """``with recording() as launches: ...``; then ``launches`` lists (kernel, args, meta) of every launch."""
+    global _RECORDS
+    saved, _RECORDS = _RECORDS, []
+    try:
+        yield _RECORDS
+    finally:
+        _RECORDS = saved
+
+
+def _arg_type(a):
+    import torch
+
+    if isinstance(a, torch.Tensor):
+        names = {torch.float32: "fp32", torch.float64: "fp64", torch.int64: "i64", torch.int32: "i32",
+                 torch.int8: "i8", torch.uint8: "u8", torch.bool: "i1"}
+        return "*" + names[a.dtype]
+    if isinstance(a, bool):
+        return "i1"
+    if isinstance(a, int):
+        return "i64"
+    if isinstance(a, float):
+        return "fp32"
+    if isinstance(a, tuple):
+        return tuple(_arg_type(x) for x in a)
+    raise TypeError(f"no Triton type for {type(a).__name__}")
+
+
+def compile_for_cuda(k: Kernel, args, meta, arch: int = 90):
+    """Compile ``k`` as it would launch with ``args``/``meta`` for CUDA compute capability ``arch``, on this
+    machine (no GPU needed: Triton's own ptxas builds the cubin). Returns the compiled kernel (``.asm``)."""
+    import inspect
+
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    triton = _triton()
+    sig = {name: _arg_type(a) for name, a in zip(inspect.signature(k.fn).parameters, args)}
+    sig.update({name: "constexpr" for name in meta})
+    return triton.compile(ASTSource(k.compiled, sig, dict(meta)), target=GPUTarget("cuda", arch, 32))

@@ -52,3 +52,28 @@ def test_step_kernel_is_the_reference(sh_degree, extra, drop, scaler):
     for want, got in zip(*states):
         for n in PARAM_NAMES:
             torch.testing.assert_close(got[n], want[n], rtol=1e-5, atol=1e-6)  # the noise: float32 rounding
+
+
+@pytest.mark.parametrize("sh_degree", [0, 2])
+@pytest.mark.parametrize("n,extra,away", [(3000, 7, False), (3000, -25, False), (3000, 0, False), (50, 5, True),
+                                          (0, 4, False)])
+def test_select_kernels_are_the_reference(sh_degree, n, extra, away):
+    from eligsir_o3d.kernels import triton_select
+
+    gm = make_map(n, seed=2, sh_degree=sh_degree)
+    T = pose(0.3)
+    if away:
+        T[2, 3] = 50.0  # every row behind the camera
+    V, cam = view_scalars(T)
+    p = [gm.params[k].detach() for k in ("means", "scales", "quats", "opacities", "sh0", "shN")]
+    n_hits = int(ref.select_rows(*p, V, cam, 1, sh_degree).count)
+    assert (n_hits > 100) == (n > 1000)
+    cap = max(n_hits + extra, 1)
+    want = ref.select_rows(*p, V, cam, cap, sh_degree)
+    with counting() as c:
+        got = triton_select.select_rows(*p, V, cam, cap, sh_degree)
+    assert c.n == 2  # + torch's cumsum: 3 launches
+    for name, a, b in zip(want._fields, got, want):
+        assert a.shape == b.shape and a.dtype == b.dtype, name
+        exact = name in ("idx", "count", "means", "quats")  # exp and sigmoid: to float32 rounding
+        torch.testing.assert_close(a, b, rtol=0 if exact else 1e-6, atol=0)
