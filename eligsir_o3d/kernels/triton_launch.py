@@ -85,14 +85,18 @@ def _interpreting():
     ``TRITON_INTERPRET``) runs as an interpreted device call, as it would had that variable been set; and
     ``knobs.runtime.interpret`` reads True. Both are put back on exit."""
     from triton import knobs
-    from triton.runtime.interpreter import InterpretedFunction
+    from triton.runtime.interpreter import InterpretedFunction, _patch_lang
     from triton.runtime.jit import JITFunction
 
-    def call(self, *args, **kwargs):
+    def call(self, *args, **kwargs):  # InterpretedFunction's device call, its language patches undone on return
         f = self.__dict__.get("_interpreted_form")
         if f is None:
             f = self.__dict__["_interpreted_form"] = InterpretedFunction(self.fn)
-        return f(*args, **kwargs)
+        scope = _patch_lang(self.fn)
+        try:
+            return f.rewrite()(*args, **kwargs)
+        finally:
+            scope.restore()
 
     saved, was = JITFunction.__call__, knobs.runtime.interpret
     JITFunction.__call__ = call

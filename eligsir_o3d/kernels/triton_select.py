@@ -14,6 +14,8 @@ import triton.language as tl
 
 from .device_reference import C0, PAD_SCALE, Selection
 from .triton_launch import device_function, kernel, launch
+_C0 = tl.constexpr(C0)
+_PAD_SCALE = tl.constexpr(PAD_SCALE)
 
 
 @device_function
@@ -64,7 +66,7 @@ def _gather_kernel(mask_ptr, offs_ptr, NB, means, ls, quats, lo, sh0, shN, idx, 
     tl.store(o_s + q2 * 3 + c4, tl.exp(tl.load(ls + r2 * 3 + c4, mask=put2 & (c4 < 3))), mask=put2 & (c4 < 3))
     tl.store(o_o + pos, tl.sigmoid(tl.load(lo + r, mask=put)), mask=put)
     if DEG0:
-        rgb = tl.maximum(tl.load(sh0 + r2 * 3 + c4, mask=put2 & (c4 < 3)) * C0 + 0.5, 0.0)
+        rgb = tl.maximum(tl.load(sh0 + r2 * 3 + c4, mask=put2 & (c4 < 3)) * _C0 + 0.5, 0.0)
         tl.store(o_c + q2 * 3 + c4, rgb, mask=put2 & (c4 < 3))
     else:
         cs = tl.arange(0, WSH)[None, :]
@@ -78,7 +80,7 @@ def _gather_kernel(mask_ptr, offs_ptr, NB, means, ls, quats, lo, sh0, shN, idx, 
     tl.store(idx + q, tl.zeros([BLOCK], tl.int64), mask=pad)
     tl.store(o_m + q2 * 3 + c4, tl.zeros([BLOCK, 4], tl.float32), mask=pad2 & (c4 < 3))
     tl.store(o_q + q2 * 4 + c4, tl.where(c4 == 0, 1.0, 0.0) + tl.zeros([BLOCK, 4], tl.float32), mask=pad2)
-    tl.store(o_s + q2 * 3 + c4, tl.zeros([BLOCK, 4], tl.float32) + PAD_SCALE, mask=pad2 & (c4 < 3))
+    tl.store(o_s + q2 * 3 + c4, tl.zeros([BLOCK, 4], tl.float32) + _PAD_SCALE, mask=pad2 & (c4 < 3))
     tl.store(o_o + q, tl.zeros([BLOCK], tl.float32), mask=pad)
     cw = tl.arange(0, WSH)[None, :]
     tl.store(o_c + q2 * (K3 + 3) + cw, tl.zeros([BLOCK, WSH], tl.float32), mask=pad2 & (cw < K3 + 3))

@@ -10,6 +10,7 @@ import triton.language as tl
 
 from .device_reference import C0, STEPPED, AdamScalars
 from .triton_launch import device_function, kernel, launch
+_C0 = tl.constexpr(C0)
 
 
 @device_function
@@ -64,7 +65,7 @@ def _step_kernel(idx_ptr, count_ptr, C, pm, mm, vm, gm, pq, mq, vq, gq, ps, ms, 
         if DEG0:
             s0 = tl.load(p0 + r2 * 3 + cols, mask=m3, other=0.0)
             gcol = tl.load(gc + i[:, None] * 3 + cols, mask=m3, other=0.0)
-            g0 = tl.where(s0 * C0 + 0.5 >= 0.0, gcol * C0, 0.0)
+            g0 = tl.where(s0 * _C0 + 0.5 >= 0.0, gcol * _C0, 0.0)
             tl.store(p0 + r2 * 3 + cols, _adam(p0, m0, v0, r2 * 3 + cols, m3, g0, h0), mask=m3)
         else:
             cs = tl.arange(0, WSH)[None, :]

@@ -77,3 +77,28 @@ def test_select_kernels_are_the_reference(sh_degree, n, extra, away):
         assert a.shape == b.shape and a.dtype == b.dtype, name
         exact = name in ("idx", "count", "means", "quats")  # exp and sigmoid: to float32 rounding
         torch.testing.assert_close(a, b, rtol=0 if exact else 1e-6, atol=0)
+
+
+def test_kernels_compile_for_cuda():
+    """Every kernel as the stages launch it compiles for an sm_90 target (Triton builds the cubin without a
+    GPU): what the interpreter ran is also valid compiled Triton."""
+    from eligsir_o3d.kernels import triton_select
+    from eligsir_o3d.kernels.triton_launch import compile_for_cuda, recording
+
+    launches = []
+    for sh_degree in (0, 1):
+        gm = make_map(40, seed=1, sh_degree=sh_degree)
+        p = {n: gm.params[n].detach() for n in PARAM_NAMES}
+        V, cam = view_scalars(pose(0.3))
+        with recording() as rec:
+            sel = triton_select.select_rows(p["means"], p["scales"], p["quats"], p["opacities"], p["sh0"], p["shN"],
+                                            V, cam, 16, sh_degree)
+            grads = dict(zip(("means", "quats", "scales", "opacities", "colors"), sel[2:]))
+            adam = {n: ref.adam_scalars(0.01, 0.9, 0.999, 1e-15, 1) for n in PARAM_NAMES}
+            m = {n: torch.zeros_like(t) for n, t in p.items()}
+            triton_step.step_rows(p, m, dict(m), sel.idx, sel.count, grads, adam, 0.1, 0.1, 40, 1.0,
+                                  torch.zeros(16, 3))
+        launches += rec
+    assert len(launches) == 6
+    for k, args, meta in launches:
+        assert compile_for_cuda(k, args, dict(meta, BLOCK=128)).asm["cubin"], k.__name__
