@@ -102,3 +102,27 @@ def test_kernels_compile_for_cuda():
     assert len(launches) == 6
     for k, args, meta in launches:
         assert compile_for_cuda(k, args, dict(meta, BLOCK=128)).asm["cubin"], k.__name__
+
+
+_WEIGHTS = [(0.2, 0.5, 0.5), (0.0, 0.5, 0.5), (0.2, 0.0, 0.5), (0.2, 0.5, 0.0), (0.2, 0.5, "no depth")]
+_LOSS_CASES = [(hw, bg, w) for hw in [(7, 9), (3, 4), (2, 5)] for bg in (None, (0.2, 0.5, 0.9)) for w in _WEIGHTS]
+_LOSS_CASES += [((30, 41), (0.2, 0.5, 0.9), _WEIGHTS[0]), ((30, 41), None, _WEIGHTS[4])]  # the full window
+
+
+@pytest.mark.parametrize("hw,background,weights", _LOSS_CASES)
+def test_loss_kernels_are_the_reference(hw, background, weights):
+    from eligsir_o3d.kernels import device_reference_loss, triton_loss
+    from helpers.device_step import accumulations
+
+    acc, alpha, color, depth = accumulations(*hw, seed=hw[0])
+    if weights[2] == "no depth":
+        depth, weights = torch.zeros_like(depth), weights[:2] + (0.5,)
+    bg = None if background is None else torch.tensor(background)
+    want = device_reference_loss.fused_loss(acc, alpha, bg, color, depth, *weights)
+    with counting() as c:
+        got = triton_loss.fused_loss(acc, alpha, bg, color, depth, *weights)
+    assert c.n == 2
+    torch.testing.assert_close(got[0], want[0], rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(got[1], want[1], rtol=1e-6, atol=1e-7)
+    for g, w in zip(got[2:], want[2:]):
+        torch.testing.assert_close(g, w, rtol=1e-4, atol=1e-6 * float(w.abs().max()) + 1e-12)
