@@ -81,24 +81,27 @@ class RowView:
         return lv["means"], lv["quats"], torch.exp(lv["scales"]), torch.sigmoid(lv["opacities"]), colors
 
 
-def adam_factors(gmap, name: str) -> tuple:
-    """Count one more Adam step of parameter ``name`` and return its host scalars (a, b, 1 - beta1, beta2,
-    1 - beta2, eps): a = -lr / (1 - beta1^k), b = sqrt(1 - beta2^k) with k its step count (torch's Adam counts one
-    per tensor), the complements in float64."""
+def adam_scalars(gmap, name: str) -> tuple:
+    """Count one more Adam step of parameter ``name`` and return its host scalars (a, b, beta1, beta2, eps):
+    a = -lr / (1 - beta1^k), b = sqrt(1 - beta2^k) with k its step count (torch's Adam counts one per tensor)."""
     if hasattr(gmap.adam, "bias"):
         a, b = gmap.adam.bias(name)
-        b1, b2, eps = gmap.adam.beta1, gmap.adam.beta2, gmap.adam.eps
-    else:  # MERGE-SHIM: torch.optim.Adam state until the map's own Adam state lands
-        from ..optim.update_kernels import adam_state
+        return a, b, gmap.adam.beta1, gmap.adam.beta2, gmap.adam.eps
+    from ..optim.update_kernels import adam_state  # MERGE-SHIM: torch.optim.Adam state until MapAdam lands
 
-        opt = gmap.optimizers[name]
-        group = opt.param_groups[0]
-        b1, b2 = group["betas"]
-        eps = group["eps"]
-        state = adam_state(opt, gmap.params[name])
-        state["step"] += 1
-        k = float(state["step"])
-        a, b = -group["lr"] * (1.0 / (1.0 - b1 ** k)), math.sqrt(1.0 - b2 ** k)
+    opt = gmap.optimizers[name]
+    group = opt.param_groups[0]
+    b1, b2 = group["betas"]
+    state = adam_state(opt, gmap.params[name])
+    state["step"] += 1
+    k = float(state["step"])
+    return -group["lr"] * (1.0 / (1.0 - b1 ** k)), math.sqrt(1.0 - b2 ** k), b1, b2, group["eps"]
+
+
+def adam_factors(gmap, name: str) -> tuple:
+    """:func:`adam_scalars` as the compiled kernels take them: (a, b, 1 - beta1, beta2, 1 - beta2, eps), the
+    complements in float64."""
+    a, b, b1, b2, eps = adam_scalars(gmap, name)
     return (a, b, 1.0 - b1, b2, 1.0 - b2, eps)
 
 

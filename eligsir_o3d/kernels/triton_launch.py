@@ -17,6 +17,7 @@ import contextlib
 import functools
 
 _LAUNCHES = 0  # launches of our kernels since import
+_DEPTH = 0  # launches running (nested calls of launch)
 _RECORDS: list | None = None  # (kernel, args, meta) of each launch inside recording()
 
 
@@ -116,6 +117,20 @@ def launch(k: Kernel, grid, *args, **meta) -> None:
     if device is None:
         raise ValueError(f"{k.__name__}: no tensor argument to take the device from")
     _LAUNCHES += 1
+    global _DEPTH
+    _DEPTH += 1
+    try:
+        _run(k, grid, device, args, meta)
+    finally:
+        _DEPTH -= 1
+
+
+def in_launch() -> bool:
+    """Whether a launch of ours is running (under the interpreter its torch operators are the kernel's own work)."""
+    return _DEPTH > 0
+
+
+def _run(k: Kernel, grid, device, args, meta) -> None:
     if _RECORDS is not None:
         _RECORDS.append((k, args, meta))
     if device.type == "cpu":

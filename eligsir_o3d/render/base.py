@@ -56,13 +56,20 @@ class DeferredRenderOutput(RenderOutput):
     the depth normalisation (~3 % of a 1/4-scale update of the kitchen map); anything that reads them gets the same
     tensors an eager render gives."""
 
-    def __init__(self, alpha: torch.Tensor, radii: torch.Tensor, means2d: torch.Tensor | None, raw: tuple):
+    def __init__(self, alpha: torch.Tensor, radii: torch.Tensor | None, means2d: torch.Tensor | None, raw: tuple,
+                 screen=None):
         # color and depth stay unset (they have no class default), so reading them reaches __getattr__ once; the
-        # accumulations are kept apart from ``raw``, which a consumer may clear (then the torch loss is taken)
-        self.alpha, self.radii, self.means2d, self.raw = alpha, radii, means2d, raw
-        self._accumulated = raw
+        # accumulations are kept apart from ``raw``, which a consumer may clear (then the torch loss is taken).
+        # ``screen``: a function returning (radii, means2d), called when either is first read (left unset then)
+        self.alpha, self.raw = alpha, raw
+        self._accumulated, self._screen = raw, screen
+        if screen is None:
+            self.radii, self.means2d = radii, means2d
 
     def __getattr__(self, name: str):
+        if name in ("radii", "means2d") and self.__dict__.get("_screen") is not None:
+            self.radii, self.means2d = self._screen()
+            return getattr(self, name)
         if name not in ("color", "depth"):
             raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
         acc, alpha, background = self._accumulated

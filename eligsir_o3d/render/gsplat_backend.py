@@ -28,7 +28,7 @@ import torch
 
 from ..core.camera import Camera
 from .availability import gsplat_status, load_gsplat_extension
-from .base import RenderOutput, finish, mask_culled
+from .base import DeferredRenderOutput, RenderOutput, finish, mask_culled
 from .projection import EPS2D, NEAR, TILE, world_to_cam
 
 
@@ -100,18 +100,20 @@ class GsplatRenderer:
             means.float(), quats.float(), scales.float(), opacities.float(), colors.float(), viewmats, Ks,
             camera.width, camera.height, near_plane=NEAR, eps2d=float(low_pass), radius_clip=0.0, sh_degree=sh_degree,
             packed=False, tile_size=TILE, render_mode="RGB+D", rasterize_mode="classic")
-        color_acc = rendered[0, ..., :3].to(dtype)  # [H, W, 3]
-        depth_acc = rendered[0, ..., 3].to(dtype)  # [H, W]
-        alpha_acc = alphas[0, ..., 0].to(dtype)  # [H, W]
         if background is not None:
             background = torch.as_tensor(background, dtype=dtype, device=device)
-        color, depth, alpha = finish(color_acc, depth_acc, alpha_acc, background)
-        radii = meta["radii"][0]  # [N, 2] in gsplat 1.5 ([N] in older releases)
-        if radii.dim() == 2:
-            radii = radii.max(dim=-1).values
-        radii = radii.to(torch.int32)
-        means2d = mask_culled(meta["means2d"][0] - 0.5, radii)  # [N, 2], integer pixel centres, NaN where culled
-        return RenderOutput(color, depth, alpha, radii, means2d)
+
+        def screen():
+            radii = meta["radii"][0]  # [N, 2] in gsplat 1.5 ([N] in older releases)
+            if radii.dim() == 2:
+                radii = radii.max(dim=-1).values
+            radii = radii.to(torch.int32)
+            return radii, mask_culled(meta["means2d"][0] - 0.5, radii)  # integer pixel centres, NaN where culled
+
+        # the accumulations as gsplat wrote them (RGB and depth summed, no background): a fused loss reads these;
+        # colour, depth, radii and means2d are made when first read
+        raw = (rendered[0].to(dtype), alphas[0, ..., 0].to(dtype), background)
+        return DeferredRenderOutput(raw[1], None, None, raw, screen=screen)
 
     @staticmethod
     def _empty(camera: Camera, background, dtype, device) -> RenderOutput:

@@ -1,6 +1,6 @@
 """The torch references of the device step (eligsir_o3d.kernels.device_reference*) against today's code: the rows
-of ``in_view`` gathered and activated as ``InView.render_args`` does, the loss of ``supervision_loss`` with its
-gradient, and the step of ``InView`` (autograd, regulariser, Adam) followed by ``mcmc_noise_rows``."""
+of ``in_view`` gathered and activated as ``RowView.render_args`` does, the loss of ``supervision_loss`` with its
+gradient, and the numba kernel set's step (autograd, regulariser, Adam) followed by ``mcmc_noise_rows``."""
 
 import dataclasses
 import inspect
@@ -16,7 +16,10 @@ from eligsir_o3d.kernels.device_reference_loss import fused_loss
 from eligsir_o3d.optim.losses import LossConfig, supervision_loss
 from eligsir_o3d.optim.update_kernels import mcmc_noise_rows
 from eligsir_o3d.render.base import RenderOutput, finish
-from eligsir_o3d.render.culling import InView, in_view
+from eligsir_o3d.render.culling import in_view
+from eligsir_o3d.kernels import StepTerms
+from eligsir_o3d.kernels.base import RowView, moments
+from eligsir_o3d.kernels.cpu import NumbaKernels, gather_raw, regulariser
 
 
 def _select(gm, T, capacity):
@@ -43,7 +46,7 @@ def test_select_rows_are_in_view_gathered_and_activated(sh_degree, extra):
     assert sel.count.shape == (1,) and int(sel.count) == len(ids)
     k = min(cap, len(ids))
     assert torch.equal(sel.idx[:k], ids[:k]) and not sel.idx[k:].any()
-    args = InView(gm, ids[:k]).render_args()
+    args = RowView(gm, ids[:k], gather_raw(gm, ids[:k], True), activated=False).render_args()
     for got, want in zip(sel[2:], args):
         assert got.shape[0] == cap and torch.equal(got[:k], want.detach())
     pad = slice(k, None)
@@ -96,18 +99,17 @@ def test_fused_loss_is_supervision_loss(hw, background, change):
 
 def _step_today(gm, ids, grads, regs, z, scaler):
     """Today's step of the rows ``ids``: autograd through render_args and the regulariser, adam_step, noise."""
-    view = InView(gm, ids)
+    view = RowView(gm, ids, gather_raw(gm, ids, True), activated=False)
     args = view.render_args()
     total = sum((a * g).sum() for a, g in zip(args, grads))
-    reg = view.regulariser(*regs)
+    reg = regulariser(view, StepTerms(*regs))
     (total if reg is None else total + reg).backward()
-    view.adam_step()
+    NumbaKernels().step(gm, view, StepTerms())
     mcmc_noise_rows(gm.params, ids, z, scaler)
 
 
 def _state(gm, name, key):
-    st = gm.optimizers[name].state.get(gm.params[name], {})
-    return st[key] if key in st else torch.zeros_like(gm.params[name])
+    return moments(gm, name)[0 if key == "exp_avg" else 1]
 
 
 @pytest.mark.parametrize("sh_degree", [0, 1])
