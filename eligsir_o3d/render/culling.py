@@ -156,78 +156,44 @@ class InView:
         else:
             self._adam_torch(todo)
 
-    def _row_state(self, name: str, p: torch.Tensor) -> dict:
-        """Adam's state of ``p`` with its per-row counters (``row_step``; ``row_seen`` for the means)."""
-        from ..optim.update_kernels import adam_state
-
-        state = adam_state(self.gmap.optimizers[name], p)
-        for key in ("row_step",) + (("row_seen",) if name == "means" else ()):
-            if key not in state:  # a state without rows (torch's Adam, a checkpoint): count from now
-                state[key] = torch.zeros(len(self.gmap), dtype=torch.float32, device=p.device)
-        return state
-
     def _adam_compiled(self, todo) -> None:
-        gmap, idx, cfg = self.gmap, self.idx, self.gmap.adam
+        gmap, idx, adam = self.gmap, self.idx, self.gmap.adam
         ps, gs, ms, vs, rss, hyper, steps, widths = [], [], [], [], [], [], [], []
         seen = None
+        scratch = np.empty(len(gmap), np.float32)  # the kernel's per-row counters, no longer kept
         for name, p, g in todo:
-            group = gmap.optimizers[name].param_groups[0]
-            b1, b2 = group["betas"]
-            state = self._row_state(name, p)
-            if name == "means":
-                seen = state["row_seen"].numpy()
-            state["step"] += 1
+            b1, b2 = adam.beta1, adam.beta2
+            adam.bias(name)
             ps.append(p.detach().view(-1).numpy())
             gs.append(g.contiguous().view(-1).numpy())
-            ms.append(state["exp_avg"].view(-1).numpy())
-            vs.append(state["exp_avg_sq"].view(-1).numpy())
-            rss.append(state["row_step"].numpy())
-            hyper.append((1.0 - b1, b2, 1.0 - b2, group["eps"], group["lr"], b1))
-            steps.append(float(state["step"]))
+            ms.append(adam.exp_avg[name].view(-1).numpy())
+            vs.append(adam.exp_avg_sq[name].view(-1).numpy())
+            rss.append(scratch)
+            hyper.append((1.0 - b1, b2, 1.0 - b2, adam.eps, adam.lr[name], b1))
+            steps.append(float(adam.steps[name]))
             widths.append(p.numel() // max(p.shape[0], 1))
         if not ps:
             return
         from ..core.jit import rows_threads
         from ._cull_kernels import _adam_view
 
-        plan = np.array([float(cfg.row_bias_correction), cfg.means_decay_to, cfg.means_decay_updates,
-                         cfg.warmup_updates, float(seen is not None)], np.float64)
+        plan = np.array([0.0, 1.0, 1.0, 0.0, 0.0], np.float64)  # the tensor's step count, no per-row schedule
         with rows_threads(len(idx)):
             _adam_view(tuple(ps), tuple(gs), tuple(ms), tuple(vs), tuple(rss), np.array(hyper, np.float64),
                        np.array(steps, np.float64), np.array(widths, np.int64), idx.numpy(),
                        np.zeros(1, np.float32) if seen is None else seen, plan)
 
     def _adam_torch(self, todo) -> None:
-        gmap, idx, cfg = self.gmap, self.idx, self.gmap.adam
-        seen = None
+        idx, adam = self.idx, self.gmap.adam
         for name, p, g in todo:
-            group = gmap.optimizers[name].param_groups[0]
-            b1, b2 = group["betas"]
-            state = self._row_state(name, p)
-            state["step"] += 1
-            state["row_step"][idx] += 1
-            if name == "means":
-                state["row_seen"][idx] += (g != 0).any(1).to(torch.float32)
-                seen = state["row_seen"][idx]
-            # exact per row (row_bias_correction), else torch's count of the tensor's steps (what the map-wide update
-            # did: a row that is in view in few updates takes the larger, uncorrected first steps, which measured
-            # better on short online schedules, README "Adam per Gaussian")
-            if cfg.row_bias_correction:
-                kd = state["row_step"][idx].double()
-                a_rows = (-group["lr"] * (1.0 / (1.0 - b1 ** kd))).float()
-                b_rows = torch.sqrt(1.0 - b2 ** kd).float()
-            else:  # the tensor's count, read on the host (a CPU scalar): no round trip to the device per parameter
-                k, f32 = float(state["step"]), dict(dtype=torch.float32, device=p.device)
-                a_rows = torch.full((len(idx),), -group["lr"] * (1.0 / (1.0 - b1 ** k)), **f32)
-                b_rows = torch.full((len(idx),), math.sqrt(1.0 - b2 ** k), **f32)
-            if seen is not None:
-                if name == "means" and cfg.means_decay_to != 1.0:
-                    decay = torch.clamp(seen / cfg.means_decay_updates, max=1.0)
-                    a_rows = a_rows * torch.pow(cfg.means_decay_to, decay)
-                if cfg.warmup_updates > 0:
-                    a_rows = a_rows * torch.clamp(seen / cfg.warmup_updates, max=1.0)
+            b1, b2 = adam.beta1, adam.beta2
+            adam.bias(name)
+            # the tensor's count, read on the host: no round trip to the device per parameter
+            k, f32 = float(adam.steps[name]), dict(dtype=torch.float32, device=p.device)
+            a_rows = torch.full((len(idx),), -adam.lr[name] * (1.0 / (1.0 - b1 ** k)), **f32)
+            b_rows = torch.full((len(idx),), math.sqrt(1.0 - b2 ** k), **f32)
             shape = (a_rows.shape[0],) + (1,) * (p.ndim - 1)
-            m, v, w, eps = state["exp_avg"], state["exp_avg_sq"], 1.0 - b1, group["eps"]
+            m, v, w, eps = adam.exp_avg[name], adam.exp_avg_sq[name], 1.0 - b1, adam.eps
             mi = m[idx] + w * (g - m[idx])
             vi = v[idx] * b2 + (1.0 - b2) * g * g
             m[idx], v[idx] = mi, vi
