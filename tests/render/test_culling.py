@@ -89,32 +89,6 @@ def test_compiled_view_test_keeps_the_torch_bound_and_little_more():
         assert len(exact) > 100
 
 
-def test_row_adam_of_a_view_is_exact_adam_per_row():
-    """With ``row_bias_correction``, a row stepped in k of the updates ends where torch's Adam ends after those k
-    steps of its gradients."""
-    gm = _map(50)
-    gm.adam.row_bias_correction = True
-    rng = torch.Generator().manual_seed(5)
-    rows_seen = {r: [] for r in range(len(gm))}
-    start = gm.params["sh0"].detach().clone()
-    for _ in range(6):
-        idx = torch.nonzero(torch.rand(len(gm), generator=rng) < 0.5).squeeze(1)
-        view = InView(gm, idx)
-        g = torch.randn(len(idx), 1, 3, generator=rng)
-        view.leaves["sh0"].grad = g
-        view.adam_step()
-        for k, r in enumerate(idx.tolist()):
-            rows_seen[r].append(g[k])
-    for r in (0, 7, 21, 49):
-        p = torch.nn.Parameter(start[r:r + 1].clone())
-        opt = torch.optim.Adam([p], lr=gm.lrs.sh0, betas=(gm.adam.beta1, gm.adam.beta2), eps=gm.adam.eps)
-        for g in rows_seen[r]:
-            p.grad = g[None].clone()
-            opt.step()
-        torch.testing.assert_close(gm.params["sh0"].detach()[r:r + 1], p.detach(), rtol=2e-6, atol=1e-7)
-        assert float(gm.optimizers["sh0"].state[gm.params["sh0"]]["row_step"][r]) == len(rows_seen[r])
-
-
 def _scene_rec(tmp_cull=True):
     cfg = Config(renderer="cpu", seed=0)
     cfg.optim.cull = tmp_cull
@@ -140,34 +114,20 @@ def test_update_leaves_rows_out_of_view_bit_for_bit_untouched():
     assert out_rows.sum() > 100 and not bool(torch.isin(torch.nonzero(out_rows).squeeze(1), idx).any())
     n0 = len(rec.gmap)
     before = {n: rec.gmap.params[n].detach()[:n0][out_rows].clone() for n in PARAM_NAMES}
-    moments = {n: {k: v[:n0][out_rows].clone() for k, v in rec.gmap.optimizers[n].state[rec.gmap.params[n]].items()
-                   if isinstance(v, torch.Tensor) and v.ndim > 0} for n in PARAM_NAMES}
+    moments = {n: {k: getattr(rec.gmap.adam, k)[n][:n0][out_rows].clone() for k in ("exp_avg", "exp_avg_sq")}
+               for n in PARAM_NAMES}
     rec.optimize(4, scale=1.0)  # includes relocation and densification rounds and the noise
     assert rec.growth.mcmc.counts["relocated"] > 0
     rec.gmap.check_aligned()
     for n in PARAM_NAMES:
         assert torch.equal(rec.gmap.params[n].detach()[:n0][out_rows], before[n]), n
-        state = rec.gmap.optimizers[n].state[rec.gmap.params[n]]
         for k, v in moments[n].items():
-            assert torch.equal(state[k][:n0][out_rows], v), (n, k)
-    steps = rec.gmap.optimizers["sh0"].state[rec.gmap.params["sh0"]]["row_step"]
-    assert float(steps[idx].max()) == 5  # the view's rows were stepped in every update
-
-
-def test_relocation_resets_the_rows_step_count():
-    rec, T = _scene_rec()
-    rec.optimize(2, scale=1.0)  # update 2 is a refinement round: relocated rows get zeroed moments and counts
-    state = rec.gmap.optimizers["means"].state[rec.gmap.params["means"]]
-    steps = state["row_step"]
-    assert steps.shape == (len(rec.gmap),)
-    idx = in_view(rec.gmap.params["means"], rec.gmap.params["scales"], CAM, T)
-    assert set(torch.unique(steps).tolist()) <= {0.0, 1.0, 2.0}
-    assert float(steps[idx].max()) == 2.0 and bool((steps == 0).any())
+            assert torch.equal(getattr(rec.gmap.adam, k)[n][:n0][out_rows], v), (n, k)
+    assert rec.gmap.adam.steps["sh0"] == 5  # one step of the tensor per update
 
 
 def test_culled_and_unculled_updates_agree_on_a_map_in_view():
-    """With every Gaussian in view, culling changes nothing: per-row step counts equal torch's global count when
-    every row is stepped in every update. (Noise draws differ; the regularisers are off because they step rows
+    """With every Gaussian in view, culling changes nothing: the view's Adam steps every row as the map-wide one does. (Noise draws differ; the regularisers are off because they step rows
     whose footprint shrinks out of the view bound, which the map-wide update steps and the culled one does not.)"""
     recs = []
     for cull in (True, False):
@@ -186,17 +146,13 @@ def test_culled_and_unculled_updates_agree_on_a_map_in_view():
                                    rtol=1e-4, atol=1e-6)
 
 
-@pytest.mark.parametrize("adam", [{}, {"row_bias_correction": True}, {"means_decay_to": 0.1, "warmup_updates": 3},
-                                  {"warmup_updates": 3, "no_means": True}])
+@pytest.mark.parametrize("adam", [{}, {"no_means": True}])
 def test_compiled_view_adam_equals_the_torch_row_path(monkeypatch, adam):
-    """InView.adam_step on the CPU runs one compiled pass (row counts, step sizes, bias corrections and the step):
-    the same counters as the per-parameter torch path, over views that overlap, and the same parameters and
-    moments to float32 rounding (torch's vector code may fuse a multiply-add where the kernel does not)."""
+    """InView.adam_step on the CPU runs one compiled pass (step sizes, bias corrections and the step): the same step
+    counts as the per-parameter torch path, over views that overlap, and the same parameters and moments to float32
+    rounding (torch's vector code may fuse a multiply-add where the kernel does not)."""
     def run(compiled: bool) -> GaussianMap:
         gm = _map(300, seed=3)
-        for k, v in adam.items():
-            if k != "no_means":
-                setattr(gm.adam, k, v)
         rng = torch.Generator().manual_seed(9)
         monkeypatch.setattr(InView, "_adam_compiled", lambda self, todo: ran.append(len(todo)) or real(self, todo)
                             if compiled else InView._adam_torch(self, todo))
@@ -207,7 +163,7 @@ def test_compiled_view_adam_equals_the_torch_row_path(monkeypatch, adam):
                 if leaf.numel() and not (name == "means" and adam.get("no_means")):
                     g = torch.randn(leaf.shape, generator=rng)
                     if name == "means":
-                        g[::5] = 0.0  # rows the view did not reach: not counted as seen
+                        g[::5] = 0.0  # rows the view did not reach
                     leaf.grad = g
             view.adam_step()
         monkeypatch.undo()
@@ -218,18 +174,7 @@ def test_compiled_view_adam_equals_the_torch_row_path(monkeypatch, adam):
     assert ran == [5 - bool(adam.get("no_means"))] * 5  # the compiled pass did the steps of the first run
     for name in PARAM_NAMES:
         torch.testing.assert_close(a.params[name], b.params[name], rtol=1e-5, atol=1e-6)
-        sa, sb = a.optimizers[name].state, b.optimizers[name].state
-        if a.params[name].numel() == 0:
-            continue
-        sa, sb = sa[a.params[name]], sb[b.params[name]]
-        assert sorted(sa) == sorted(sb)
-        for key in sa:
-            if key in ("exp_avg", "exp_avg_sq"):
-                torch.testing.assert_close(sa[key], sb[key], rtol=1e-5, atol=1e-7)
-            else:
-                assert torch.equal(sa[key], sb[key]), (name, key)
-    if adam.get("no_means"):
-        return
-    seen = a.optimizers["means"].state[a.params["means"]]["row_seen"]
-    assert 0 < float(seen.max()) <= 5 and float(seen.sum()) < float(
-        a.optimizers["means"].state[a.params["means"]]["row_step"].sum())
+        for key in ("exp_avg", "exp_avg_sq"):
+            torch.testing.assert_close(getattr(a.adam, key)[name], getattr(b.adam, key)[name], rtol=1e-5, atol=1e-7)
+    assert a.adam.steps == b.adam.steps
+    assert a.adam.steps["sh0"] == 5 and a.adam.steps["means"] == (0 if adam.get("no_means") else 5)
