@@ -137,7 +137,8 @@ def test_map_adam_is_torch_adam():
         adam = MapAdam(lrs, AdamConfig(beta2=0.99))
         adam.exp_avg = {n: torch.zeros_like(t) for n, t in init.items()}
         adam.exp_avg_sq = {n: torch.zeros_like(t) for n, t in init.items()}
-        opts = {n: torch.optim.Adam([p], lr=lrs[n], betas=(0.9, 0.99), eps=1e-15, foreach=False) for n, p in ref.items()}
+        opts = {n: torch.optim.Adam([p], lr=lrs[n], betas=(0.9, 0.99), eps=1e-15, foreach=False)
+                for n, p in ref.items()}
         for k in range(6):
             target = {n: torch.randn(s, generator=g, dtype=dtype) for n, s in shapes.items()}
             skip = "opacities" if k == 2 else None

@@ -127,8 +127,9 @@ def test_update_leaves_rows_out_of_view_bit_for_bit_untouched():
 
 
 def test_culled_and_unculled_updates_agree_on_a_map_in_view():
-    """With every Gaussian in view, culling changes nothing: the view's Adam steps every row as the map-wide one does. (Noise draws differ; the regularisers are off because they step rows
-    whose footprint shrinks out of the view bound, which the map-wide update steps and the culled one does not.)"""
+    """With every Gaussian in view, culling changes nothing: the view's Adam steps every row as the map-wide one
+    does. (Noise draws differ; the regularisers are off because they step rows whose footprint shrinks out of the
+    view bound, which the map-wide update steps and the culled one does not.)"""
     recs = []
     for cull in (True, False):
         rec, T = _scene_rec(cull)
