@@ -19,7 +19,7 @@ MOVED = {  # old module -> new module, both under eligsir_o3d
     "atomic_io": "io.atomic", "ply": "io.ply", "checkpoint": "io.checkpoint",
     "pipeline": "run.pipeline", "results": "run.results", "resume_check": "run.resume", "runlock": "run.lock",
     "safe_outputs": "run.outputs", "live": "run.live_run", "frame_faults": "run.frame_faults",
-    "row_adam": "optim.row_adam", "_update_kernels": "optim.update_kernels", "_dssim_kernels": "optim.dssim_kernels",
+    "_update_kernels": "optim.update_kernels", "_dssim_kernels": "optim.dssim_kernels",
     "pose_refine": "pose.refine", "cli_commands": "cli.commands", "memory": "budget.memory",
     "color_calibration": "datasets.color_calibration", "clock": "budget",
     "budget.config": "budget.clock", "scheduling.load": "scheduling.fixed_work",

@@ -19,7 +19,8 @@ from typing import Any
 
 from .budget.clock import ClockConfig
 from .core.frame import DEPTH_MAX
-from .core.gaussians import AdamConfig, LearningRates
+from .core.gaussians import LearningRates
+from .optim.adam import AdamConfig
 from .optim.losses import LossConfig
 from .pose.refine import PoseRefineConfig
 from .scheduling.fidelity import FidelityConfig
@@ -52,9 +53,9 @@ ABLATION_RENAMED = {"scheduling": "views"}
 class OptimConfig:
     lrs: LearningRates = field(default_factory=LearningRates)
     loss: LossConfig = field(default_factory=LossConfig)
-    adam: AdamConfig = field(default_factory=AdamConfig)  # Adam's betas/eps and per-Gaussian schedule (off: torch's)
+    adam: AdamConfig = field(default_factory=AdamConfig)  # Adam's betas and eps (torch's Adam)
     refine_scale: float = 1.0  # refine(): supervision scale of post-mapping updates (+N PM)
-    # view culling (eligsir_o3d.culling): an update renders, steps (Adam with per-row bias correction), noises and
+    # view culling (eligsir_o3d.culling): an update renders, steps (Adam), noises and
     # relocates only the Gaussians that can reach its view, so its cost follows the Gaussians in view; renders for
     # admission, growth and evaluation draw only those too (same images). False: every update covers the whole map
     cull: bool = True

@@ -52,14 +52,9 @@ def views_memory_mb(frames) -> float:
 
 
 def map_memory_mb(gmap) -> float:
-    """MiB held by the Gaussian parameters and their Adam moments (two per parameter)."""
-    params = sum(_nbytes(p) for p in gmap.params.values())
-    moments = 0
-    for name, opt in gmap.optimizers.items():
-        for s in opt.state.get(gmap.params[name], {}).values():
-            if hasattr(s, "element_size") and s.ndim > 0:
-                moments += _nbytes(s)
-    return (params + moments) / (1024.0 * 1024.0)
+    """MiB held by the Gaussian parameters and their Adam moments (two per parameter), the buffers' whole
+    capacity."""
+    return gmap.nbytes() / (1024.0 * 1024.0)
 
 
 def memory_report(rec) -> dict:

@@ -1,17 +1,19 @@
 """GaussianMap: the Gaussian parameters and their Adam state, kept aligned on every add, remove and relocation.
 
 Raw parameters are stored (log scales, logit opacities, unnormalised wxyz quaternions, SH coefficients); activated
-values are exposed as properties. Every change of the population goes through :meth:`_resize`, the one place that
-rewrites parameters and optimizer moments together (the gsplat strategy-ops pattern).
+values are exposed as properties. The parameters and their Adam moments (:class:`.optim.adam.MapAdam`) share one
+row layout in capacity buffers: every change of the population (:meth:`GaussianMap.add`, ``remove``, ``assign``)
+rewrites the rows of all of them together (the gsplat strategy-ops pattern), without copying the map per insertion.
 """
 
 from __future__ import annotations
 
-import copy
 import math
 from dataclasses import dataclass
 
 import torch
+
+from ..optim.adam import AdamConfig, MapAdam
 
 SH_C0 = 0.28209479177387814  # Y_0^0
 EPS2D = 0.3  # px^2: 3DGS's screen-space low-pass at the supervised resolution (every renderer's default)
@@ -38,49 +40,19 @@ class LearningRates:
 
 
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
-
-
-@dataclass
-class AdamConfig:
-    """Adam's settings and the per-Gaussian (row) schedule of :meth:`GaussianMap.step`.
-
-    Torch's Adam corrects the bias of its moments with one step count per tensor, so a Gaussian inserted (or
-    relocated, its moments zeroed) after thousands of updates starts with an uncorrected, 3-6x larger step that
-    takes hundreds of updates to settle. ``row_bias_correction`` counts the steps of every row since its moments
-    were zeroed and corrects each row with its own count (exact Adam for every Gaussian from its birth).
-    ``means_decay_to`` < 1 decays the position step size of each Gaussian exponentially with the number of updates
-    that reached it (3DGS decays it with the global iteration; an online map has no fixed length): ``lr_means *
-    means_decay_to ** min(seen / means_decay_updates, 1)``. ``warmup_updates`` > 0 ramps every step size of a new
-    Gaussian linearly over its first updates that reach it. All off by default (= torch's Adam).
-    """
-
-    beta1: float = 0.9
-    beta2: float = 0.999
-    eps: float = 1e-15
-    row_bias_correction: bool = False
-    means_decay_to: float = 1.0
-    means_decay_updates: int = 500
-    warmup_updates: int = 0
-
-    def rows(self) -> bool:
-        """Whether :meth:`GaussianMap.step` needs per-row step counts."""
-        return self.row_bias_correction or self.means_decay_to != 1.0 or self.warmup_updates > 0
-
-
-ROW_STATE = ("row_step", "row_seen")  # per-Gaussian counters in the Adam state (:mod:`.row_adam`)
-
-
-def _check_adam(a: AdamConfig) -> None:
-    if not (0 <= a.beta1 < 1 and 0 <= a.beta2 < 1 and a.eps > 0):
-        raise ValueError(f"optim.adam: betas must lie in [0, 1) and eps > 0, got beta1={a.beta1}, beta2={a.beta2}, "
-                         f"eps={a.eps}")
-    if not 0 < a.means_decay_to <= 1 or a.means_decay_updates < 1 or a.warmup_updates < 0:
-        raise ValueError(f"optim.adam: means_decay_to must lie in (0, 1], means_decay_updates >= 1 and "
-                         f"warmup_updates >= 0, got {a.means_decay_to}, {a.means_decay_updates}, {a.warmup_updates}")
+MIN_CAPACITY = 256  # rows a map's buffers hold at least once it has grown
 
 
 class GaussianMap:
-    """N 3D Gaussians with spherical-harmonic colour of degree ``sh_degree`` and one Adam per parameter."""
+    """N 3D Gaussians with spherical-harmonic colour of degree ``sh_degree`` and their Adam state (``adam``).
+
+    Every parameter and both of its Adam moments live in a buffer of ``capacity`` rows; ``params[name]`` is a
+    ``torch.nn.Parameter`` viewing the first N rows of its buffer, and ``adam.exp_avg[name]`` /
+    ``adam.exp_avg_sq[name]`` view the first N rows of theirs. :meth:`add` writes the new rows into the slack
+    (the buffers grow by half when full, so an insertion costs its own rows, amortised), :meth:`remove` compacts
+    in place, keeping the order. The moment rows past N are kept at zero, so an added row starts with fresh
+    moments without writing them.
+    """
 
     def __init__(self, sh_degree: int = 0, device: str | torch.device = "cpu", lrs: LearningRates | None = None,
                  adam: AdamConfig | None = None):
@@ -89,26 +61,64 @@ class GaussianMap:
         self.sh_degree = sh_degree
         self.device = torch.device(device)
         self.lrs = lrs or LearningRates()
-        self.adam = adam or AdamConfig()
-        _check_adam(self.adam)
+        self.adam_config = adam or AdamConfig()
+        self.adam = MapAdam({n: getattr(self.lrs, n) for n in PARAM_NAMES}, self.adam_config)
         k = (sh_degree + 1) ** 2 - 1
         empty = {
             "means": torch.zeros(0, 3), "scales": torch.zeros(0, 3), "quats": torch.zeros(0, 4),
             "opacities": torch.zeros(0), "sh0": torch.zeros(0, 1, 3), "shN": torch.zeros(0, k, 3),
         }
-        self.params = torch.nn.ParameterDict({n: torch.nn.Parameter(v.to(self.device)) for n, v in empty.items()})
-        self.optimizers = {n: self._make_optimizer(n) for n in PARAM_NAMES}
+        self.params = torch.nn.ParameterDict()
+        self._set_rows({n: v.to(self.device) for n, v in empty.items()})
         self.supervision_focal: float | None = None  # the finest focal length [px] an update supervised it at
         self.rows_epoch = 0  # changes whenever row ids change meaning (removal, reload)
         self.row_index = None  # a spatial index over the rows (render.cell_index), told of every change
 
-    def _make_optimizer(self, name: str) -> torch.optim.Adam:
-        a = self.adam
-        return torch.optim.Adam([self.params[name]], lr=getattr(self.lrs, name), betas=(a.beta1, a.beta2), eps=a.eps)
+    # ---- capacity ----------------------------------------------------------------------------------------
+    @property
+    def capacity(self) -> int:
+        """Rows the buffers hold (N of them in use)."""
+        return self._buffers["means"][0].shape[0]
+
+    def nbytes(self) -> int:
+        """Bytes held by the buffers of the parameters and their two Adam moments (the whole capacity)."""
+        return sum(t.numel() * t.element_size() for bufs in self._buffers.values() for t in bufs)
+
+    def _set_rows(self, params: dict[str, torch.Tensor]) -> None:
+        """New buffers holding exactly ``params`` (raw, [N, ...] each), with zero moments."""
+        self._n = params["means"].shape[0]
+        self._buffers = {n: (params[n].detach().clone(), torch.zeros_like(params[n]), torch.zeros_like(params[n]))
+                         for n in PARAM_NAMES}
+        self._view()
+
+    def _view(self) -> None:
+        """Point ``params`` and the Adam moments at the first N rows of their buffers."""
+        n = self._n
+        for name, (p, m, v) in self._buffers.items():
+            self.params[name] = torch.nn.Parameter(p[:n])
+            self.adam.exp_avg[name] = m[:n]
+            self.adam.exp_avg_sq[name] = v[:n]
+
+    def reserve(self, rows: int) -> None:
+        """Make room for ``rows`` rows in all; a full buffer grows to 1.5x (at least ``MIN_CAPACITY`` rows)."""
+        cap = self.capacity
+        if rows <= cap:
+            return
+        cap = max(rows, cap + cap // 2, MIN_CAPACITY)
+        n = self._n
+        for name, (p, m, v) in self._buffers.items():
+            grown = []
+            for i, old in enumerate((p, m, v)):  # the moments' new rows zero, the parameters' written on use
+                new = (torch.empty if i == 0 else torch.zeros)((cap, *old.shape[1:]), dtype=old.dtype,
+                                                              device=old.device)
+                new[:n] = old[:n]
+                grown.append(new)
+            self._buffers[name] = tuple(grown)
+        self._view()
 
     # ---- activated views -------------------------------------------------------------------------------
     def __len__(self) -> int:
-        return self.params["means"].shape[0]
+        return self._n
 
     @property
     def means(self) -> torch.Tensor:  # [N, 3] metres
@@ -140,38 +150,49 @@ class GaussianMap:
         return sh_eval(self.sh, dirs, self.sh_degree)
 
     # ---- population changes ----------------------------------------------------------------------------
+    @torch.no_grad()
     def add(self, means: torch.Tensor, rgbs: torch.Tensor, scales: torch.Tensor, opacities: torch.Tensor | float,
             quats: torch.Tensor | None = None) -> torch.Tensor:
         """Append Gaussians given in activated units (scales in metres [M] or [M, 3], opacity in (0, 1)).
 
-        Returns the indices of the new Gaussians. Their Adam moments start at zero.
-        """
+        Returns the indices of the new Gaussians. Their Adam moments start at zero. The existing rows are not
+        copied unless the buffers grow."""
         m = means.shape[0]
         dev = self.device
+        n0, n1 = self._n, self._n + m
+        self.reserve(n1)
+        rows = {name: bufs[0][n0:n1] for name, bufs in self._buffers.items()}
         scales = torch.as_tensor(scales, dtype=torch.float32, device=dev)
         if scales.ndim == 1:
             scales = scales[:, None].expand(m, 3)
+        # the activations on [M] tensors shaped as always: torch's vector and scalar loops may differ in the last bit
         opac = torch.as_tensor(opacities, dtype=torch.float32, device=dev).expand(m).clamp(1e-4, 1 - 1e-4)
+        rows["means"].copy_(means)
+        rows["scales"].copy_(torch.log(scales.clamp_min(1e-6)))
         if quats is None:
-            quats = torch.zeros(m, 4, device=dev)
-            quats[:, 0] = 1.0
-        new = {
-            "means": means.to(dev, torch.float32),
-            "scales": torch.log(scales.clamp_min(1e-6)),
-            "quats": quats.to(dev, torch.float32),
-            "opacities": torch.logit(opac),
-            "sh0": rgb_to_sh0(rgbs.to(dev, torch.float32))[:, None, :],
-            "shN": torch.zeros(m, self.params["shN"].shape[1], 3, device=dev),
-        }
-        n0 = len(self)
-        self._resize(lambda name, p: torch.cat([p, new[name].to(p.dtype)], 0),
-                     lambda name, s: torch.cat([s, torch.zeros((m, *s.shape[1:]), dtype=s.dtype, device=s.device)], 0))
-        return torch.arange(n0, n0 + m, device=dev)
+            rows["quats"].copy_(torch.tensor([1.0, 0.0, 0.0, 0.0], device=dev))
+        else:
+            rows["quats"].copy_(quats)
+        torch.logit(opac, out=rows["opacities"])
+        rows["sh0"][:, 0].copy_(rgb_to_sh0(rgbs.to(dev, torch.float32)))
+        rows["shN"].zero_()
+        self._n = n1
+        self._view()
+        return torch.arange(n0, n1, device=dev)
 
+    @torch.no_grad()
     def remove(self, mask: torch.Tensor) -> None:
-        """Remove Gaussians where ``mask`` [N] is True."""
-        keep = ~mask.to(self.device)
-        self._resize(lambda name, p: p[keep], lambda name, s: s[keep])
+        """Remove Gaussians where ``mask`` [N] is True, compacting the buffers in place (order kept)."""
+        n = self._n
+        keep = torch.nonzero(~mask.to(self.device)).squeeze(1)
+        k = keep.numel()
+        for p, m, v in self._buffers.values():
+            for buf in (p, m, v):
+                buf[:k] = torch.index_select(buf[:n], 0, keep)
+            m[k:n] = 0  # the moment rows past N stay zero
+            v[k:n] = 0
+        self._n = k
+        self._view()
         self.rows_epoch += 1
 
     def assign(self, idx: torch.Tensor, values: dict[str, torch.Tensor], reset_state: bool = True) -> None:
@@ -179,31 +200,15 @@ class GaussianMap:
         with torch.no_grad():
             for name, v in values.items():
                 self.params[name][idx] = v.to(self.params[name].dtype)
+                if reset_state:
+                    self.adam.exp_avg[name][idx] = 0
+                    self.adam.exp_avg_sq[name][idx] = 0
         self.touched(idx)
-        if reset_state:
-            for name in values:
-                for s in self.optimizers[name].state.get(self.params[name], {}).values():
-                    if isinstance(s, torch.Tensor) and s.ndim > 0 and s.shape[0] == len(self):
-                        s[idx] = 0
 
     def touched(self, rows: torch.Tensor | None = None) -> None:
         """Tell the row index that ``rows`` (ids; None: all) changed in place (Adam, position noise, assignment)."""
         if self.row_index is not None:
             self.row_index.mark(rows)
-
-    def _resize(self, param_fn, state_fn) -> None:
-        """Rewrite every parameter with ``param_fn`` and its per-Gaussian Adam moments with ``state_fn``."""
-        for name in PARAM_NAMES:
-            opt = self.optimizers[name]
-            old = self.params[name]
-            new = torch.nn.Parameter(param_fn(name, old.detach()))
-            state = opt.state.pop(old, None)
-            if state is not None:
-                state = {k: (state_fn(name, v) if isinstance(v, torch.Tensor) and v.ndim > 0 else v)
-                         for k, v in state.items()}
-                opt.state[new] = state
-            opt.param_groups[0]["params"] = [new]
-            self.params[name] = new
 
     # ---- optimisation ----------------------------------------------------------------------------------
     def zero_grad(self) -> None:
@@ -211,39 +216,24 @@ class GaussianMap:
             p.grad = None
 
     def step(self) -> None:
-        """One Adam step on every parameter that received a gradient (on the CPU all in one compiled
-        pass, :func:`._update_kernels.adam_step`: torch's per-optimizer overhead was most of the cost)."""
-        from ..optim import update_kernels as uk
-
+        """One Adam step on every parameter that received a gradient (:meth:`.optim.adam.MapAdam.step_map`)."""
         self.touched()
-        if self.adam.rows():
-            from ..optim.row_adam import row_adam_step
-
-            row_adam_step(self)
-            return
-        fused = []
-        for name, opt in self.optimizers.items():
-            if self.params[name].grad is not None:
-                if self.device.type == "cpu" and uk.fits(opt):
-                    fused.append(opt)
-                else:
-                    opt.step()
-        uk.adam_step(fused)
+        self.adam.step_map(self.params, {n: p.grad for n, p in self.params.items()})
 
     def check_aligned(self) -> None:
-        """Raise if a parameter or its Adam state disagrees with N (an invariant the tests hold us to)."""
+        """Raise if a parameter or its Adam state disagrees with N or has left its buffer (an invariant the tests
+        hold us to)."""
         n = len(self)
         for name in PARAM_NAMES:
             p = self.params[name]
             if p.shape[0] != n:
                 raise AssertionError(f"{name} has {p.shape[0]} rows, map has {n}")
-            if self.optimizers[name].param_groups[0]["params"][0] is not p:
-                raise AssertionError(f"optimizer of {name} does not hold the current parameter")
-            for k, s in self.optimizers[name].state.get(p, {}).items():
-                if k in ROW_STATE and isinstance(s, torch.Tensor) and s.shape != p.shape[:1]:
-                    raise AssertionError(f"optimizer state {name}.{k} has shape {tuple(s.shape)}, map has {n} rows")
-                elif k not in ROW_STATE and isinstance(s, torch.Tensor) and s.ndim > 0 and s.shape != p.shape:
-                    raise AssertionError(f"optimizer state {name}.{k} has shape {tuple(s.shape)}, parameter {tuple(p.shape)}")
+            for what, t, buf in zip(("parameter", "exp_avg", "exp_avg_sq"),
+                                    (p, self.adam.exp_avg[name], self.adam.exp_avg_sq[name]), self._buffers[name]):
+                if t.shape != p.shape:
+                    raise AssertionError(f"{name} {what} has shape {tuple(t.shape)}, parameter {tuple(p.shape)}")
+                if t.data_ptr() != buf.data_ptr() or buf.shape[0] < n:
+                    raise AssertionError(f"{name} {what} is not the first {n} rows of its buffer")
 
     # ---- the resolution it was fitted at --------------------------------------------------------------
     def note_supervision(self, camera) -> None:
@@ -266,22 +256,23 @@ class GaussianMap:
         return {
             "sh_degree": self.sh_degree,
             "supervision_focal": self.supervision_focal,
-            # copies: on the CPU .cpu() and Adam's state_dict() share memory with the live tensors, which the next
-            # update changes in place (a state taken, then mapped on, would change under its holder)
+            # copies: on the CPU .cpu() shares memory with the live tensors, which the next update changes in place
+            # (a state taken, then mapped on, would change under its holder)
             "params": {n: p.detach().cpu().clone() for n, p in self.params.items()},
-            "optimizers": {n: copy.deepcopy(o.state_dict()) for n, o in self.optimizers.items()},
+            "adam": self.adam.state_dict(),
         }
 
     def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`'s map; without ``adam`` (a PLY) the moments start at zero and the step
+        counts at 0."""
         self.rows_epoch += 1
         self.sh_degree = int(state["sh_degree"])
         f = state.get("supervision_focal")  # absent in maps written before it was kept
         self.supervision_focal = None if f is None else float(f)
-        for n in PARAM_NAMES:
-            self.params[n] = torch.nn.Parameter(state["params"][n].to(self.device))
-            self.optimizers[n] = self._make_optimizer(n)
-            if "optimizers" in state:
-                self.optimizers[n].load_state_dict(state["optimizers"][n])
+        self.adam = MapAdam({n: getattr(self.lrs, n) for n in PARAM_NAMES}, self.adam_config)
+        self._set_rows({n: state["params"][n].to(self.device) for n in PARAM_NAMES})
+        if "adam" in state:
+            self.adam.load_state_dict(state["adam"])
 
     def render_args(self) -> tuple:
         """(means, quats, scales, opacities, colors) in activated units, as every renderer takes them.

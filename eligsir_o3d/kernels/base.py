@@ -10,7 +10,6 @@ of map; :func:`eligsir_o3d.kernels.get_kernels` chooses it once per map.
 
 from __future__ import annotations
 
-import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
@@ -84,18 +83,8 @@ class RowView:
 def adam_scalars(gmap, name: str) -> tuple:
     """Count one more Adam step of parameter ``name`` and return its host scalars (a, b, beta1, beta2, eps):
     a = -lr / (1 - beta1^k), b = sqrt(1 - beta2^k) with k its step count (torch's Adam counts one per tensor)."""
-    if hasattr(gmap.adam, "bias"):
-        a, b = gmap.adam.bias(name)
-        return a, b, gmap.adam.beta1, gmap.adam.beta2, gmap.adam.eps
-    from ..optim.update_kernels import adam_state  # MERGE-SHIM: torch.optim.Adam state until MapAdam lands
-
-    opt = gmap.optimizers[name]
-    group = opt.param_groups[0]
-    b1, b2 = group["betas"]
-    state = adam_state(opt, gmap.params[name])
-    state["step"] += 1
-    k = float(state["step"])
-    return -group["lr"] * (1.0 / (1.0 - b1 ** k)), math.sqrt(1.0 - b2 ** k), b1, b2, group["eps"]
+    a, b = gmap.adam.bias(name)
+    return a, b, gmap.adam.beta1, gmap.adam.beta2, gmap.adam.eps
 
 
 def adam_factors(gmap, name: str) -> tuple:
@@ -107,12 +96,7 @@ def adam_factors(gmap, name: str) -> tuple:
 
 def moments(gmap, name: str) -> tuple[torch.Tensor, torch.Tensor]:
     """Adam's (exp_avg, exp_avg_sq) of parameter ``name``, the parameter's shape."""
-    if hasattr(gmap.adam, "exp_avg"):
-        return gmap.adam.exp_avg[name], gmap.adam.exp_avg_sq[name]
-    from ..optim.update_kernels import adam_state  # MERGE-SHIM
-
-    state = adam_state(gmap.optimizers[name], gmap.params[name])
-    return state["exp_avg"], state["exp_avg_sq"]
+    return gmap.adam.exp_avg[name], gmap.adam.exp_avg_sq[name]
 
 
 class KernelSet(ABC):

@@ -1,5 +1,6 @@
-"""Optimisation: the photometric/depth losses (:mod:`.losses`), per-Gaussian Adam (:mod:`.row_adam`) and the compiled
-CPU update, D-SSIM and fused-loss kernels (:mod:`.update_kernels`, :mod:`.dssim_kernels`, :mod:`.loss_kernels`).
+"""Optimisation: the photometric/depth losses (:mod:`.losses`), the map's Adam (:mod:`.adam`, its kernel
+:mod:`.adam_kernels`) and the compiled CPU update, D-SSIM and fused-loss kernels (:mod:`.update_kernels`,
+:mod:`.dssim_kernels`, :mod:`.loss_kernels`).
 
 ``from eligsir_o3d.optim import LossConfig`` (the path of the first release, when this package was one module) keeps
 working: the losses' names resolve lazily, so importing a kernel module does not import the losses."""

@@ -1,25 +1,18 @@
-"""Numba kernels of a mapping update's work outside the renderer, for maps on the CPU: the Adam step over the
-map's parameters and 3DGS-MCMC's position noise.
+"""Numba kernels of a mapping update's work outside the renderer and the optimiser, for maps on the CPU:
+3DGS-MCMC's position noise (the map's Adam step is :mod:`.adam`'s).
 
-At the map sizes an online CPU budget affords (1k-30k Gaussians) these are a few arithmetic operations per
-Gaussian, and torch's per-operator and per-optimizer overhead was most of their cost: the Adam steps of the six
-parameter tensors took ~0.75 ms and the noise (rotation matrices, covariances, a batched product) ~1 ms of a
-13 ms update at 1/4 scale on a 5k-Gaussian kitchen map (one thread). Here each is one pass over the rows.
+At the map sizes an online CPU budget affords (1k-30k Gaussians) the noise is a few arithmetic operations per
+Gaussian, and torch's per-operator overhead (rotation matrices, covariances, a batched product) was most of its
+cost. Here it is one pass over the rows.
 
-- :func:`adam_step` is ``torch.optim.Adam``'s update (no weight decay, no AMSGrad) in float32, on the optimizer's
-  own state tensors (``step``, ``exp_avg``, ``exp_avg_sq``), so a checkpoint, a relocation or a later torch step
-  sees the state it expects; values agree with torch's to float32 rounding (torch's vector code may fuse a
-  multiply-add where this does not).
 - :func:`mcmc_noise` is :func:`.scheduling.mcmc.inject_noise`'s ``cov @ z * gate * scaler`` per row, with the
   random numbers still drawn by torch from the refiner's generator (the same stream as before);
   :func:`mcmc_noise_rows` does it for a culled update's rows where they lie in the map (raw parameters read and
-  activated in the kernel, the means moved in place): torch's gather of four parameters and scatter of the means
-  cost 0.55 ms of a kitchen update at 3k rows and 2.4 ms at 12k (two threads); this 0.3 / 0.7 ms.
+  activated in the kernel, the means moved in place), without torch's gather of four parameters and scatter of
+  the means.
 
-The Adam kernels are serial (no ``prange``): a pass over 20k rows takes tens of microseconds, less than a thread
-team's start-up. The noise runs its rows in parallel from :data:`.core.jit.ROWS_LIMIT` rows on (77k rows:
-1.3 ms on one thread), on one thread below. Compiled lazily on first use and cached on disk like the renderer's
-kernels.
+The noise runs its rows in parallel from :data:`.core.jit.ROWS_LIMIT` rows on, on one thread below. Compiled
+lazily on first use and cached on disk like the renderer's kernels.
 """
 
 from __future__ import annotations
@@ -31,57 +24,7 @@ import numpy as np
 from numba import prange
 
 from ..core.jit import jit as _jit
-from ..core.jit import jit_serial as _jit_serial
 from ..core.jit import rows_threads
-
-
-def adam_state(opt, p) -> dict:
-    """Torch Adam's state of parameter ``p`` in ``opt``, created as torch creates it on a first step (step 0, zero
-    moments), so that a later torch step, checkpoints and relocation continue from it."""
-    import torch
-
-    state = opt.state[p]
-    if not state:
-        state["step"] = torch.tensor(0.0)
-        state["exp_avg"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-        state["exp_avg_sq"] = torch.zeros_like(p, memory_format=torch.preserve_format)
-    return state
-
-
-def adam_step(opts) -> None:
-    """One Adam step of each of ``opts`` (``torch.optim.Adam`` instances over float32 CPU parameters; those
-    without a gradient are skipped), in place, in one compiled call."""
-    ps, gs, ms, vs, hyper, a_rows, b_rows = [], [], [], [], [], [], []
-    for opt in opts:
-        group = opt.param_groups[0]
-        b1, b2 = group["betas"]
-        for p in group["params"]:
-            if p.grad is None or p.numel() == 0:
-                continue
-            state = adam_state(opt, p)
-            state["step"] += 1
-            step = float(state["step"])
-            bc1, bc2 = 1.0 - b1 ** step, 1.0 - b2 ** step
-            ps.append(p.detach().view(-1).numpy())
-            gs.append(p.grad.detach().contiguous().view(-1).numpy())
-            ms.append(state["exp_avg"].view(-1).numpy())
-            vs.append(state["exp_avg_sq"].view(-1).numpy())
-            hyper.append((1.0 - b1, b2, 1.0 - b2, group["eps"]))
-            a_rows.append(np.array([-group["lr"] / bc1], np.float32))  # one step size for the whole tensor
-            b_rows.append(np.array([bc2 ** 0.5], np.float32))
-    if ps:
-        _adam_rows_scaled(tuple(ps), tuple(gs), tuple(ms), tuple(vs), np.array(hyper, np.float32), tuple(a_rows),
-                          tuple(b_rows), np.array([len(p) for p in ps], np.int64))
-
-
-def fits(opt) -> bool:
-    """Whether :func:`adam_step` can run ``opt``: plain Adam settings over contiguous float32 CPU parameters."""
-    import torch
-
-    group = opt.param_groups[0]
-    if len(opt.param_groups) != 1 or group.get("weight_decay", 0) or group.get("amsgrad") or group.get("maximize"):
-        return False
-    return all(p.device.type == "cpu" and p.dtype == torch.float32 and p.is_contiguous() for p in group["params"])
 
 
 @numba.njit(inline="always", fastmath=False)
@@ -146,46 +89,3 @@ def mcmc_noise(means, quats, scales, opacities, z, scaler: float) -> None:
     f = lambda t: t.detach().contiguous().numpy()  # noqa: E731
     with rows_threads(means.shape[0]):
         _noise_rows(means.detach().numpy(), f(quats), f(scales), f(opacities), f(z), np.float32(scaler))
-
-
-@_jit_serial
-def _adam_rows_scaled(ps, gs, ms, vs, hyper, a_rows, b_rows, widths):
-    """Adam over the rows of every parameter in ``ps`` (flat float32 arrays; ``gs``/``ms``/``vs`` the same shapes),
-    with a step size and a bias correction per row (Gaussian): element i of parameter t belongs to row
-    i // widths[t] (widths[t] = its length: one row, plain Adam); a_rows[t][r] = -lr_r / bias correction 1 of row
-    r, b_rows[t][r] = sqrt(bias correction 2) of row r (an array of length 1: the same for every row);
-    hyper[t] = (1 - beta1, beta2, 1 - beta2, eps), the complements taken in float64 as torch does
-    (1 - float32(0.999) is 5e-5 off)."""
-    for t in range(len(ps)):
-        p, g, m, v, a, b, wd = ps[t], gs[t], ms[t], vs[t], a_rows[t], b_rows[t], widths[t]
-        w, b2, w2, eps = hyper[t, 0], hyper[t, 1], hyper[t, 2], hyper[t, 3]
-        for r in range(p.shape[0] // wd):
-            ar, br = a[min(r, a.shape[0] - 1)], b[min(r, b.shape[0] - 1)]
-            for i in range(r * wd, (r + 1) * wd):
-                gi = g[i]
-                mi = m[i] + w * (gi - m[i])
-                vi = v[i] * b2 + w2 * gi * gi
-                m[i] = mi
-                v[i] = vi
-                p[i] = p[i] + ar * (mi / (np.sqrt(vi) / br + eps))
-
-
-def adam_rows_step(items) -> None:
-    """One Adam step per item ``(param, grad, exp_avg, exp_avg_sq, a_rows, b_rows, (1 - beta1, beta2, 1 - beta2,
-    eps))``, float32 CPU tensors with rows first, ``a_rows``/``b_rows`` [rows] or [1] as in
-    :func:`_adam_rows_scaled`."""
-    if not items:
-        return
-    _adam_rows_scaled(*adam_item_arrays(items))
-
-
-def adam_item_arrays(items) -> tuple:
-    """The flat numpy views the row-Adam kernels take, of items as :func:`adam_rows_step` describes: (params,
-    grads, exp_avgs, exp_avg_sqs, hyper [n, 4], a_rows, b_rows, widths [n] row widths)."""
-    f = lambda t: t.detach().contiguous().view(-1).numpy()  # noqa: E731
-    ps = tuple(it[0].detach().view(-1).numpy() for it in items)
-    ms = tuple(it[2].view(-1).numpy() for it in items)
-    vs = tuple(it[3].view(-1).numpy() for it in items)
-    widths = np.array([it[0].numel() // max(it[0].shape[0], 1) for it in items], np.int64)
-    return (ps, tuple(f(it[1]) for it in items), ms, vs, np.array([it[6] for it in items], np.float32),
-            tuple(f(it[4]) for it in items), tuple(f(it[5]) for it in items), widths)

@@ -1,14 +1,11 @@
 """Numba kernels of the view-culled update (:mod:`.culling`): the conservative view test over the whole map and the
-Adam step over the rows one view touched.
+gather of the rows one view touched.
 
 - :func:`frustum_rows`: the ids (ascending) of the Gaussians whose screen footprint, by a bound that is never
   smaller than the renderer's 3-sigma radius, can reach the image; one pass over the raw means and log scales.
 - :func:`group_boxes`, :func:`groups_hit`, :func:`listed_rows`: the same test through a spatial index of the rows
   (:mod:`.cell_index`): each group's box of means and largest scale, a bound on the groups, the row test over the
   rows of the groups kept.
-- :func:`_adam_view`: Adam over the selected rows of every parameter (the gradient rows of a view's gathered
-  leaves) with the rows' bookkeeping (step counts, step sizes, bias corrections); rows outside the selection are
-  not read or written.
 
 Both run ``prange`` over blocks of rows, so they use the threads numba may use. Compiled lazily on first use and
 cached on disk like the renderer's kernels.
@@ -214,54 +211,6 @@ def listed_rows(means, log_scales, order, starts, keep, V, cam) -> tuple[np.ndar
     if kept.size:
         _gather_listed(order, first, last, mask, offs, out)
     return out, int((last - first).sum())
-
-
-@_jit
-def _adam_view(ps, gs, ms, vs, row_steps, hyper, steps, widths, rows, seen, plan):
-    """Adam over the view's rows ``rows`` [M] of every parameter t, with the per-row bookkeeping of
-    :meth:`.culling.InView.adam_step` in the same pass: row_steps[t][row] += 1; for t = 0 (the means) first
-    seen[row] += 1 where the row's gradient is not all zero; then the step size -lr / (1 - beta1^k) and
-    sqrt(1 - beta2^k) with k the row's count (plan[0] = 1: exact per row) or steps[t] (the tensor's), times
-    means_decay_to^min(seen / means_decay_updates, 1) for the means and min(seen / warmup_updates, 1) for every
-    parameter. hyper[t] = (1 - beta1, beta2, 1 - beta2, eps, lr, beta1) (float64); plan = (row bias correction,
-    means_decay_to, means_decay_updates, warmup_updates, whether t = 0 is the means: without them there are no
-    seen counts and neither schedule applies)."""
-    for t in range(len(ps)):
-        p, g, m, v, rs, wd = ps[t], gs[t], ms[t], vs[t], row_steps[t], widths[t]
-        w, b2, w2, eps = np.float32(hyper[t, 0]), np.float32(hyper[t, 1]), np.float32(hyper[t, 2]), \
-            np.float32(hyper[t, 3])
-        lr, b1, b2d = hyper[t, 4], hyper[t, 5], hyper[t, 1]
-        a_t = np.float32(-lr * (1.0 / (1.0 - b1 ** steps[t])))  # the tensor's count: once, not per row
-        b_t = np.float32(math.sqrt(1.0 - b2d ** steps[t]))
-        means = t == 0 and plan[4] != 0
-        for r in prange(rows.shape[0]):
-            row = rows[r]
-            rs[row] += np.float32(1.0)
-            if means:
-                nz = False
-                for j in range(wd):
-                    nz = nz | (g[r * wd + j] != 0)
-                seen[row] += np.float32(1.0) if nz else np.float32(0.0)
-            ar, br = a_t, b_t
-            if plan[0] != 0:
-                k = np.float64(rs[row])
-                ar = np.float32(-lr * (1.0 / (1.0 - b1 ** k)))
-                br = np.float32(math.sqrt(1.0 - b2d ** k))
-            if plan[4] != 0:
-                sr = seen[row]
-                if means and plan[1] != 1.0:
-                    ar = ar * np.float32(np.float32(plan[1]) ** min(sr / np.float32(plan[2]), np.float32(1.0)))
-                if plan[3] > 0:
-                    ar = ar * min(sr / np.float32(plan[3]), np.float32(1.0))
-            base = row * wd
-            for j in range(wd):
-                i = base + j
-                gi = g[r * wd + j]
-                mi = m[i] + w * (gi - m[i])
-                vi = v[i] * b2 + w2 * gi * gi
-                m[i] = mi
-                v[i] = vi
-                p[i] = p[i] + ar * (mi / (np.sqrt(vi) / br + eps))
 
 
 @_jit

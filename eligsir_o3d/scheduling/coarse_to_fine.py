@@ -87,7 +87,7 @@ class MeansLrDecay:
 
     def __call__(self, rec) -> None:
         gmap = rec.gmap
-        gmap.optimizers["means"].param_groups[0]["lr"] = self.lr(gmap.lrs.means)
+        gmap.adam.lr["means"] = self.lr(gmap.lrs.means)
 
 
 def install_means_lr_decay(rec, schedule: CoarseToFine, means_lr_final: float) -> None:

@@ -72,10 +72,25 @@ class SupportProbe:
             unsupported, misplaced = valid.clone(), torch.zeros_like(valid)
         else:
             out = ctx.render(cam, frame.T_world_cam)
-            alpha, rdepth = out.alpha.detach().cpu(), out.depth.detach().cpu()
-            opaque = alpha >= self.cfg.alpha_min
-            unsupported = valid & ~opaque
-            tol = self.cfg.depth_tol_m + self.cfg.depth_tol_rel * depth
-            misplaced = valid & opaque & ((rdepth - depth).abs() > tol)
+            dev = out.alpha.device  # the masks are made where the render is; only they come to the host
+            observed = depth if dev.type == "cpu" else frame.at_scale(scale, dev)[1]
+            unsupported, misplaced = support_masks(out.alpha.detach(), out.depth.detach(), observed, self.cfg,
+                                                   pack=dev.type != "cpu")
         self._key, self._value = key, Support(color, depth, cam, unsupported, misplaced)
         return self._value
+
+
+def support_masks(alpha: torch.Tensor, rdepth: torch.Tensor, depth: torch.Tensor, cfg: SupportConfig,
+                  pack: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """(unsupported, misplaced) [h, w] bool masks on the host from a render's opacity ``alpha`` and depth ``rdepth``
+    [h, w] and the observed ``depth`` [h, w] (metres, 0 = none), all on one device. ``pack``: the two masks cross
+    to the host as one byte per pixel (one copy instead of two float images)."""
+    valid = depth > 0
+    opaque = alpha >= cfg.alpha_min
+    unsupported = valid & ~opaque
+    tol = cfg.depth_tol_m + cfg.depth_tol_rel * depth
+    misplaced = valid & opaque & ((rdepth - depth).abs() > tol)
+    if not pack:
+        return unsupported.cpu(), misplaced.cpu()
+    code = (unsupported.to(torch.uint8) | (misplaced.to(torch.uint8) << 1)).cpu()
+    return (code & 1) > 0, (code & 2) > 0

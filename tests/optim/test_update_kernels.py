@@ -1,13 +1,10 @@
-"""The compiled per-update work outside the renderer (eligsir_o3d/_update_kernels.py): the Adam step over the map's
-parameters is torch's Adam (values to float32 rounding, the same optimizer state), and the MCMC noise is the torch
-formula's."""
-
-import copy
+"""The compiled per-update work outside the renderer: the map's Adam step (eligsir_o3d/optim/adam.py) is torch's
+Adam (values to float32 rounding, the same moments and step counts), and the MCMC noise
+(eligsir_o3d/optim/update_kernels.py) is the torch formula's."""
 
 import pytest
 import torch
 
-from eligsir_o3d.optim import update_kernels as uk
 from eligsir_o3d.core.gaussians import GaussianMap
 from eligsir_o3d.render.projection import quat_to_rotmat
 from eligsir_o3d.scheduling.mcmc import inject_noise
@@ -27,54 +24,45 @@ def _loss(gmap, k):
     return sum(((p - torch.randn(p.shape, generator=g)) ** 2 * (1 + k)).sum() for p in gmap.params.values())
 
 
-def _torch_step(gmap):
-    for opt in gmap.optimizers.values():
-        opt.step()
+def _torch_adams(gmap):
+    a = gmap.adam
+    return {n: torch.optim.Adam([p], lr=a.lr[n], betas=(a.beta1, a.beta2), eps=a.eps, foreach=False)
+            for n, p in gmap.params.items()}
 
 
 @pytest.mark.parametrize("steps", [1, 7])
-def test_fused_adam_is_torch_adam(steps):
-    fused, ref = _map(), _map()
+def test_map_step_is_torch_adam(steps):
+    ours, ref = _map(), _map()
+    opts = _torch_adams(ref)
     for k in range(steps):
-        for gm, step in ((fused, GaussianMap.step), (ref, _torch_step)):
+        for gm in (ours, ref):
             gm.zero_grad()
             _loss(gm, k).backward()
-            step(gm)
-    for name, p in fused.params.items():
+        ours.step()
+        for opt in opts.values():
+            opt.step()
+    for name, p in ours.params.items():
         torch.testing.assert_close(p.detach(), ref.params[name].detach(), rtol=1e-5, atol=1e-6)
-        s, r = fused.optimizers[name].state[p], ref.optimizers[name].state[ref.params[name]]
-        assert set(s) == set(r) and float(s["step"]) == float(r["step"]) == steps and s["step"].dtype == r["step"].dtype
-        torch.testing.assert_close(s["exp_avg"], r["exp_avg"], rtol=1e-5, atol=1e-7)
-        torch.testing.assert_close(s["exp_avg_sq"], r["exp_avg_sq"], rtol=1e-5, atol=1e-9)
-    # the state it leaves is torch's: a torch step continues from it as from its own
-    for gm in (fused, ref):
-        gm.zero_grad()
-        _loss(gm, 99).backward()
-        _torch_step(gm)
-    torch.testing.assert_close(fused.params["means"].detach(), ref.params["means"].detach(), rtol=1e-5, atol=1e-6)
+        r = opts[name].state[ref.params[name]]
+        assert ours.adam.steps[name] == int(r["step"]) == steps
+        torch.testing.assert_close(ours.adam.exp_avg[name], r["exp_avg"], rtol=1e-5, atol=1e-7)
+        torch.testing.assert_close(ours.adam.exp_avg_sq[name], r["exp_avg_sq"], rtol=1e-5, atol=1e-9)
 
 
-def test_fused_adam_skips_what_torch_skips_and_follows_the_learning_rate():
+def test_map_step_skips_what_torch_skips_and_follows_the_learning_rate():
     gmap, ref = _map(sh_degree=0), _map(sh_degree=0)
+    gmap.adam.lr["means"] *= 3  # a schedule's change reaches the step
+    opts = _torch_adams(ref)
+    opts["means"].param_groups[0]["lr"] *= 3
     for gm in (gmap, ref):
-        for opt in gm.optimizers.values():
-            opt.param_groups[0]["lr"] *= 3  # a schedule's change reaches the fused step
         gm.params["means"].grad = torch.ones_like(gm.params["means"])  # only the means have a gradient
     before = {n: p.detach().clone() for n, p in gmap.params.items()}
     gmap.step()
-    ref.optimizers["means"].step()
+    opts["means"].step()
     torch.testing.assert_close(gmap.means.detach(), ref.means.detach(), rtol=1e-6, atol=1e-7)
     assert not torch.equal(gmap.means.detach(), before["means"])
     for name in ("scales", "quats", "opacities", "sh0"):
-        assert torch.equal(gmap.params[name].detach(), before[name]) and not gmap.optimizers[name].state
-
-
-def test_fused_adam_refuses_settings_it_does_not_implement():
-    p = torch.nn.Parameter(torch.zeros(4, 3))
-    assert uk.fits(torch.optim.Adam([p], lr=1e-3))
-    assert not uk.fits(torch.optim.Adam([p], lr=1e-3, weight_decay=1e-4))
-    assert not uk.fits(torch.optim.Adam([p], lr=1e-3, amsgrad=True))
-    assert not uk.fits(torch.optim.Adam([torch.nn.Parameter(torch.zeros(4, 3, dtype=torch.float64))], lr=1e-3))
+        assert torch.equal(gmap.params[name].detach(), before[name]) and gmap.adam.steps[name] == 0
 
 
 def test_compiled_noise_is_the_torch_formula():

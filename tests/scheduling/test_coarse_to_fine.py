@@ -67,7 +67,7 @@ def _offline(tmp_path, **clock):
     step = Reconstructor._step
 
     def traced(rec, scale):  # record the means' step size each update is taken with
-        seen.append(rec.gmap.optimizers["means"].param_groups[0]["lr"])
+        seen.append(rec.gmap.adam.lr["means"])
         return step(rec, scale)
 
     Reconstructor._step = traced

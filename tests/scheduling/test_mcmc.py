@@ -83,8 +83,8 @@ def test_relocation_and_densification_keep_optimizer_state_aligned():
     dead = gmap.opacities.detach() <= 0.005
     relocate(gmap, dead, gen)
     gmap.check_aligned()
-    state = gmap.optimizers["means"].state[gmap.params["means"]]
-    assert torch.all(state["exp_avg"][dead] == 0)  # relocated slots start with fresh moments
+    assert torch.all(gmap.adam.exp_avg["means"][dead] == 0)  # relocated slots start with fresh moments
+    assert torch.all(gmap.adam.exp_avg_sq["sh0"][dead] == 0)
     # the relocated Gaussians are exact copies of live ones (all parameters, higher SH bands too)
     for i in torch.nonzero(dead).squeeze(1).tolist():
         same = (gmap.params["shN"].detach() == gmap.params["shN"].detach()[i]).all(-1).all(-1)
@@ -93,8 +93,7 @@ def test_relocation_and_densification_keep_optimizer_state_aligned():
     added = sample_add(gmap, 4, cap=100, generator=gen)
     assert added == 4 and len(gmap) == n0 + 4
     gmap.check_aligned()
-    new_state = gmap.optimizers["means"].state[gmap.params["means"]]
-    assert torch.all(new_state["exp_avg"][n0:] == 0)  # appended copies start with fresh moments
+    assert torch.all(gmap.adam.exp_avg["means"][n0:] == 0)  # appended copies start with fresh moments
     _adam_steps(gmap)  # the optimizer still steps over the resized parameters
     gmap.check_aligned()
 
