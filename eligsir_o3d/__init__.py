@@ -21,9 +21,6 @@ from .reconstructor import Reconstructor
 from .render import RenderOutput, get_renderer
 
 from ._version import __version__  # noqa: E402
-from ._moved import install as _install_moved  # noqa: E402
-
-_install_moved()  # old module paths (eligsir_o3d.pipeline, eligsir_o3d.clock, ...) for one release
 
 __all__ = ["Camera", "Config", "Frame", "FrameError", "GaussianMap", "Reconstructor", "RenderOutput", "get_renderer",
            "__version__"]

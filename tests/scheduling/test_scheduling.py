@@ -200,7 +200,7 @@ def test_get_policies_swaps_each_ablated_mechanism():
     assert isinstance(v, StrideKeyframes) and isinstance(f, FixedFidelity) and f.scale() == 1.0
     assert isinstance(g, NewSpaceSeeding) and g.cfg.dense
     with pytest.raises(ValueError, match="unknown ablation"):
-        get_policies(eo3d.Config(ablate=("scheduling",)))  # the old name of "views": config files are migrated
+        get_policies(eo3d.Config(ablate=("scheduling",)))  # "views" is the name
 
 
 # ---- Targeted Geometry Growth -------------------------------------------------------------------------------------
