@@ -21,7 +21,7 @@ import numpy as np
 import open3d as o3d
 import torch
 
-from .core.camera import Camera, check_pose, invert_pose
+from .core.camera import Camera, check_pose, invert_pose, look_at
 from .render.projection import quat_to_rotmat  # columns are the Gaussians' axes
 from .core.gaussians import GaussianMap, sh0_to_rgb
 
@@ -147,21 +147,6 @@ def extract_triangle_mesh(render_fn: Callable, poses: Sequence[np.ndarray], came
 
 
 # ---- viewpoints ----------------------------------------------------------------------------------------
-def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """Camera-to-world pose (OpenCV axes: z forward, y down) at ``eye`` looking at ``target``."""
-    z = np.asarray(target, np.float64) - np.asarray(eye, np.float64)
-    z /= np.linalg.norm(z)
-    up = np.asarray(up, np.float64)
-    if abs(float(z @ up)) > 0.99:  # looking along the up axis: any other reference will do
-        up = np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    T[:3, 3] = eye
-    return T
-
-
 def sphere_poses(points: np.ndarray, camera: Camera, n_views: int = 40,
                  margin: float = 1.1) -> tuple[list[np.ndarray], float]:
     """Cameras on a Fibonacci sphere around the bounding box of ``points`` [M, 3], looking at its centre, far

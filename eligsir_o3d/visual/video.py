@@ -32,10 +32,10 @@ def _quat_wxyz(R: np.ndarray) -> np.ndarray:
 
 
 def _rot(q: np.ndarray) -> np.ndarray:
-    from ..core.camera import quat_to_rotmat
+    from ..core.camera import pose_from_tum
 
     w, x, y, z = q
-    return quat_to_rotmat(np.array([x, y, z, w]))
+    return pose_from_tum(np.zeros(3), np.array([x, y, z, w]))[:3, :3]
 
 
 def smooth_path(poses: Sequence[np.ndarray], n_out: int | None = None, sigma: float | None = None) -> list[np.ndarray]:
