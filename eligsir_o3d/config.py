@@ -42,9 +42,9 @@ class OptimConfig:
     # relocates only the Gaussians that can reach its view, so its cost follows the Gaussians in view; renders for
     # admission, growth and evaluation draw only those too (same images). False: every update covers the whole map
     cull: bool = True
-    # torch's threads for the mapper's CPU work on images below core.threads.TORCH_MIN_PIXELS (admission, growth,
+    # torch's threads for the mapper's CPU work on images below runtime.threads.TORCH_MIN_PIXELS (admission, growth,
     # updates up to 1/2 scale of VGA); 0: leave torch's own setting. Such ops are too small for a second thread, and
-    # each parallel op wakes sleeping OpenMP workers (eligsir_o3d/core/threads.py). Kernels use numba's threads
+    # each parallel op wakes sleeping OpenMP workers (eligsir_o3d/runtime/threads.py). Kernels use numba's threads
     torch_threads: int = 1
 
 

@@ -49,14 +49,14 @@ def machine_key(device, renderer: str, pose_refine: bool = True) -> dict:
             "device_name": name, "renderer": renderer, "torch": torch.__version__, "eligsir_o3d": __version__,
             "pose_refine": bool(pose_refine), "numba_layer": "tbb" if _on_tbb() else "other",
             "fit": 6}  # 2: frame_s measured (fits cached before scaled it with the updates); 3: refined updates timed;
-    # 4: updates ~1.3x cheaper on 2 threads (core.threads: small work on one thread), so older fits over-price them;
+    # 4: updates ~1.3x cheaper on 2 threads (runtime.threads: small work on one thread), so older fits over-price them;
     # 5: the compositing kernels ~1.2x cheaper on 2 threads (stop 41); 6: tighter block lists and numba on TBB
     # (stop 47: updates ~1.2x cheaper on 2 threads). The layer is a key of its own: a process that imported Open3D
-    # before eligsir_o3d runs numba on OpenMP (eligsir_o3d/tbb_runtime.py), slower on 2 threads
+    # before eligsir_o3d runs numba on OpenMP (eligsir_o3d/runtime/tbb.py), slower on 2 threads
 
 
 def _on_tbb() -> bool:
-    from ..core.jit import ON_TBB  # numba loads here, with the kernels' first user
+    from ..runtime.jit import ON_TBB  # numba loads here, with the kernels' first user
 
     return bool(ON_TBB)
 

@@ -17,7 +17,7 @@ parameter tensors took ~0.75 ms and the noise (rotation matrices, covariances, a
   cost 0.55 ms of a kitchen update at 3k rows and 2.4 ms at 12k (two threads); this 0.3 / 0.7 ms.
 
 The Adam kernels are serial (no ``prange``): a pass over 20k rows takes tens of microseconds, less than a thread
-team's start-up. The noise runs its rows in parallel from :data:`.core.jit.ROWS_LIMIT` rows on (77k rows:
+team's start-up. The noise runs its rows in parallel from :data:`.runtime.jit.ROWS_LIMIT` rows on (77k rows:
 1.3 ms on one thread), on one thread below. Compiled lazily on first use and cached on disk like the renderer's
 kernels.
 """
@@ -30,9 +30,9 @@ import numba
 import numpy as np
 from numba import prange
 
-from ..core.jit import jit as _jit
-from ..core.jit import jit_serial as _jit_serial
-from ..core.jit import rows_threads
+from ..runtime.jit import jit as _jit
+from ..runtime.jit import jit_serial as _jit_serial
+from ..runtime.jit import rows_threads
 
 
 def adam_state(opt, p) -> dict:

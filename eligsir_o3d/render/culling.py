@@ -54,7 +54,7 @@ def in_view(means: torch.Tensor, log_scales: torch.Tensor, camera: Camera, T_wor
     cam = camera_bounds(camera, low_pass)
     V = world_to_cam(T_world_cam, "cpu", torch.float64).numpy()
     if means.device.type == "cpu" and means.dtype == torch.float32 and log_scales.dtype == torch.float32:
-        from ..core.jit import rows_threads
+        from ..runtime.jit import rows_threads
         from ._cull_kernels import frustum_rows
 
         with rows_threads(means.shape[0]):
@@ -105,7 +105,7 @@ class InView:
         params = [gmap.params[n].detach() for n in PARAM_NAMES]
         if idx.device.type != "cpu" or any(p.dtype != torch.float32 or not p.is_contiguous() for p in params):
             return {n: p[idx].requires_grad_(True) for n, p in zip(PARAM_NAMES, params)}
-        from ..core.jit import rows_threads
+        from ..runtime.jit import rows_threads
         from ._cull_kernels import _gather_view
 
         outs = [torch.empty((idx.numel(),) + tuple(p.shape[1:]), dtype=torch.float32) for p in params]
@@ -187,7 +187,7 @@ class InView:
             widths.append(p.numel() // max(p.shape[0], 1))
         if not ps:
             return
-        from ..core.jit import rows_threads
+        from ..runtime.jit import rows_threads
         from ._cull_kernels import _adam_view
 
         plan = np.array([float(cfg.row_bias_correction), cfg.means_decay_to, cfg.means_decay_updates,
