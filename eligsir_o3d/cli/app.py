@@ -200,8 +200,9 @@ def export(
         "this package does (the map's low-pass baked in; needs run.json and the poses)."),
 ) -> None:
     """Export a saved map as an Open3D triangle mesh and/or point cloud, and/or as SPZ / .splat for the web."""
-    from ..export import export_from_ply
-    from ..export_baked import write_for_viewers, write_web_for_map
+    from ..export import export_from_ply, write_for_viewers, write_web
+    from ..export.views import camera_next_to, poses_next_to
+    from ..io.ply import load_ply
 
     if mesh is None and point_cloud is None and spz is None and splat is None and for_viewers is None:
         _fail("nothing to do: give --mesh, --point-cloud, --spz, --splat and/or --for-viewers")
@@ -210,7 +211,10 @@ def export(
         if for_viewers is not None:
             summary.update(write_for_viewers(map_ply, for_viewers, poses=poses))
         if spz is not None or splat is not None:
-            summary.update(write_web_for_map(map_ply, spz, splat, poses))
+            if not map_ply.is_file():
+                raise ValueError(f"{map_ply}: no such map")
+            summary.update(write_web(load_ply(map_ply), spz, splat, camera_next_to(map_ply),
+                                     poses_next_to(map_ply, poses)))
         if mesh is not None or point_cloud is not None:
             summary.update(export_from_ply(map_ply, mesh, point_cloud, poses=poses, voxel_size=voxel_size,
                                            depth_max=depth_max, min_opacity=min_opacity, device=device))

@@ -48,7 +48,7 @@ def calibrate_cmd(
         cfg = cfg.resolve()
         path = cache_path(machine_key(cfg.device, cfg.renderer, cfg.pose_refine.enabled))
         if force:
-            from ..export import DEFAULT_CAMERA
+            from ..export.views import DEFAULT_CAMERA
             from ..reconstructor import Reconstructor
 
             rec = Reconstructor(DEFAULT_CAMERA, cfg.device, cfg)

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .options import RunOptions
-from ..core.threads import report as threads_report
+from ..runtime.threads import report as threads_report
 
 RUN_FILE = "run.json"  # read back by read_run
 CELLS_FILE = "cells.json"
@@ -159,8 +159,7 @@ def write_results(r: RunResult, metrics: dict) -> None:
     from ..io.atomic import atomic_write_text
     from ..eval import write_plots
     from ..pose.trajectory import write_tum_trajectory
-    from ..export_baked import write_web_for_viewers
-    from ..export_splats import parse_formats
+    from ..export.web import parse_formats, write_web
 
     out, rec, outputs = r.out, r.rec, r.outputs
     outputs.stage(out / "map.ply", rec.save_ply, out / "map.ply")
@@ -170,7 +169,7 @@ def write_results(r: RunResult, metrics: dict) -> None:
         # once, at the depths the mapped views (in the map's frame) saw each Gaussian
         views = [rec.pose_refine.carried_pose(i, T, always=True) if rec.pose_refine.moved else T
                  for i, (_, T) in items]
-        outputs.stage(out / f"map.{web[0]}", write_web_for_viewers, rec.gmap, rec.camera, views,
+        outputs.stage(out / f"map.{web[0]}", write_web, rec.gmap, camera=rec.camera, poses=views,
                       **{fmt: out / f"map.{fmt}" for fmt in web})
     outputs.stage(out / "trajectory.txt", write_tum_trajectory, out / "trajectory.txt",
                   [ts for _, (ts, _) in items], [T for _, (_, T) in items])
