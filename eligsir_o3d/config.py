@@ -19,7 +19,6 @@ from .budget.clock import ClockConfig
 from .core.frame import DEPTH_MAX
 from .core.gaussians import AdamConfig, LearningRates
 from .optim.losses import LossConfig
-from .pose.refine import PoseRefineConfig
 from .scheduling.fidelity import FidelityConfig
 from .scheduling.growth import GrowthConfig
 from .scheduling.fixed_work import FixedWorkConfig
@@ -70,7 +69,6 @@ class Config:
     supervision: SupervisionConfig = field(default_factory=SupervisionConfig)  # area / point samples (measured per run)
     clock: ClockConfig = field(default_factory=ClockConfig)  # the budget: clock mode, per-frame/drain/offline budgets
     fixed_work: FixedWorkConfig = field(default_factory=FixedWorkConfig)  # per-frame fixed work scaled with the backlog (issue 18)
-    pose_refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)  # per-training-view pose corrections
 
     def resolve(self, **changes) -> "Config":
         """A copy with ``changes`` (top-level fields) applied and every derived value computed, in this one

@@ -107,10 +107,9 @@ def config_cmd(
     typer.echo(json.dumps(cfg.to_dict(), indent=2))
 
 
-# what each held-out pose rule means, as the summary prints it (pose.refine.HELDOUT_POSE_RULES)
+# what each held-out pose rule means, as the summary prints it (metrics.json's heldout_pose_rule)
 POSE_RULE_LABELS = {
     "aligned": "aligned: given poses after one rigid training-pose alignment, the paper's rule",
-    "carried": "carried: in the map's refined frame",
     "given": "given: the poses as they are",
     "tracked": "tracked: poses from the run's pose source",
 }
@@ -130,10 +129,6 @@ def _summary(m: dict, out: Path) -> None:
     if posed != "ground truth":  # a recording without poses: say so next to the figure
         lost = len(m.get("heldout_untracked") or [])
         typer.echo(f"  held-out views at poses {posed}" + (f"; {lost} untrackable view(s) left out" if lost else ""))
-    rules = {r: v for r, v in (m.get("heldout_by_pose_rule") or {}).items() if r != rule}
-    if rules:  # pose refinement: the same views under the other rules, each labelled
-        typer.echo("  beside it: " + ";  ".join(f"{f(v['psnr'], '.2f')} dB ({POSE_RULE_LABELS.get(r, r)})"
-                                                for r, v in rules.items()))
     typer.echo(f"CVQ-AUC {f(m['cvq_auc'], '.2f')} dB  CUC@20 {f(m['cuc20_final'], '.3f')}  "
                f"Gaussians {m['gaussians']}  updates {m['updates']}  supervised {m['supervised_mpix']:.1f} MPix")
     pol = m.get("policies") or {}
