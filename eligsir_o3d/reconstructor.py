@@ -23,9 +23,8 @@ from .render.culling import InView
 from .config import Config
 from .core.frame import Frame, FrameError
 from .core.gaussians import EPS2D, GaussianMap
-from .core.threads import TORCH_MIN_PIXELS, TORCH_MIN_ROWS, torch_threads
+from .runtime.threads import TORCH_MIN_PIXELS, TORCH_MIN_ROWS, torch_threads
 from .optim.losses import supervision_loss
-from .pose.refine import PoseRefiner
 from .reconstructor_state import ReconstructorState
 from .render import RenderOutput, get_renderer
 from .scheduling import MapContext, get_policies
@@ -80,7 +79,6 @@ class Reconstructor(ReconstructorState):
         self.views, self.fidelity, self.growth = get_policies(self.config, offline=self.offline_frames is not None,
                                                               n_source=self.offline_frames or 0, camera=self.camera)
         self.supervision = SupervisionGrid(self.config.supervision)  # area or point samples at reduced scales
-        self.pose_refine = PoseRefiner(self.config.pose_refine, self.device)  # per-training-view pose corrections
         self.fixed_work = LoadScaledChecks(self.config.fixed_work)  # how much fixed work each frame gets, from the backlog
         self.frame_plan = FULL  # the current frame's plan (read by the policies through ctx.plan)
         self.ctx = MapContext(self)
@@ -115,12 +113,9 @@ class Reconstructor(ReconstructorState):
                 decided = admitted and self.supervision.on_admitted(frame)
             self.stats.frames_admitted += int(admitted)
             with self.timing("growth"):
-                if admitted:
-                    self.pose_refine.warm_start(frame)  # off unless pose_refine.warm_start
-                added = self.growth.on_frame(self.pose_refine.posed(frame), admitted, self.ctx)
+                added = self.growth.on_frame(frame, admitted, self.ctx)
                 if decided:  # seeds may have become finer (seed_scale): the views admitted before get them too
-                    added += self.growth.reseed([self.pose_refine.posed(f) for f in self.views.views
-                                                 if f.index != frame.index], self.ctx)
+                    added += self.growth.reseed([f for f in self.views.views if f.index != frame.index], self.ctx)
         self.stats.mapping_s += time.perf_counter() - t0
         if updates is None and deadline is None:
             updates = self.config.clock.updates_per_frame
@@ -145,7 +140,7 @@ class Reconstructor(ReconstructorState):
 
     def _threads(self, pixels: int):
         """torch's threads for work on images of ``pixels``: ``config.optim.torch_threads`` on the CPU below
-        TORCH_MIN_PIXELS pixels and TORCH_MIN_ROWS rows last in view, else the caller's (:mod:`.core.threads`)."""
+        TORCH_MIN_PIXELS pixels and TORCH_MIN_ROWS rows last in view, else the caller's (:mod:`.runtime.threads`)."""
         rows = self.last_in_view or 0
         small = self.device.type == "cpu" and pixels < TORCH_MIN_PIXELS and rows < TORCH_MIN_ROWS
         return torch_threads(self.config.optim.torch_threads if small else 0)
@@ -183,16 +178,14 @@ class Reconstructor(ReconstructorState):
 
     def _update(self, frame: Frame, sample) -> None:
         """One update on ``frame``'s view at the pixels of ``sample`` (:class:`.scheduling.supervision.Sample`):
-        render the rows in view, the loss, backward, Adam, then the policies' per-update steps (pose correction,
-        growth's MCMC, the views' feedback)."""
+        render the rows in view, the loss, backward, Adam, then the policies' per-update steps (growth's MCMC, the
+        views' feedback)."""
         color, depth, cam, low_pass = sample.color, sample.depth, sample.camera, sample.low_pass
-        cull = self.config.optim.cull  # only the rows that can reach the view (at its refined pose): drawn and stepped
-        T_view = self.pose_refine.posed(frame).T_world_cam
-        self.view = InView.select(self.gmap, cam, T_view, low_pass) if cull else None
+        cull = self.config.optim.cull  # only the rows that can reach the view: drawn and stepped
+        self.view = InView.select(self.gmap, cam, frame.T_world_cam, low_pass) if cull else None
         rows = self.view if self.view is not None else self.gmap
         self.last_in_view = len(rows)
-        args, T = self.pose_refine.render_args(frame, rows.render_args())  # at the refined pose
-        out = self.renderer.render(*args, cam, T, self._background, low_pass=low_pass)
+        out = self.renderer.render(*rows.render_args(), cam, frame.T_world_cam, self._background, low_pass=low_pass)
         self.gmap.note_supervision(sample.fitted)
         loss, error = supervision_loss(out, color, depth, self.config.optim.loss)
         if (reg := self.growth.pre_backward(out, self.ctx)) is not None:
@@ -201,9 +194,7 @@ class Reconstructor(ReconstructorState):
         if loss.requires_grad:  # an empty view (every row out of it) leaves nothing to differentiate
             loss.backward()
         self._adam_step()
-        posed = self.pose_refine.posed(frame)  # the pose the view was rendered at (before its correction steps)
-        self.pose_refine.step()
-        self.growth.post_step(posed, out, depth, cam, self.ctx)
+        self.growth.post_step(frame, out, depth, cam, self.ctx)
         self.view = None
         self.views.feedback(frame, out, error, depth, cam)
 
