@@ -252,9 +252,11 @@ for _name, _command in COMMANDS.items():  # live, calibrate-color, view, render,
 
 
 def _register_calibrate() -> None:
+    from .ablate_cmd import ablate_cmd
     from .calibrate_cmd import calibrate_cmd
 
     app.command("calibrate")(calibrate_cmd)
+    app.command("ablate")(ablate_cmd)
 
 
 _register_calibrate()
