@@ -1,29 +1,35 @@
-"""eligsir_o3d: budget-aware online RGB-D Gaussian-splatting mapping (EliGSiR) as an Open3D plugin."""
+"""eligsir_o3d: budget-aware online RGB-D Gaussian-splatting mapping (EliGSiR) as an Open3D plugin.
 
-import os
+``import eligsir_o3d`` imports only this file: each public name below loads its module on first use, after the
+process-level set-up (:func:`eligsir_o3d.runtime.prepare`).
+"""
 
-# torch and the numba rasteriser share one OpenMP runtime; its default spin-waiting starves the main thread on a
-# busy machine (measured: up to 16x slower renders at load 3-10 on 2 cores). Passive waiting costs little when
-# idle. It only takes effect if set before torch is first imported; a user's own setting wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+from __future__ import annotations
 
-from . import tbb_runtime  # noqa: E402
-from ._open3d_check import import_open3d  # noqa: E402
+import importlib
 
-tbb_runtime.preload()  # before Open3D loads its older TBB (eligsir_o3d/tbb_runtime.py): numba's kernels then run on TBB
-import_open3d()  # a missing system library (libusb, libGL, ...) fails here with one line naming the package
+from ._version import __version__
 
-from .core.camera import Camera  # noqa: E402
-from .config import Config
-from .core.frame import Frame, FrameError
-from .core.gaussians import GaussianMap
-from .reconstructor import Reconstructor
-from .render import RenderOutput, get_renderer
-
-from ._version import __version__  # noqa: E402
-from ._moved import install as _install_moved  # noqa: E402
-
-_install_moved()  # old module paths (eligsir_o3d.pipeline, eligsir_o3d.clock, ...) for one release
+_PUBLIC = {  # name -> the module that defines it
+    "Camera": "core.camera", "Config": "config", "Frame": "core.frame", "FrameError": "core.frame",
+    "GaussianMap": "core.gaussians", "Reconstructor": "reconstructor", "RenderOutput": "render",
+    "get_renderer": "render",
+}
 
 __all__ = ["Camera", "Config", "Frame", "FrameError", "GaussianMap", "Reconstructor", "RenderOutput", "get_renderer",
            "__version__"]
+
+
+def __getattr__(name: str):
+    if name not in _PUBLIC:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    from .runtime import prepare
+
+    prepare()
+    value = getattr(importlib.import_module(f"{__name__}.{_PUBLIC[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_PUBLIC))

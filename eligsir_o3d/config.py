@@ -1,8 +1,7 @@
 """Nested dataclass configuration: one place for defaults, written with every result as config.json.
 
 One vocabulary, checked: :meth:`Config.from_dict` (config files) and :func:`apply_override` (``--set a.b=v``)
-reject an unknown key with its path and the nearest valid name; keys of older versions that were renamed are
-moved to their new name (:data:`RENAMED`). Derived values (device spelling, renderer for the device) are computed
+reject an unknown key with its path and the nearest valid name. Derived values (device spelling, renderer for the device) are computed
 in one step, :meth:`Config.resolve`, which returns a copy.
 """
 
@@ -12,7 +11,6 @@ import copy
 import dataclasses
 import difflib
 import json
-import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,7 +20,6 @@ from .core.frame import DEPTH_MAX
 from .core.gaussians import LearningRates
 from .optim.adam import AdamConfig
 from .optim.losses import LossConfig
-from .pose.refine import PoseRefineConfig
 from .scheduling.fidelity import FidelityConfig
 from .scheduling.growth import GrowthConfig
 from .scheduling.fixed_work import FixedWorkConfig
@@ -32,20 +29,6 @@ from .scheduling.support import SupportConfig
 from .scheduling.supervision import SupervisionConfig
 from .scheduling.views import ViewConfig
 
-log = logging.getLogger("eligsir_o3d")
-
-# old key path -> new key path (config files and checkpoints written by earlier versions)
-RENAMED = {
-    "optim.updates_per_frame": "clock.updates_per_frame",
-    "optim.drain_updates": "clock.drain_updates",
-    "optim.realtime_drain_fraction": "clock.realtime_drain_fraction",
-    "fidelity.frame_period_s": "clock.frame_period_s",
-    "fixed_scale": "fidelity.fixed_scale",
-    "stride": "keyframes",
-    "seeding.stride": "seeding.pixel_stride",
-    "seeding.render_scale": "support.scale",
-    "seeding.alpha_threshold": "support.alpha_min",
-}
 ABLATION_RENAMED = {"scheduling": "views"}
 
 
@@ -62,9 +45,9 @@ class OptimConfig:
     kernels: str = "auto"
     """The kernel set that runs an update's stages (eligsir_o3d.kernels): auto | numba | torch | fused; auto = numba
     for a float32 map on the CPU, fused on CUDA, torch otherwise."""
-    # torch's threads for the mapper's CPU work on images below core.threads.TORCH_MIN_PIXELS (admission, growth,
+    # torch's threads for the mapper's CPU work on images below runtime.threads.TORCH_MIN_PIXELS (admission, growth,
     # updates up to 1/2 scale of VGA); 0: leave torch's own setting. Such ops are too small for a second thread, and
-    # each parallel op wakes sleeping OpenMP workers (eligsir_o3d/core/threads.py). Kernels use numba's threads
+    # each parallel op wakes sleeping OpenMP workers (eligsir_o3d/runtime/threads.py). Kernels use numba's threads
     torch_threads: int = 1
 
 
@@ -90,7 +73,6 @@ class Config:
     supervision: SupervisionConfig = field(default_factory=SupervisionConfig)  # area / point samples (measured per run)
     clock: ClockConfig = field(default_factory=ClockConfig)  # the budget: clock mode, per-frame/drain/offline budgets
     fixed_work: FixedWorkConfig = field(default_factory=FixedWorkConfig)  # per-frame fixed work scaled with the backlog (issue 18)
-    pose_refine: PoseRefineConfig = field(default_factory=PoseRefineConfig)  # per-training-view pose corrections
 
     def resolve(self, **changes) -> "Config":
         """A copy with ``changes`` (top-level fields) applied and every derived value computed, in this one
@@ -136,10 +118,10 @@ class Config:
     @classmethod
     def from_dict(cls, data: dict, where: str = "config") -> "Config":
         """A Config from a dict (a config file's content). Unknown keys are an error naming their path and the
-        nearest valid name; renamed keys of older versions (:data:`RENAMED`) are moved to their new name."""
+        nearest valid name."""
         if not isinstance(data, dict):
             raise ConfigError(f"{where}: a config must be a JSON object, got {type(data).__name__}")
-        return _build(cls, _migrate(copy.deepcopy(data)), where, "")
+        return _build(cls, copy.deepcopy(data), where, "")
 
     @classmethod
     def load(cls, path: str | Path) -> "Config":
@@ -225,41 +207,6 @@ def _nearest(key: str, names, prefix: str) -> str:
     return f"; did you mean {prefix + close[0]!r}?" if close else f"; valid keys here: {', '.join(sorted(names))}"
 
 
-def _migrate(data: dict) -> dict:
-    """Move the keys that earlier versions spelled differently to today's names (in place; returns ``data``)."""
-    data.pop("camera", None)  # results folders of earlier versions recorded the camera here (now run.json)
-    clock = data.get("clock")
-    if isinstance(clock, dict) and "budget" in clock:  # mode "budget" + budget "cost"|"updates" -> mode
-        budget = clock.pop("budget")
-        if clock.get("mode", "budget") == "budget":
-            clock["mode"] = budget
-    for old, new in RENAMED.items():
-        *opath, olast = old.split(".")
-        parent = _walk(data, opath)
-        if not isinstance(parent, dict) or olast not in parent:
-            continue
-        value = parent.pop(olast)
-        *npath, nlast = new.split(".")
-        target = _walk(data, npath, create=True)
-        if nlast not in target:
-            target[nlast] = value
-        elif target[nlast] != value:
-            log.warning("config: %s (an older name) = %r ignored in favour of %s = %r", old, value, new, target[nlast])
-    if isinstance(data.get("ablate"), (list, tuple)):
-        data["ablate"] = [ABLATION_RENAMED.get(a, a) if isinstance(a, str) else a for a in data["ablate"]]
-    return data
-
-
-def _walk(data: dict, path: list[str], create: bool = False):
-    for name in path:
-        if not isinstance(data, dict):
-            return None
-        if name not in data and create:
-            data[name] = {}
-        data = data.get(name)
-    return data
-
-
 def apply_override(cfg: Config, item: str) -> None:
     """``--set KEY=VALUE`` on ``cfg`` (see :func:`_apply_override`); its error is one line even when the item
     holds a line break (shown escaped)."""
@@ -283,7 +230,6 @@ def _apply_override(cfg: Config, item: str) -> None:
         value = json.loads(raw)
     except json.JSONDecodeError:
         value = raw
-    key = RENAMED.get(key, key)
     *path, last = key.split(".")
     obj, prefix = cfg, ""
     for name in path + [last]:
@@ -311,7 +257,7 @@ def _apply_override(cfg: Config, item: str) -> None:
 
 def _guard_sections(cls: type, seen: set) -> None:
     """Make ``cls`` and every config section below it reject assignments to names they do not have, so that a
-    misspelt or renamed setting (``cfg.optim.updates_per_frame = 4``, now ``cfg.clock.updates_per_frame``) fails
+    misspelt setting (``cfg.optim.updates_per_frame = 4``: the key is ``cfg.clock.updates_per_frame``) fails
     loudly instead of being silently ignored."""
     if cls in seen or cls.__dataclass_params__.frozen:
         return
@@ -320,18 +266,14 @@ def _guard_sections(cls: type, seen: set) -> None:
 
     def __setattr__(self, name: str, value: Any, _names=names, _cls=cls) -> None:
         if name not in _names and not name.startswith("_"):
-            moved = RENAMED.get(f"{_SECTION_PATH.get(_cls, '')}{name}")
-            hint = f"; it moved to '{moved}'" if moved else _nearest(name, _names, "")
-            raise AttributeError(f"{_cls.__name__} has no setting {name!r}{hint}")
+            raise AttributeError(f"{_cls.__name__} has no setting {name!r}{_nearest(name, _names, '')}")
         object.__setattr__(self, name, value)
 
     cls.__setattr__ = __setattr__
     for f in dataclasses.fields(cls):
         default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
         if dataclasses.is_dataclass(default) and not isinstance(default, type):
-            _SECTION_PATH.setdefault(type(default), f"{_SECTION_PATH.get(cls, '')}{f.name}.")
             _guard_sections(type(default), seen)
 
 
-_SECTION_PATH: dict[type, str] = {Config: ""}  # a section's key path in config files, for the hint
 _guard_sections(Config, set())

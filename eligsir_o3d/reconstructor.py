@@ -22,10 +22,9 @@ from .budget.cost import priced_gaussians
 from .config import Config
 from .core.frame import Frame, FrameError
 from .core.gaussians import EPS2D, GaussianMap
-from .core.threads import TORCH_MIN_PIXELS, TORCH_MIN_ROWS, torch_threads
 from .kernels import get_kernels
+from .runtime.threads import TORCH_MIN_PIXELS, TORCH_MIN_ROWS, torch_threads
 from .optim.losses import supervision_loss
-from .pose.refine import PoseRefiner
 from .reconstructor_state import ReconstructorState
 from .render import RenderOutput, get_renderer
 from .scheduling import MapContext, get_policies
@@ -81,7 +80,6 @@ class Reconstructor(ReconstructorState):
         self.views, self.fidelity, self.growth = get_policies(self.config, offline=self.offline_frames is not None,
                                                               n_source=self.offline_frames or 0, camera=self.camera)
         self.supervision = SupervisionGrid(self.config.supervision)  # area or point samples at reduced scales
-        self.pose_refine = PoseRefiner(self.config.pose_refine, self.device)  # per-training-view pose corrections
         self.fixed_work = LoadScaledChecks(self.config.fixed_work)  # how much fixed work each frame gets, from the backlog
         self.frame_plan = FULL  # the current frame's plan (read by the policies through ctx.plan)
         self.ctx = MapContext(self)
@@ -116,12 +114,9 @@ class Reconstructor(ReconstructorState):
                 decided = admitted and self.supervision.on_admitted(frame)
             self.stats.frames_admitted += int(admitted)
             with self.timing("growth"):
-                if admitted:
-                    self.pose_refine.warm_start(frame)  # off unless pose_refine.warm_start
-                added = self.growth.on_frame(self.pose_refine.posed(frame), admitted, self.ctx)
+                added = self.growth.on_frame(frame, admitted, self.ctx)
                 if decided:  # seeds may have become finer (seed_scale): the views admitted before get them too
-                    added += self.growth.reseed([self.pose_refine.posed(f) for f in self.views.views
-                                                 if f.index != frame.index], self.ctx)
+                    added += self.growth.reseed([f for f in self.views.views if f.index != frame.index], self.ctx)
         self.stats.mapping_s += time.perf_counter() - t0
         if updates is None and deadline is None:
             updates = self.config.clock.updates_per_frame
@@ -146,7 +141,7 @@ class Reconstructor(ReconstructorState):
 
     def _threads(self, pixels: int):
         """torch's threads for work on images of ``pixels``: ``config.optim.torch_threads`` on the CPU below
-        TORCH_MIN_PIXELS pixels and TORCH_MIN_ROWS rows last in view, else the caller's (:mod:`.core.threads`)."""
+        TORCH_MIN_PIXELS pixels and TORCH_MIN_ROWS rows last in view, else the caller's (:mod:`.runtime.threads`)."""
         rows = self.last_in_view or 0
         small = self.device.type == "cpu" and pixels < TORCH_MIN_PIXELS and rows < TORCH_MIN_ROWS
         return torch_threads(self.config.optim.torch_threads if small else 0)
@@ -183,32 +178,27 @@ class Reconstructor(ReconstructorState):
         """One update on ``frame``'s view at the pixels of ``sample`` (:class:`.scheduling.supervision.Sample`):
         the kernel set selects the rows in view, the renderer draws them, the kernel set back-propagates the loss
         and steps the rows (with the growth policy's regulariser and noise), then the policies' per-update steps
-        (pose correction, growth's MCMC rounds, the views' feedback)."""
+        (growth's MCMC rounds, the views' feedback)."""
         color, depth, cam, low_pass = sample.color, sample.depth, sample.camera, sample.low_pass
-        posed = self.pose_refine.posed(frame)  # the pose the view is rendered at (before its correction steps)
-        self.view, out = self._draw_view(posed.T_world_cam, cam, low_pass,
-                                         lambda args, T: self.pose_refine.render_args(frame, args))
+        self.view, out = self._draw_view(frame.T_world_cam, cam, low_pass)
         self.last_in_view = len(self.view)
         self.gmap.note_supervision(sample.fitted)
         terms = self.growth.step_terms(self.ctx)
         error = self.kernels.backward(out, color, depth, self.config.optim.loss, self.view, terms)
         self.kernels.step(self.gmap, self.view, terms)
-        self.pose_refine.step()
-        self.growth.post_step(posed, out, depth, cam, self.ctx)
+        self.growth.post_step(frame, out, depth, cam, self.ctx)
         self.view = None
         self.views.feedback(frame, out, error, depth, cam)
 
-    def _draw_view(self, T_world_cam, cam: Camera, low_pass: float, posing=None):
-        """(view, render) of the rows that can reach ``cam`` at ``T_world_cam``, the view's leaves requiring grad;
-        ``posing(args, T)`` may move the render's arguments and pose. A fused view that held fewer rows than
+    def _draw_view(self, T_world_cam, cam: Camera, low_pass: float):
+        """(view, render) of the rows that can reach ``cam`` at ``T_world_cam``, the view's leaves requiring grad.
+        A fused view that held fewer rows than
         passed its test (known once the render synchronised) is selected again with room for them all."""
         capacity = 0
         for _ in range(2):
             view = self.kernels.select(self.gmap, cam, T_world_cam, low_pass, cull=self.config.optim.cull,
                                        capacity=capacity)
-            args, T = (view.render_args(), T_world_cam) if posing is None else posing(view.render_args(),
-                                                                                      T_world_cam)
-            out = self.renderer.render(*args, cam, T, self._background, low_pass=low_pass)
+            out = self.renderer.render(*view.render_args(), cam, T_world_cam, self._background, low_pass=low_pass)
             if not view.overflowed():
                 break
             capacity = view.hits()

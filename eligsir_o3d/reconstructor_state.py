@@ -19,7 +19,7 @@ from .io.checkpoint import CheckpointError, read_checkpoint, save_checkpoint
 
 class ReconstructorState:
     """State and checkpoints of a Reconstructor (its attributes: config, camera, device, gmap, the three policies,
-    stats, backlog, rng, pose_source, fixed_work, pose_refine, supervision, offline_frames)."""
+    stats, backlog, rng, pose_source, fixed_work, supervision, offline_frames)."""
 
     def save(self, path: str | Path, *, extra: dict | None = None, sequence=None) -> Path:
         """Checkpoint the full mapper state (:meth:`state_dict`) to ``path``, atomically; ``extra``: a caller's
@@ -96,7 +96,6 @@ class ReconstructorState:
             "cuda_rng": torch.cuda.get_rng_state_all() if self.device.type == "cuda" else None,
             "pose_source": self.pose_source.state_dict() if hasattr(self.pose_source, "state_dict") else None,
             "fixed_work": self.fixed_work.state_dict(),
-            "pose_refine": self.pose_refine.state_dict(),
             "supervision": self.supervision.state_dict(),
             "offline_frames": self.offline_frames,  # the offline reference's policies (None: online)
         }
@@ -138,7 +137,6 @@ class ReconstructorState:
                 setattr(self.stats, k, v)
         self.backlog = state.get("backlog", 0)
         self.fixed_work.load_state_dict(state.get("fixed_work", {}))
-        self.pose_refine.load_state_dict(state.get("pose_refine"))
         self.supervision.load_state_dict(state.get("supervision", {}))  # older checkpoints: undecided
         self.rng.set_state(state["rng"])
         torch.set_rng_state(state["torch_rng"])

@@ -57,7 +57,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 import eligsir_o3d as eo3d  # noqa: E402
 from eligsir_o3d.budget import CostModel  # noqa: E402
-from eligsir_o3d.datasets.synthetic import SyntheticRoom, look_at  # noqa: E402
+from eligsir_o3d.core.camera import look_at  # noqa: E402
+from eligsir_o3d.datasets.synthetic import SyntheticRoom  # noqa: E402
 from eligsir_o3d.core.frame import Frame  # noqa: E402
 from eligsir_o3d.budget.memory import (cap_allowance_mb, current_rss_mb, map_memory_mb, peak_rss_mb,  # noqa: E402
                                        reset_peak_rss, retained_views_bound, structure_sizes, views_memory_mb)

@@ -87,7 +87,7 @@ setup() {
   "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target "$SITE" "$whl" \
     .gpu_b/*.whl || return 1
   echo "$SITE" > "$("$PY" -c 'import site; print(site.getsitepackages()[0])')/gpu_site.pth"
-  # pip --target leaves out the tbb wheel's data files (its libtbb.so.12): put them where tbb_runtime looks for them,
+  # pip --target leaves out the tbb wheel's data files (its libtbb.so.12): put them where eligsir_o3d.runtime.tbb looks for them,
   # the interpreter's lib/, so that numba runs on TBB as it does on users' machines
   "$PY" - .gpu_b/tbb-*.whl <<'EOF'
 import sys, zipfile

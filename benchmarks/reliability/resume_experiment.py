@@ -229,7 +229,8 @@ def export_and_pictures(args) -> tuple[dict, float]:
 
     from eligsir_o3d.core.camera import Camera
     from eligsir_o3d.datasets.base import read_tum_trajectory
-    from eligsir_o3d.export import export_from_ply, look_at
+    from eligsir_o3d.core.camera import look_at
+    from eligsir_o3d.export import export_from_ply
 
     t0 = time.perf_counter()
     exp = export_from_ply(args.out / "resumed" / "map.ply", mesh_path=args.out / "mesh.ply",

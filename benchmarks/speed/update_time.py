@@ -64,7 +64,7 @@ def view_frames(in_view: int | None) -> tuple:
 
 def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in_view: int | None,
            phases: bool = False) -> None:
-    # first, as in a mapping run: it picks numba's threading layer (eligsir_o3d/tbb_runtime.py)
+    # first, as in a mapping run: it picks numba's threading layer (eligsir_o3d/runtime/tbb.py)
     import eligsir_o3d  # noqa: F401
     import numba
     import numpy as np

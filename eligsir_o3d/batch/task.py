@@ -35,7 +35,7 @@ def set_threads(cpus: float) -> int:
     try:
         import numba
 
-        from ..core import jit  # noqa: F401  picks numba's threading layer (TBB where it loads) before its first use
+        from ..runtime import jit  # noqa: F401  picks numba's threading layer (TBB where it loads) before its first use
 
         numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
     except ImportError:  # numba is a dependency; without it the compiled CPU renderer is off anyway

@@ -36,9 +36,8 @@ def cache_dir() -> Path:
     return Path(base) / "eligsir_o3d"
 
 
-def machine_key(device, renderer: str, pose_refine: bool = True) -> dict:
-    """What a fit depends on: this machine, the device and the renderer (and the code that runs, with or without
-    per-view pose refinement, which adds a little to every refined update)."""
+def machine_key(device, renderer: str) -> dict:
+    """What a fit depends on: this machine, the device and the renderer (and the code that runs)."""
     import torch
 
     from .._version import __version__
@@ -47,16 +46,16 @@ def machine_key(device, renderer: str, pose_refine: bool = True) -> dict:
     name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else _cpu_name()
     return {"host": platform.node(), "machine": platform.machine(), "cpus": os.cpu_count(), "device": str(dev),
             "device_name": name, "renderer": renderer, "torch": torch.__version__, "eligsir_o3d": __version__,
-            "pose_refine": bool(pose_refine), "numba_layer": "tbb" if _on_tbb() else "other",
+            "numba_layer": "tbb" if _on_tbb() else "other",
             "fit": 6}  # 2: frame_s measured (fits cached before scaled it with the updates); 3: refined updates timed;
-    # 4: updates ~1.3x cheaper on 2 threads (core.threads: small work on one thread), so older fits over-price them;
+    # 4: updates ~1.3x cheaper on 2 threads (runtime.threads: small work on one thread), so older fits over-price them;
     # 5: the compositing kernels ~1.2x cheaper on 2 threads (stop 41); 6: tighter block lists and numba on TBB
     # (stop 47: updates ~1.2x cheaper on 2 threads). The layer is a key of its own: a process that imported Open3D
-    # before eligsir_o3d runs numba on OpenMP (eligsir_o3d/tbb_runtime.py), slower on 2 threads
+    # before eligsir_o3d runs numba on OpenMP (eligsir_o3d/runtime/tbb.py), slower on 2 threads
 
 
 def _on_tbb() -> bool:
-    from ..core.jit import ON_TBB  # numba loads here, with the kernels' first user
+    from ..runtime.jit import ON_TBB  # numba loads here, with the kernels' first user
 
     return bool(ON_TBB)
 
@@ -114,7 +113,7 @@ def calibrate(rec, frames=None, *, n_frames: int = 6, updates_per_scale: int = 3
     else:
         frames = list(frames)[:max(n_frames, 2)] if n_frames else list(frames)
         camera = frames[0].camera
-    make = make_scratch or (lambda cam: type(rec)(cam, str(rec.device), _timing_config(rec.config)))
+    make = make_scratch or (lambda cam: type(rec)(cam, str(rec.device), copy.deepcopy(rec.config)))
     scratch = make(camera)
     scratch.warmup()
     t0 = time.perf_counter()
@@ -146,14 +145,6 @@ def calibrate(rec, frames=None, *, n_frames: int = 6, updates_per_scale: int = 3
     return model, report
 
 
-def _timing_config(config):
-    """``config`` for the scratch mapper: pose refinement (when on) from each view's first update, as in a long
-    run, where nearly every update is of a view past its ``min_updates``; a few calibration frames never get there."""
-    cfg = copy.deepcopy(config)
-    cfg.pose_refine.min_updates = 0
-    return cfg
-
-
 def read_cached(path: Path) -> dict | None:
     """The cache file's record, or None (absent or damaged)."""
     try:
@@ -172,7 +163,7 @@ def cached_cost_model(rec, frames=None, force: bool = False, **kw) -> tuple[Cost
     from . import conditions
 
     log = logging.getLogger("eligsir_o3d")
-    key = machine_key(rec.device, rec.config.renderer, rec.config.pose_refine.enabled)
+    key = machine_key(rec.device, rec.config.renderer)
     path = cache_path(key)
     data = None if force else read_cached(path)
     if data is not None and data.get("key") == key:

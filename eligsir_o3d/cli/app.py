@@ -107,10 +107,9 @@ def config_cmd(
     typer.echo(json.dumps(cfg.to_dict(), indent=2))
 
 
-# what each held-out pose rule means, as the summary prints it (pose.refine.HELDOUT_POSE_RULES)
+# what each held-out pose rule means, as the summary prints it (metrics.json's heldout_pose_rule)
 POSE_RULE_LABELS = {
     "aligned": "aligned: given poses after one rigid training-pose alignment, the paper's rule",
-    "carried": "carried: in the map's refined frame",
     "given": "given: the poses as they are",
     "tracked": "tracked: poses from the run's pose source",
 }
@@ -130,10 +129,6 @@ def _summary(m: dict, out: Path) -> None:
     if posed != "ground truth":  # a recording without poses: say so next to the figure
         lost = len(m.get("heldout_untracked") or [])
         typer.echo(f"  held-out views at poses {posed}" + (f"; {lost} untrackable view(s) left out" if lost else ""))
-    rules = {r: v for r, v in (m.get("heldout_by_pose_rule") or {}).items() if r != rule}
-    if rules:  # pose refinement: the same views under the other rules, each labelled
-        typer.echo("  beside it: " + ";  ".join(f"{f(v['psnr'], '.2f')} dB ({POSE_RULE_LABELS.get(r, r)})"
-                                                for r, v in rules.items()))
     typer.echo(f"CVQ-AUC {f(m['cvq_auc'], '.2f')} dB  CUC@20 {f(m['cuc20_final'], '.3f')}  "
                f"Gaussians {m['gaussians']}  updates {m['updates']}  supervised {m['supervised_mpix']:.1f} MPix")
     pol = m.get("policies") or {}
@@ -200,8 +195,9 @@ def export(
         "this package does (the map's low-pass baked in; needs run.json and the poses)."),
 ) -> None:
     """Export a saved map as an Open3D triangle mesh and/or point cloud, and/or as SPZ / .splat for the web."""
-    from ..export import export_from_ply
-    from ..export_baked import write_for_viewers, write_web_for_map
+    from ..export import export_from_ply, write_for_viewers, write_web
+    from ..export.views import camera_next_to, poses_next_to
+    from ..io.ply import load_ply
 
     if mesh is None and point_cloud is None and spz is None and splat is None and for_viewers is None:
         _fail("nothing to do: give --mesh, --point-cloud, --spz, --splat and/or --for-viewers")
@@ -210,7 +206,10 @@ def export(
         if for_viewers is not None:
             summary.update(write_for_viewers(map_ply, for_viewers, poses=poses))
         if spz is not None or splat is not None:
-            summary.update(write_web_for_map(map_ply, spz, splat, poses))
+            if not map_ply.is_file():
+                raise ValueError(f"{map_ply}: no such map")
+            summary.update(write_web(load_ply(map_ply), spz, splat, camera_next_to(map_ply),
+                                     poses_next_to(map_ply, poses)))
         if mesh is not None or point_cloud is not None:
             summary.update(export_from_ply(map_ply, mesh, point_cloud, poses=poses, voxel_size=voxel_size,
                                            depth_max=depth_max, min_opacity=min_opacity, device=device))
@@ -253,9 +252,11 @@ for _name, _command in COMMANDS.items():  # live, calibrate-color, view, render,
 
 
 def _register_calibrate() -> None:
+    from .ablate_cmd import ablate_cmd
     from .calibrate_cmd import calibrate_cmd
 
     app.command("calibrate")(calibrate_cmd)
+    app.command("ablate")(ablate_cmd)
 
 
 _register_calibrate()

@@ -46,9 +46,9 @@ def calibrate_cmd(
         cfg = (Config.load(config) if config else Config())
         cfg.device, cfg.renderer = device, renderer.value
         cfg = cfg.resolve()
-        path = cache_path(machine_key(cfg.device, cfg.renderer, cfg.pose_refine.enabled))
+        path = cache_path(machine_key(cfg.device, cfg.renderer))
         if force:
-            from ..export import DEFAULT_CAMERA
+            from ..export.views import DEFAULT_CAMERA
             from ..reconstructor import Reconstructor
 
             rec = Reconstructor(DEFAULT_CAMERA, cfg.device, cfg)

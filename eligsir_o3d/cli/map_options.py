@@ -144,7 +144,7 @@ def with_options(fn):
 
 def map_options(kw: dict):
     """The :class:`~eligsir_o3d.run.options.MapOptions` of the command's arguments (enums as their values)."""
-    from ..export_splats import parse_formats
+    from ..export.web import parse_formats
     from ..run.options import MapOptions
 
     value = lambda v: v.value if isinstance(v, Enum) else v  # noqa: E731

@@ -121,18 +121,6 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
     return out
 
 
-def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix from a unit quaternion in (x, y, z, w) order (TUM files)."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
 def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
     """Unit quaternion (x, y, z, w) of a rotation matrix (Shepperd's method)."""
     R = np.asarray(R, dtype=np.float64)
@@ -154,10 +142,32 @@ def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
 
 
 def pose_from_tum(t: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
-    """4x4 camera-to-world pose from a TUM line's translation and (x, y, z, w) quaternion."""
+    """4x4 camera-to-world pose from a TUM line's translation and (x, y, z, w) quaternion (any norm; float64,
+    the inverse of :func:`pose_to_tum`). The Gaussians' (w, x, y, z) quaternions in torch turn into rotations
+    with :func:`eligsir_o3d.render.projection.quat_to_rotmat`."""
+    x, y, z, w = np.asarray(q_xyzw, dtype=np.float64) / np.linalg.norm(q_xyzw)
     T = np.eye(4)
-    T[:3, :3] = quat_to_rotmat(q_xyzw)
+    T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
     T[:3, 3] = t
+    return T
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world pose (OpenCV axes: z forward, y down) of a camera at ``eye`` looking at ``target``, its x
+    axis level with the plane normal to ``up`` (default z-up). Looking along ``up``, another reference axis is
+    taken."""
+    z = np.asarray(target, np.float64) - np.asarray(eye, np.float64)
+    z /= np.linalg.norm(z)
+    up = np.asarray(up, np.float64)
+    if abs(float(z @ up)) > 0.99:
+        up = np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
+    T[:3, 3] = eye
     return T
 
 

@@ -238,9 +238,20 @@ def check_increasing(path: Path, linenos: Sequence[int], stamps: Sequence[float]
                                f"{stamps[k - 1]:.6f} (timestamps must be strictly increasing)")
 
 
-def read_tum_trajectory(path: Path) -> tuple[np.ndarray, list[np.ndarray]]:
-    """TUM trajectory file ``timestamp tx ty tz qx qy qz qw`` -> (timestamps [N], camera-to-world [4, 4] list)."""
+def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, list[np.ndarray]]:
+    """TUM trajectory file ``timestamp tx ty tz qx qy qz qw`` -> (timestamps [N] float64, camera-to-world [4, 4]
+    list): the package's one TUM reader, for ground truth and trajectory files alike.
+
+    Each line holds 8 finite numbers with a non-zero quaternion, and timestamps increase strictly; a line that
+    breaks the rule is a DatasetError (a ValueError) naming ``file:line``. A missing file is a FileNotFoundError,
+    a file without poses a DatasetError.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"trajectory file {path} does not exist")
     rows = read_table(path, 8)
+    if not rows:
+        raise DatasetError(f"{path}: no poses (empty trajectory file)")
     stamps = [float(f[0]) for _, f in rows]
     check_increasing(path, [n for n, _ in rows], stamps)
     poses = []

@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 import open3d as o3d
 
-from ..core.camera import Camera
+from ..core.camera import Camera, look_at
 from . import textures as tx
 from .base import DatasetError, RGBDSequence
 
@@ -90,19 +90,6 @@ def camera_path(n_frames: int) -> list[np.ndarray]:
         target = np.array([0.0, 0.0, 0.75 + 0.15 * np.sin(3 * a)]) + 0.9 * np.sin(3 * a + 0.5) * side
         poses.append(look_at(eye, target))
     return poses
-
-
-def look_at(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Camera-to-world pose (OpenCV axes: z forward, y down) of a camera at ``eye`` looking at ``target``, level
-    with the room's z-up floor."""
-    z = target - eye
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    T[:3, 3] = eye
-    return T
 
 
 class SyntheticRoom(RGBDSequence):

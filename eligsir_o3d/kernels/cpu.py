@@ -34,7 +34,7 @@ def gather_raw(gmap, idx: torch.Tensor, grad: bool) -> dict:
     params = [gmap.params[n].detach() for n in PARAM_NAMES]
     if idx.device.type != "cpu" or any(p.dtype != torch.float32 or not p.is_contiguous() for p in params):
         return {n: p[idx].requires_grad_(grad) for n, p in zip(PARAM_NAMES, params)}
-    from ..core.jit import rows_threads
+    from ..runtime.jit import rows_threads
     from ..render._cull_kernels import _gather_view
 
     outs = [torch.empty((idx.numel(),) + tuple(p.shape[1:]), dtype=torch.float32) for p in params]
@@ -68,7 +68,7 @@ class NumbaKernels(KernelSet):
         return error
 
     def step(self, gmap, view: RowView, terms: StepTerms) -> None:
-        from ..core.jit import rows_threads
+        from ..runtime.jit import rows_threads
         from .cpu_kernels import adam_rows
 
         if len(gmap) != view.n_map:

@@ -1,6 +1,6 @@
 """Numba kernels of the ``numba`` kernel set's step: Adam over the rows one view touched, in place.
 
-Compiled lazily on first use and cached on disk like the renderer's kernels (:mod:`..core.jit`).
+Compiled lazily on first use and cached on disk like the renderer's kernels (:mod:`..runtime.jit`).
 """
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from numba import prange
 
-from ..core.jit import jit as _jit
+from ..runtime.jit import jit as _jit
 
 
 @_jit

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.jit import jit_serial as _jit_serial
+from ..runtime.jit import jit_serial as _jit_serial
 
 
 @_jit_serial

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from numba import prange
 
-from ..core.jit import jit as _jit
+from ..runtime.jit import jit as _jit
 
 C1 = 0.01 ** 2
 C2 = 0.03 ** 2

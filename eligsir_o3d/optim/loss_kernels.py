@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import prange
 
-from ..core.jit import jit as _jit
+from ..runtime.jit import jit as _jit
 
 DEPTH_ALPHA_EPS = 1e-4  # finish(): depth = acc_depth / alpha where alpha > this, else 0
 

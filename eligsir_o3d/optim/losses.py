@@ -43,7 +43,7 @@ class _DssimCPU(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, pred, ref, win: int, sigma: float):
-        from ..core.jit import pixels_threads
+        from ..runtime.jit import pixels_threads
         from .dssim_kernels import dssim_value_and_grad
 
         x = np.ascontiguousarray(pred.detach().permute(2, 0, 1).numpy())
@@ -105,7 +105,7 @@ class _FusedLossCPU(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, acc, alpha, background, color, depth, cfg: LossConfig):
-        from ..core.jit import pixels_threads
+        from ..runtime.jit import pixels_threads
         from .dssim_kernels import dssim_value_and_grad
         from .loss_kernels import loss_grad, loss_terms
 

@@ -23,8 +23,8 @@ import numba
 import numpy as np
 from numba import prange
 
-from ..core.jit import jit as _jit
-from ..core.jit import rows_threads
+from ..runtime.jit import jit as _jit
+from ..runtime.jit import rows_threads
 
 
 @numba.njit(inline="always", fastmath=False)

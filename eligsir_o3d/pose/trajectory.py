@@ -14,30 +14,12 @@ from typing import Sequence
 import numpy as np
 
 from ..core.camera import check_pose, pose_to_tum
+from ..datasets.base import read_tum_trajectory  # noqa: F401 (the one TUM reader, exported with the writer)
 from .base import PoseSource, TrackingLost
 
 
 class TrajectoryError(ValueError):
     """A trajectory file that cannot pose the frames it is given for (names the file and the frames)."""
-
-
-def read_tum_trajectory(path: str | Path) -> tuple[np.ndarray, list[np.ndarray]]:
-    """(timestamps [N] float64, camera-to-world poses [4, 4] list) of a TUM file.
-
-    The package has one TUM reader, the datasets' (``datasets.base.read_tum_trajectory``), with one rule for
-    ground-truth and trajectory files alike: 8 finite numbers per line, a non-zero quaternion, timestamps strictly
-    increasing. Raises ValueError (DatasetError) naming ``file:line`` for a line that breaks it,
-    FileNotFoundError for a missing file and ValueError for a file without poses.
-    """
-    from ..datasets.base import read_tum_trajectory as read
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"trajectory file {path} does not exist")
-    stamps, poses = read(path)
-    if not len(stamps):
-        raise ValueError(f"{path}: no poses (empty trajectory file)")
-    return stamps, poses
 
 
 def write_tum_trajectory(path: str | Path, timestamps: Sequence[float], poses: Sequence[np.ndarray]) -> Path:

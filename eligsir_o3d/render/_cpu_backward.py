@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numba import prange
 
-from ..core.jit import compile_kernel as _compile
+from ..runtime.jit import compile_kernel as _compile
 from ._cpu_kernels import ALPHA_MAX, ALPHA_MIN, HALF, ONE, SOURCE_CRC, TILE, ZERO, conic_alpha, reaches
 
 

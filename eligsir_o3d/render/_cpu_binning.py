@@ -8,7 +8,7 @@ import math
 import numpy as np
 from numba import prange
 
-from ..core.jit import jit as _jit
+from ..runtime.jit import jit as _jit
 from ._cpu_kernels import HALF, TILE
 
 

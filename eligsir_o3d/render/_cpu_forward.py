@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import prange
 
-from ..core.jit import compile_kernel as _compile
+from ..runtime.jit import compile_kernel as _compile
 from ._cpu_kernels import ALPHA_MIN, ONE, SOURCE_CRC, T_MIN, TILE, ZERO, conic_alpha, gather_tile
 
 

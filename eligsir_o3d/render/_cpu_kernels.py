@@ -43,8 +43,8 @@ from llvmlite import ir
 from numba import prange, types
 from numba.extending import intrinsic
 
-from ..core.jit import jit as _jit
-from ..core.jit import jit_serial as _jit_serial
+from ..runtime.jit import jit as _jit
+from ..runtime.jit import jit_serial as _jit_serial
 
 TILE = 16
 ALPHA_MAX = np.float32(0.999)

@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numba import prange
 
-from ..core.jit import jit as _jit
+from ..runtime.jit import jit as _jit
 
 C0 = np.float32(0.28209479177387814)
 C1 = np.float32(0.4886025119029199)

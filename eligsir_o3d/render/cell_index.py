@@ -88,7 +88,7 @@ class CellIndex:
     def rows(self, V: np.ndarray, cam: np.ndarray) -> np.ndarray:
         """int64 ids, ascending, of the rows the row test keeps for world-to-camera ``V`` and ``cam``
         (:func:`.culling.camera_bounds`)."""
-        from ..core.jit import rows_threads
+        from ..runtime.jit import rows_threads
         from ._cull_kernels import group_boxes, groups_hit, listed_rows, frustum_rows
 
         if self._stale():

@@ -75,7 +75,7 @@ def _proj_kernels():
 
 
 def _jit():
-    from ..core import jit  # numba loads with the kernels, not with eligsir_o3d.render
+    from ..runtime import jit  # numba loads with the kernels, not with eligsir_o3d.render
     return jit
 
 

@@ -51,7 +51,7 @@ def in_view(means: torch.Tensor, log_scales: torch.Tensor, camera: Camera, T_wor
         from ..kernels.reference import in_view_torch
 
         return in_view_torch(means, log_scales, camera, T_world_cam, low_pass)
-    from ..core.jit import rows_threads
+    from ..runtime.jit import rows_threads
     from ._cull_kernels import frustum_rows
 
     V = world_to_cam(T_world_cam, "cpu", torch.float64).numpy()

@@ -93,7 +93,7 @@ class _Sh1Cpu(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, sh, dirs):
-        from ..core.jit import rows_threads
+        from ..runtime.jit import rows_threads
         from ._sh_kernels import sh1_forward
 
         sh_c, dirs_c = sh.detach().contiguous(), dirs.detach().contiguous()
@@ -105,7 +105,7 @@ class _Sh1Cpu(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
-        from ..core.jit import rows_threads
+        from ..runtime.jit import rows_threads
         from ._sh_kernels import sh1_backward
 
         sh_c, dirs_c = ctx.saved_tensors

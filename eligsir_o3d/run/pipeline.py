@@ -19,7 +19,6 @@ import numpy as np
 
 from ..config import Config
 from ..core.frame import Frame
-from ..pose.refine import HELDOUT_POSE_RULES
 from .cost_source import CALIBRATION_FRAMES, run_cost_model  # noqa: F401 (CALIBRATION_FRAMES: its old home)
 from .frame_faults import BAD_FRAME_ERRORS, frame_fault
 from .lock import RunLock
@@ -223,11 +222,8 @@ class MappingPipeline:
                 self._checkpoint(self.rec)
         self.rec.stats.excluded_s += time.perf_counter() - t0
 
-    def _render(self, frame: Frame):  # a held-out view: its given pose, moved into a pose-refined map's frame
-        T = frame.T_world_cam
-        if self.pose_source is None:  # tracked training poses have errors the (ground-truth) held-out poses lack
-            T = self.rec.pose_refine.heldout_pose(frame.index, T)
-        return self.rec.render(T, frame.camera)
+    def _render(self, frame: Frame):  # a held-out view at its pose (moved into a tracked map's frame by evaluate)
+        return self.rec.render(frame.T_world_cam, frame.camera)
 
     def _checkpoint(self, r) -> None:
         self.evaluator.checkpoint(self._render, t_s=r.stats.mapping_s,
@@ -280,22 +276,14 @@ class MappingPipeline:
         self._checkpoint(self.rec)  # the curve ends at the evaluated map state (p = 1)
         self.accuracy = trajectory_accuracy_of(self.seq, self.trajectory, self.out, self.opts, self.outputs) \
             if self.pose_source is not None else {}
-        if self.accuracy or self.heldout_tracking is not None:  # held-out poses into the (refined) map's frame
+        if self.accuracy or self.heldout_tracking is not None:  # held-out poses into the tracked map's frame
             from ..eval.tracked_heldout import heldout_into_map_frame
 
             # evaluation poses stay the ground truth's (or the evaluation trajectory's), moved by the alignment of
-            # the refined tracked source poses to them (the paper's "training-pose alignment")
-            ref = self.rec.pose_refine
+            # the tracked source poses to them (the paper's "training-pose alignment")
             truth = dict(enumerate(self.seq.poses)) if self.accuracy else self.heldout_tracking.source_poses
-            heldout_into_map_frame(self.heldout_frames, {i: ref.carried_pose(i, T, always=True)
-                                                         for i, (_, T) in self.trajectory.items()}, truth)
+            heldout_into_map_frame(self.heldout_frames, {i: T for i, (_, T) in self.trajectory.items()}, truth)
         self.final = self.evaluator.final(self._render)
-        self.pose_rule_scores = None  # a pose-refined map: the held-out figure under each rule (given: the strict one)
-        if self.rec.pose_refine.moved and self.pose_source is None:
-            ref = self.rec.pose_refine
-            self.pose_rule_scores = {rule: self.evaluator.scores(
-                lambda f: self.rec.render(ref.heldout_pose(f.index, f.T_world_cam, rule), f.camera))
-                for rule in HELDOUT_POSE_RULES}
 
     # ---- write ---------------------------------------------------------------------------------------------
     def write(self) -> dict:
@@ -307,7 +295,7 @@ class MappingPipeline:
             frames_total=self.n, frames_heldout=len(self.held), frames_source=len(self.source),
             map_state=self.map_state, pose_name=self.pose_name, tracked=self.pose_source is not None,
             cost_model_source=self.cost_model_source, final=self.final, accuracy=self.accuracy,
-            pose_rule_scores=self.pose_rule_scores, heldout_untracked=None if tracking is None else tracking.untracked,
+            heldout_untracked=None if tracking is None else tracking.untracked,
             curve=self.evaluator.curve, wall_s=self.wall_s, eval_s=self.evaluator.eval_seconds,
             decode_s=self.decode_s, acquisition_s=self.seq_acquisition_s(), skipped=self.skipped,
             heldout_skipped=self.heldout_skipped, trajectory=self.trajectory, heldout_frames=self.heldout_frames,

@@ -2,8 +2,7 @@
 config), run.json (the sequence, the run options and the camera: with config.json, everything a rerun needs),
 metrics.json (the summary a user reads), cells.json (the final per-cell table of the regional evaluation),
 fidelity_trace.csv (Load-Adaptive Fidelity's decisions, one row per update), views_trace.csv (the view policy's
-admissions, promotions, demotions and final replays per view), trajectory_refined.txt (with pose
-refinement: the mapped frames' poses in the map's refined frame) and plots. metrics.json names the
+admissions, promotions, demotions and final replays per view) and plots. metrics.json names the
 side files it comes with in ``files`` (read them with :func:`read_cells`, :func:`read_fidelity_trace`).
 
     eligsir map --rerun runs/kitchen --out runs/kitchen-again     # the same run again, from the folder alone
@@ -21,13 +20,12 @@ from pathlib import Path
 import numpy as np
 
 from .options import RunOptions
-from ..core.threads import report as threads_report
+from ..runtime.threads import report as threads_report
 
 RUN_FILE = "run.json"  # read back by read_run
 CELLS_FILE = "cells.json"
 FIDELITY_TRACE_FILE = "fidelity_trace.csv"
 VIEWS_TRACE_FILE = "views_trace.csv"  # the view policy's admissions, promotions, demotions (scheduling.views_trace)
-REFINED_TRAJECTORY_FILE = "trajectory_refined.txt"  # pose refinement: the mapped frames in the map's frame
 
 
 @dataclasses.dataclass
@@ -38,7 +36,7 @@ class RunResult:
     out: Path  # the results folder
     sequence: str  # the sequence path as given
     opts: RunOptions  # run.json records them
-    rec: object  # the Reconstructor: its map, config, camera, stats, policies and pose refinement
+    rec: object  # the Reconstructor: its map, config, camera, stats and policies
     report: object  # the clock's report: elapsed_s (modelled), released, integrated, dropped, skipped_bad
     clock: str  # the clock's name ("realtime": mapping time is the wall-clock time)
     frames_total: int
@@ -50,7 +48,6 @@ class RunResult:
     cost_model_source: dict  # where the cost model came from ({} without one)
     final: dict  # the evaluator's final metrics of the evaluated map state (HeldoutEvaluator.final)
     accuracy: dict  # the tracked trajectory's accuracy against the ground truth ({} when not tracked or no truth)
-    pose_rule_scores: dict | None  # a pose-refined map: the held-out figure under each held-out pose rule
     heldout_untracked: list | None  # held-out views tracked by the pose source ({"index", "reason"} each it could
     #                                 not track); None when the held-out views had their poses
     curve: list  # the evaluation checkpoints
@@ -99,15 +96,14 @@ def collect_metrics(r: RunResult) -> dict:
         # source, which tracked them without admitting them into the map; views it could not track are left out
         "heldout_pose_origin": heldout_pose_label(r.pose_name, r.heldout_untracked is not None),
         "heldout_untracked": list(r.heldout_untracked or []),
-        # the rule "heldout" used: with pose refinement pose_refine.heldout_poses ("aligned", the paper's rule, by
-        # default); without it "given" (the map's frame is the given one); a tracked run's views are aligned to
-        # the ground truth through its tracked poses ("aligned" as well)
+        # the rule "heldout" used: "given" (the map's frame is the given one); a tracked run's views are aligned
+        # to the ground truth through its tracked poses ("aligned")
         "heldout_pose_rule": heldout_rule(r),
-        # with pose refinement: the same views at their given poses as they are (the strict figure), and under
-        # each rule of pose_refine.heldout_poses ("heldout" is the configured one's)
-        "heldout_given_poses": (r.pose_rule_scores or {}).get("given"),
-        "heldout_by_pose_rule": r.pose_rule_scores,
-        "pose_refine": rec.pose_refine.summary() if rec.pose_refine.active else None,
+        # the figures of a pose-refined map, which this mapper does not make: kept null so that the keys of
+        # metrics.json stay those results folders already have
+        "heldout_given_poses": None,
+        "heldout_by_pose_rule": None,
+        "pose_refine": None,
         "cvq_auc": final.get("cvq_auc"),
         "cvq_final": final.get("cvq_final"),
         "cuc20_final": final.get("cuc20_final"),
@@ -149,7 +145,7 @@ def heldout_rule(r: RunResult) -> str:
     """The held-out pose rule of ``metrics["heldout"]`` (see :func:`collect_metrics`)."""
     if r.tracked:
         return "aligned" if r.accuracy else "tracked"
-    return r.rec.pose_refine.cfg.heldout_poses if r.rec.pose_refine.moved else "given"
+    return "given"
 
 
 def write_results(r: RunResult, metrics: dict) -> None:
@@ -159,25 +155,19 @@ def write_results(r: RunResult, metrics: dict) -> None:
     from ..io.atomic import atomic_write_text
     from ..eval import write_plots
     from ..pose.trajectory import write_tum_trajectory
-    from ..export_baked import write_web_for_viewers
-    from ..export_splats import parse_formats
+    from ..export.web import parse_formats, write_web
 
     out, rec, outputs = r.out, r.rec, r.outputs
     outputs.stage(out / "map.ply", rec.save_ply, out / "map.ply")
     items = sorted(r.trajectory.items())
     web = parse_formats(r.opts.formats)[1:]
     if web:  # map.spz / map.splat beside map.ply, for web players (fixed 0.3 px^2): the map's low-pass baked in
-        # once, at the depths the mapped views (in the map's frame) saw each Gaussian
-        views = [rec.pose_refine.carried_pose(i, T, always=True) if rec.pose_refine.moved else T
-                 for i, (_, T) in items]
-        outputs.stage(out / f"map.{web[0]}", write_web_for_viewers, rec.gmap, rec.camera, views,
+        # once, at the depths the mapped views saw each Gaussian
+        views = [T for _, (_, T) in items]
+        outputs.stage(out / f"map.{web[0]}", write_web, rec.gmap, camera=rec.camera, poses=views,
                       **{fmt: out / f"map.{fmt}" for fmt in web})
     outputs.stage(out / "trajectory.txt", write_tum_trajectory, out / "trajectory.txt",
                   [ts for _, (ts, _) in items], [T for _, (_, T) in items])
-    if rec.pose_refine.moved:  # the mapped frames' poses in the map's refined frame
-        moved = [rec.pose_refine.carried_pose(i, T, always=True) for i, (_, T) in items]
-        outputs.stage(out / REFINED_TRAJECTORY_FILE, write_tum_trajectory, out / REFINED_TRAJECTORY_FILE,
-                      [ts for _, (ts, _) in items], moved)
     outputs.stage(out / "config.json", rec.config.save, out / "config.json")
     if r.opts.pictures:
         from ..visual.run_pictures import write_result_pictures

@@ -13,11 +13,11 @@ from .fixed_work import FixedWorkConfig
 from .keyframes import KeyframesConfig, StrideKeyframes
 from .plain import FixedFidelity
 from .seeding import NewSpaceSeeding, SeedingConfig
-from .support import ProbeConfig, SupportConfig, SupportProbe
+from .support import SupportConfig, SupportProbe
 from .views import MapGuidedViews, ViewConfig
 
 __all__ = ["ABLATIONS", "FidelityConfig", "FidelityPolicy", "FixedWorkConfig", "GrowthConfig", "GrowthPolicy",
-           "KeyframesConfig", "LoadAdaptiveFidelity", "MCMCConfig", "MapContext", "MapGuidedViews", "ProbeConfig",
+           "KeyframesConfig", "LoadAdaptiveFidelity", "MCMCConfig", "MapContext", "MapGuidedViews",
            "SeedingConfig", "SupportConfig", "TargetedGrowth", "ViewConfig", "ViewPolicy", "get_policies"]
 
 ABLATIONS = ("views", "fidelity", "growth")

@@ -35,7 +35,6 @@ class FixedWorkConfig:
     shed_backlog: int = 3  # frames waiting at which frames without the full check get no update while behind
 
 
-LoadConfig = FixedWorkConfig  # the class's name (in scheduling/load.py) before the vocabulary matched the key
 
 
 @dataclass(frozen=True)

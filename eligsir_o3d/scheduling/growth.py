@@ -37,14 +37,6 @@ class GrowthConfig:
     voxel_size: float = 0.05  # metres per evidence voxel (about 4x4 probe pixels of a 640x480 view at 2 m)
     seed_stride: int = 4  # sparse support: one seed per 4x4 probe pixels (16x16 source pixels at probe scale 1/4)
     max_seeds_per_frame: int = 1500  # bound on the sparse support one frame may add
-    # where new space is seeded from: "probe" (the probe's 1/4-scale image on the seed_stride grid) or "adaptive"
-    # (the source image, area-averaged to the finest grid whose seeds the frame's seed bound and the room under the
-    # cap still allow, never finer than seed_min_stride source pixels: a larger map is seeded finer). "adaptive"
-    # (max_seeds_per_frame 6000, seed_min_stride 4; drawn with the map's low-pass) gains 0.45 dB on the SUN3D
-    # study room and loses 0.49 dB on the 7-Scenes kitchen at the default budget (issue 32, docs/evaluation.md):
-    # the extra seeds cost updates (1050 -> 872 on the kitchen) that a kitchen-length sequence needs
-    seed_resolution: str = "probe"
-    seed_min_stride: int = 2  # adaptive seeding: at most one seed per 2x2 source pixels
     # where the run's views agree at full resolution (point supervision, ``MapContext.seed_scale``), seed_stride
     # counts pixels of the updates' scale instead of the probe's: 8 source pixels apart at 1/2-scale updates, 4 at
     # full scale, unchanged at 1/4. The rendered room, seeds 0 / 1: 160x120 22.30 / 22.59 -> 24.65 / 24.85 dB,
@@ -87,10 +79,6 @@ class TargetedGrowth(GrowthPolicy):
         self.mcmc = MCMCRefiner(self.cfg.mcmc, seed=seed)
         self.rng = torch.Generator().manual_seed(seed + 1)
         self.counts = {"seeded": 0, "reseeded": 0, "inserted": 0, "replaced": 0}
-        if self.cfg.seed_resolution not in ("probe", "adaptive"):
-            raise ValueError(f"growth.seed_resolution must be 'probe' or 'adaptive', got {self.cfg.seed_resolution!r}")
-        if self.cfg.seed_min_stride < 1:
-            raise ValueError(f"growth.seed_min_stride must be >= 1, got {self.cfg.seed_min_stride}")
         if not 0.0 <= self.cfg.budget_scale <= 1.0:
             raise ValueError(f"growth.budget_scale must lie in [0, 1], got {self.cfg.budget_scale}")
         self.budget = BudgetCap(self.cfg.budget_updates, self.cfg.budget_min_gaussians)
@@ -129,11 +117,8 @@ class TargetedGrowth(GrowthPolicy):
 
         # sparse structural support where space is seen for the first time and nothing renders there
         new_space = first_seen & sup.unsupported[vs, us]
-        if self.cfg.seed_resolution == "adaptive":
-            added = self._seed_fine(sup, frame, vs[new_space], us[new_space], ctx, cap)
-        else:
-            added = self._insert(sup, frame, vs[new_space], us[new_space], self._seed_stride(sup, frame, ctx),
-                                 self.cfg.max_seeds_per_frame, ctx, "seeded", cap)
+        added = self._insert(sup, frame, vs[new_space], us[new_space], self._seed_stride(sup, frame, ctx),
+                             self.cfg.max_seeds_per_frame, ctx, "seeded", cap)
 
         # evidence: one vote per distinct view for known voxels it finds mostly unexplained; explained loses one
         known = ~first_seen
@@ -166,7 +151,7 @@ class TargetedGrowth(GrowthPolicy):
         fade). Without it the first views of the rendered room stay coarse: 160x120 23.46 / 23.23 dB instead of
         24.65 / 24.85."""
         added = 0
-        if ctx.seed_scale is None or not self.cfg.seed_follows_detail or self.cfg.seed_resolution != "probe":
+        if ctx.seed_scale is None or not self.cfg.seed_follows_detail:
             return added  # seeds on the probe's grid: nothing finer to add
         for frame in frames:
             sup = self.probe.check(frame, ctx)
@@ -214,27 +199,6 @@ class TargetedGrowth(GrowthPolicy):
         seeds = seeds_from_depth(sup.color, sup.depth, sup.camera, frame.T_world_cam, mask, stride, budget,
                                  self.rng, self.cfg.footprint)
         return self._place(seeds, room, dead, ctx, what)
-
-    def _seed_fine(self, sup, frame: Frame, vs, us, ctx: MapContext, cap: int) -> int:
-        """Sparse support for new space from the source image: the probe pixels (vs, us) mark where; the seeds sit
-        on the finest grid of the source image (area-averaged colour, nearest depth) whose seed count fits this
-        frame's bound and the room under ``cap`` (at most one seed per ``seed_min_stride``^2 source pixels), each
-        sized to its grid cell at its depth, so a newly seen region starts as sharp as the budget allows."""
-        if vs.numel() == 0:
-            return 0
-        room, dead, budget = self._room(ctx, self.cfg.max_seeds_per_frame, cap)
-        if budget <= 0:
-            return 0
-        src_px = vs.numel() * frame.camera.pixels / sup.camera.pixels  # source pixels the probe pixels stand for
-        stride = max(self.cfg.seed_min_stride, math.ceil(math.sqrt(src_px / budget)))
-        color, depth, cam = frame.at_scale(1.0 / stride, "cpu")
-        probe = torch.zeros_like(sup.valid)
-        probe[vs, us] = True
-        mask = torch.nn.functional.interpolate(probe[None, None].float(), size=(cam.height, cam.width),
-                                               mode="nearest")[0, 0] > 0.5
-        seeds = seeds_from_depth(color, depth, cam, frame.T_world_cam, mask, 1, budget, self.rng,
-                                 self.cfg.footprint)
-        return self._place(seeds, room, dead, ctx, "seeded")
 
     def _place(self, seeds, room: int, dead: torch.Tensor, ctx: MapContext, what: str) -> int:
         """Append ``seeds`` (means, rgbs, scales) while there is room, then write the rest over ``dead``."""

@@ -78,4 +78,3 @@ class StrideKeyframes(ViewPolicy):
         self.trace.load_state_dict(state.get("trace", {}))
 
 
-StrideConfig = KeyframesConfig  # the class's name before the config vocabulary matched the key (issue 27)

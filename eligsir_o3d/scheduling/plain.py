@@ -5,8 +5,8 @@
 from __future__ import annotations
 
 from .base import FidelityPolicy
-from .keyframes import KeyframesConfig, StrideConfig, StrideKeyframes  # noqa: F401 (their home before issue 27)
-from .seeding import NewSpaceSeeding, SeedingConfig, unsupported_mask  # noqa: F401
+from .keyframes import StrideKeyframes  # noqa: F401 (the plain view policy, for one import of all three)
+from .seeding import NewSpaceSeeding  # noqa: F401 (the plain growth policy)
 
 
 class FixedFidelity(FidelityPolicy):

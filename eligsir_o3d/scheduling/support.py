@@ -28,7 +28,6 @@ class SupportConfig:
         return coarser_for(self.scale, camera, self.follow_camera)
 
 
-ProbeConfig = SupportConfig  # the class's name before the config vocabulary matched the key (issue 27)
 
 
 @dataclass

@@ -102,7 +102,7 @@ class LiveView:
 
     def show_results(self, out_dir: str | Path) -> None:
         """Replace the live scene with the saved map of a finished run (splats, cameras, go-to buttons)."""
-        from ..export import DEFAULT_CAMERA, camera_next_to
+        from ..export.views import DEFAULT_CAMERA, camera_next_to
         from ..pose.trajectory import read_tum_trajectory
         from .splats import read_splats
 

@@ -53,7 +53,7 @@ def read_splats(path: str | Path, min_opacity: float = 0.0, bake: bool = True) -
 
     A browser splat renderer adds 3DGS's fixed 0.3 px^2, so with ``bake`` a map supervised coarser than its
     camera (``run.json`` and ``trajectory.txt`` beside it: a results folder) gets its low-pass baked in
-    (:func:`eligsir_o3d.export_baked.baked_for_viewers`), as the web formats do; other PLYs are drawn as they are."""
+    (:func:`eligsir_o3d.export.viewers.baked_for_viewers`), as the web formats do; other PLYs are drawn as they are."""
     from ..io.ply import PlyError, load_ply
 
     path = Path(path)
@@ -66,9 +66,10 @@ def read_splats(path: str | Path, min_opacity: float = 0.0, bake: bool = True) -
 
 
 def _baked_if_known(gmap: GaussianMap, path: Path) -> GaussianMap:
-    from ..export_baked import for_viewers_next_to
+    from ..export.viewers import for_viewers
+    from ..export.views import camera_next_to, poses_next_to
 
     try:
-        return for_viewers_next_to(gmap, path)[0]
+        return for_viewers(gmap, camera_next_to(path), poses_next_to(path))[0]
     except ValueError:  # an unreadable trajectory: the viewer still shows the map as it is
         return gmap

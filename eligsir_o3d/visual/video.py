@@ -32,10 +32,10 @@ def _quat_wxyz(R: np.ndarray) -> np.ndarray:
 
 
 def _rot(q: np.ndarray) -> np.ndarray:
-    from ..core.camera import quat_to_rotmat
+    from ..core.camera import pose_from_tum
 
     w, x, y, z = q
-    return quat_to_rotmat(np.array([x, y, z, w]))
+    return pose_from_tum(np.zeros(3), np.array([x, y, z, w]))[:3, :3]
 
 
 def smooth_path(poses: Sequence[np.ndarray], n_out: int | None = None, sigma: float | None = None) -> list[np.ndarray]:
@@ -207,7 +207,7 @@ def render_map_file(map_ply: str | Path, poses_file: str | Path, out_dir: str | 
     """What ``eligsir render`` runs: a PLY rendered at every pose of a TUM trajectory (camera from the
     ``config.json`` beside the map, else 640x480 fx = fy = 525), scaled by ``scale``; ``smooth`` > 0 smooths the
     path with a Gaussian of that many poses first."""
-    from ..export import DEFAULT_CAMERA, camera_next_to
+    from ..export.views import DEFAULT_CAMERA, camera_next_to
     from ..io.ply import load_ply
     from ..pose.trajectory import read_tum_trajectory
 

@@ -258,7 +258,7 @@ def open_map_viewer(map_ply: str | Path, host: str = "127.0.0.1", port: int = 80
                     trajectory: str | Path | None = None, mesh: str | Path | None = None,
                     point_cloud: str | Path | None = None, max_cameras: int = 40) -> MapViewer:
     """Serve ``map_ply`` (any 3DGS PLY) with the trajectory, mesh and point cloud found beside it or given."""
-    from ..export import DEFAULT_CAMERA, camera_next_to
+    from ..export.views import DEFAULT_CAMERA, camera_next_to
     from ..pose.trajectory import read_tum_trajectory
     from .splats import read_splats
 

@@ -36,9 +36,6 @@ class _Rec:
     class config:
         renderer = "torch"
 
-        class pose_refine:
-            enabled = True
-
 
 def test_a_quiet_fit_is_recorded_and_reused(machine):
     m, info = cal.cached_cost_model(_Rec())

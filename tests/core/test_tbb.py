@@ -1,6 +1,7 @@
-"""numba's threading layer (eligsir_o3d/tbb_runtime.py): TBB when the ``tbb`` wheel is installed and eligsir_o3d is
-imported before Open3D, OpenMP otherwise (silently), the user's NUMBA_THREADING_LAYER first; and the same map bit
-for bit on either layer. Each case runs in a fresh interpreter: a process picks its layer once."""
+"""numba's threading layer (eligsir_o3d/runtime/tbb.py): TBB when the ``tbb`` wheel is installed and eligsir_o3d's
+kernels or public names are used before Open3D is imported, OpenMP otherwise (silently), the user's
+NUMBA_THREADING_LAYER first; and the same map bit for bit on either layer. Each case runs in a fresh interpreter: a
+process picks its layer once."""
 
 import hashlib
 import importlib.metadata
@@ -12,7 +13,7 @@ import sys
 
 import pytest
 
-from eligsir_o3d import tbb_runtime
+from eligsir_o3d.runtime import tbb as tbb_runtime
 
 
 def _has_tbb_wheel() -> bool:
@@ -28,7 +29,7 @@ needs_tbb = pytest.mark.skipif(not _has_tbb_wheel(), reason="the tbb wheel is Li
 LAYER = """
 import {first}
 import numba, numpy as np
-import eligsir_o3d.core.jit
+import eligsir_o3d.runtime.jit
 @numba.njit(parallel=True)
 def f(x):
     for i in numba.prange(x.shape[0]):
@@ -41,7 +42,7 @@ print(numba.threading_layer())
 # so the TBB and OpenMP schedules both run): a digest of every parameter
 MAP = """
 import hashlib, numba, torch
-import eligsir_o3d.core.jit as jit
+import eligsir_o3d.runtime.jit as jit
 jit.ROWS_LIMIT = jit.PARALLEL_MIN_PIXELS = 1
 from eligsir_o3d import Config, Reconstructor
 from eligsir_o3d.datasets.synthetic import SyntheticRoom
@@ -97,8 +98,8 @@ def test_the_same_map_bit_for_bit_on_tbb_and_openmp():
 
 
 def test_the_interface_version_is_read_from_the_library_that_loaded_first():
-    code = ("import {first}\nfrom eligsir_o3d import tbb_runtime\n"
-            "print(tbb_runtime.interface_version(), tbb_runtime.usable())")
+    code = ("import {first}\nfrom eligsir_o3d import runtime\nfrom eligsir_o3d.runtime import tbb\n"
+            "runtime.prepare()\nprint(tbb.interface_version(), tbb.usable())")
     got = {}
     for first in ("eligsir_o3d", "open3d"):
         r = _run(code.format(first=first))
@@ -109,3 +110,30 @@ def test_the_interface_version_is_read_from_the_library_that_loaded_first():
         assert got["eligsir_o3d"][0] >= tbb_runtime.MIN_INTERFACE and got["eligsir_o3d"][1]
     if got["open3d"][0] is not None:  # Open3D's own TBB, where its wheel bundles one
         assert got["open3d"][1] == (got["open3d"][0] >= tbb_runtime.MIN_INTERFACE)
+
+
+@needs_tbb
+def test_the_public_names_prepare_the_process_before_open3d_loads():
+    """``eligsir_o3d.Reconstructor`` (the first use) loads the tbb wheel's library before Open3D: the kernels then
+    run on TBB, as in a mapping run."""
+    code = "import eligsir_o3d\neligsir_o3d.Reconstructor\nimport open3d\n" + LAYER.format(first="numba")
+    r = _run(code)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split()[-1] == "tbb"
+
+
+IMPORT_ONLY = """
+import os, sys
+env, hooks, modules = dict(os.environ), list(sys.meta_path), set(sys.modules)
+import eligsir_o3d
+maps = open("/proc/self/maps").read() if os.path.exists("/proc/self/maps") else ""
+print(dict(os.environ) == env, sys.meta_path == hooks, "libtbb" in maps,
+      sorted(m for m in set(sys.modules) - modules if m.split(".")[0] in ("eligsir_o3d", "open3d", "torch", "numba")))
+"""
+
+
+def test_import_eligsir_o3d_has_no_side_effects_beyond_imports():
+    """No environment variable set, no import hook installed, no shared library loaded, nothing heavy imported."""
+    r = _run(IMPORT_ONLY)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.strip().splitlines()[-1] == "True True False ['eligsir_o3d', 'eligsir_o3d._version']"

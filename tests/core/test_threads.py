@@ -1,6 +1,6 @@
 """Threads while mapping on the CPU: torch's own operations run on ``optim.torch_threads`` (1 by default) inside
 integrate/optimize and the caller's count is restored after; a compiled kernel over little work runs on one numba
-thread (core.jit.threads_for), with the same bits as on all of them."""
+thread (runtime.jit.threads_for), with the same bits as on all of them."""
 
 import numba
 import numpy as np
@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from eligsir_o3d import Config, Reconstructor
-from eligsir_o3d.core.jit import threads_for
-from eligsir_o3d.core.threads import TORCH_MIN_PIXELS, TORCH_MIN_ROWS, torch_threads
+from eligsir_o3d.runtime.jit import threads_for
+from eligsir_o3d.runtime.threads import TORCH_MIN_PIXELS, TORCH_MIN_ROWS, torch_threads
 from eligsir_o3d.datasets.synthetic import SyntheticRoom
 
 

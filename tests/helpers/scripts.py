@@ -18,14 +18,13 @@ def load_script(relpath: str, name: str | None = None):
 
 def synthetic_run(out: Path, updates_per_frame: int, drain_updates: int) -> Path:
     """A results folder of ``eligsir map``'s pipeline on 16 frames of the synthetic room (every 4th held out), at a
-    fixed number of updates per frame and without pose refinement (the given poses are the map's), for the tests
+    fixed number of updates per frame (the given poses are the map's), for the tests
     of the benchmarks that read results folders."""
     from eligsir_o3d import Config
     from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 
     cfg = Config(renderer="cpu")
     cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", updates_per_frame, drain_updates
-    cfg.pose_refine.enabled = False
     run_mapping("synthetic", out, cfg, RunOptions(max_frames=16, holdout_every=4, eval_every=0, progress=False,
                                                   plots=False, pictures=False))
     return out

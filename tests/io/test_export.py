@@ -12,8 +12,9 @@ import torch
 import eligsir_o3d as eo3d
 from eligsir_o3d.core.camera import pose_to_tum
 from eligsir_o3d.datasets import open_sequence
-from eligsir_o3d.export import export_from_ply, extract_point_cloud, extract_triangle_mesh, orient_towards, \
-    sphere_poses
+from eligsir_o3d.export import export_from_ply, extract_point_cloud, extract_triangle_mesh
+from eligsir_o3d.export.geometry import orient_towards
+from eligsir_o3d.export.views import sphere_poses
 from eligsir_o3d.core.gaussians import GaussianMap, sh0_to_rgb
 from eligsir_o3d.io.ply import PlyError, load_ply, save_ply
 

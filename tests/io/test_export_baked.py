@@ -1,4 +1,4 @@
-"""eligsir_o3d.export_baked: a map baked for viewers with 3DGS's fixed 0.3 px^2 low-pass draws there as this
+"""eligsir_o3d.export.viewers: a map baked for viewers with 3DGS's fixed 0.3 px^2 low-pass draws there as this
 package draws the map with its own low-pass; depths come from the nearest view that sees each Gaussian; the CLI
 writes it from a results folder and names what is missing."""
 
@@ -13,8 +13,9 @@ from eligsir_o3d import Config
 from eligsir_o3d.cli.app import app
 from eligsir_o3d.core.camera import Camera
 from eligsir_o3d.core.gaussians import EPS2D, GaussianMap
-from eligsir_o3d.export_baked import (baked_for_viewers, nearest_depths, write_for_viewers, write_web_for_map,
-                                      write_web_for_viewers)
+from eligsir_o3d.export.viewers import baked_for_viewers, nearest_depths, write_for_viewers
+from eligsir_o3d.export.views import camera_next_to, poses_next_to
+from eligsir_o3d.export.web import write_web
 from eligsir_o3d.io.ply import load_ply, save_ply
 from eligsir_o3d.render import get_renderer
 from eligsir_o3d.run.pipeline import RunOptions, run_mapping
@@ -101,10 +102,8 @@ def test_missing_camera_or_poses_and_overwriting_are_clear_errors(run_folder, tm
 
 
 def _splat_bytes(gm: GaussianMap, tmp_path, name: str) -> bytes:
-    """The .splat that write_web_formats makes of ``gm`` as it is (no bake)."""
-    from eligsir_o3d.export_splats import write_web_formats
-
-    write_web_formats(save_ply(gm, tmp_path / "plain" / f"{name}.ply"), splat=tmp_path / "plain" / f"{name}.splat")
+    """The .splat that write_web makes of ``gm`` as it is (no camera: no bake)."""
+    write_web(gm, splat=tmp_path / "plain" / f"{name}.splat")
     return (tmp_path / "plain" / f"{name}.splat").read_bytes()
 
 
@@ -113,13 +112,13 @@ def test_web_formats_carry_the_baked_low_pass(tmp_path):
     supervised scale, or one without poses, is written as it is."""
     gm = _near_axis_map()
     out = tmp_path / "out"
-    s = write_web_for_viewers(gm, CAM, [np.eye(4)], splat=out / "a.splat")
+    s = write_web(gm, splat=out / "a.splat", camera=CAM, poses=[np.eye(4)])
     assert s["baked_low_pass_px2"] == pytest.approx(gm.low_pass(CAM)) and s["gaussians"] == len(gm)
     plain = _splat_bytes(gm, tmp_path, "plain")
     assert (out / "a.splat").read_bytes() == _splat_bytes(baked_for_viewers(gm, CAM, [np.eye(4)]), tmp_path, "b")
     assert (out / "a.splat").read_bytes() != plain
     for cam, poses in ((CAM.scaled(0.25), [np.eye(4)]), (CAM, None)):
-        s = write_web_for_viewers(gm, cam, poses, splat=out / "b.splat")
+        s = write_web(gm, splat=out / "b.splat", camera=cam, poses=poses)
         assert s["baked_low_pass_px2"] == EPS2D and (out / "b.splat").read_bytes() == plain
     assert sorted(p.name for p in out.iterdir()) == ["a.splat", "b.splat"]  # no temporary file left
 
@@ -133,7 +132,9 @@ def test_map_and_export_write_baked_web_formats(run_folder, tmp_path):
     assert res.exit_code == 0 and "baked_low_pass_px2" in res.output, res.output
     assert (tmp_path / "e.splat").read_bytes() == written
     lone = save_ply(gm, tmp_path / "lone" / "map.ply")  # no run.json nor trajectory beside it: as it is
-    assert write_web_for_map(lone, splat=tmp_path / "f.splat")["baked_low_pass_px2"] == EPS2D
+    assert camera_next_to(lone) is None and poses_next_to(lone) is None
+    res = CliRunner().invoke(app, ["export", str(lone), "--splat", str(tmp_path / "f.splat")])
+    assert res.exit_code == 0 and "baked_low_pass_px2: 0.3" in res.output, res.output
 
 
 def test_viewer_draws_a_results_folder_baked(run_folder, tmp_path):

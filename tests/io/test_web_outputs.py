@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from eligsir_o3d import Config
-from eligsir_o3d.export_baked import write_for_viewers
-from eligsir_o3d.export_splats import parse_formats, rdf_to_rub, read_splats, spz_order, write_web_formats
+from eligsir_o3d.export.viewers import write_for_viewers
+from eligsir_o3d.export.web import parse_formats, rdf_to_rub, splat_cloud, spz_order, write_web
+from eligsir_o3d.io.ply import load_ply
 from eligsir_o3d.run.pipeline import RunOptions, run_mapping
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -39,6 +40,13 @@ def _run(tmp_path, sh_degree: int, frames: int = 16) -> Path:
 @pytest.fixture(scope="module")
 def run_sh0(tmp_path_factory):
     return _run(tmp_path_factory.mktemp("web"), 0)
+
+
+def read_splats(map_ply: Path):
+    """A 3DGS PLY as Open3D's reader makes it (a Gaussian-splat point cloud)."""
+    import open3d as o3d
+
+    return o3d.t.io.read_point_cloud(str(map_ply))
 
 
 def _sigmoid(x):
@@ -128,19 +136,60 @@ def test_formats_and_bad_paths():
     assert parse_formats("spz, ply,splat") == ["ply", "spz", "splat"]
     with pytest.raises(ValueError, match="unknown map format"):
         parse_formats("ply,gltf")
-    with pytest.raises(ValueError, match="no such map"):
-        write_web_formats("/nonexistent/map.ply", spz="x.spz")
+    from eligsir_o3d.core.gaussians import GaussianMap
+
+    with pytest.raises(ValueError, match="nothing to write"):
+        write_web(GaussianMap(0))
 
 
 def test_spz_refuses_positions_its_fixed_point_cannot_hold(run_sh0, tmp_path):
-    import open3d as o3d
-
-    far = read_splats(run_sh0 / "map.ply")
-    far.point["positions"] = far.point["positions"] + 3000.0  # 3 km off: beyond 2^23 / 2^12 m
-    o3d.t.io.write_point_cloud(str(tmp_path / "far.ply"), far)
-    with pytest.raises(ValueError, match=r"far\.ply: a Gaussian lies 30\d\d m from the origin; SPZ positions reach 2048 m"):
-        write_web_formats(tmp_path / "far.ply", spz=tmp_path / "far.spz")
+    far = load_ply(run_sh0 / "map.ply")
+    far.params["means"].data += 3000.0  # 3 km off: beyond 2^23 / 2^12 m
+    with pytest.raises(ValueError, match=r"far\.spz: a Gaussian lies 30\d\d m from the origin; SPZ positions reach 2048 m"):
+        write_web(far, spz=tmp_path / "far.spz")
     assert not (tmp_path / "far.spz").exists()
+
+
+@pytest.mark.parametrize("sh_degree", [0, 2])
+def test_the_map_in_memory_is_what_open3d_reads_from_its_ply(tmp_path, sh_degree):
+    """splat_cloud is, field for field and bit for bit, Open3D's reading of the map's PLY; so SPZ and .splat
+    written from memory are the bytes the PLY would give, with no PLY written."""
+    import open3d as o3d
+    import torch
+
+    from eligsir_o3d.core.gaussians import GaussianMap
+    from eligsir_o3d.io.ply import save_ply
+
+    g = torch.Generator().manual_seed(sh_degree)
+    gm = GaussianMap(sh_degree)
+    n = 5000
+    gm.add(torch.randn(n, 3, generator=g), torch.rand(n, 3, generator=g), torch.rand(n, 3, generator=g) * 0.1, 0.5)
+    gm.params["scales"].data = torch.empty(n, 3).uniform_(-12.0, 2.0, generator=g)
+    gm.params["quats"].data = torch.randn(n, 4, generator=g)
+    gm.params["opacities"].data = torch.randn(n, generator=g) * 4
+    gm.params["shN"].data = torch.randn(gm.params["shN"].shape, generator=g)
+    ref = read_splats(save_ply(gm, tmp_path / "m.ply"))
+    mine = splat_cloud(gm)
+    for key in ("positions", "f_dc", "f_rest", "opacity", "scale", "rot"):
+        assert (key in mine.point) == (key in ref.point), key
+        if key in ref.point:
+            np.testing.assert_array_equal(mine.point[key].numpy(), ref.point[key].numpy(), err_msg=key)
+    write_web(gm, spz=tmp_path / "a.spz", splat=tmp_path / "a.splat")
+    plain = o3d.t.geometry.PointCloud()
+    for key in ("positions", "f_dc", "opacity", "scale", "rot", "f_rest"):
+        if key in ref.point:
+            plain.point[key] = ref.point[key]
+    o3d.t.io.write_point_cloud(str(tmp_path / "b.splat"), plain)
+    rub = rdf_to_rub(ref)
+    order = spz_order(rub)
+    reordered = o3d.t.geometry.PointCloud()
+    for key in ("positions", "f_dc", "opacity", "scale", "rot", "f_rest"):
+        if key in rub.point:
+            reordered.point[key] = o3d.core.Tensor(np.ascontiguousarray(rub.point[key].numpy()[order]))
+    o3d.t.io.write_point_cloud(str(tmp_path / "b.spz"), reordered)
+    assert (tmp_path / "a.splat").read_bytes() == (tmp_path / "b.splat").read_bytes()
+    assert (tmp_path / "a.spz").read_bytes() == (tmp_path / "b.spz").read_bytes()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.splat", "a.spz", "b.splat", "b.spz", "m.ply"]
 
 
 def test_heldout_picture_of_real_frames_is_at_most_300_kB():

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from eligsir_o3d import _open3d_check
-from eligsir_o3d._open3d_check import MissingSystemLibrary, hint, import_open3d
+from eligsir_o3d.runtime import open3d_check as _open3d_check
+from eligsir_o3d.runtime.open3d_check import MissingSystemLibrary, hint, import_open3d
 
 ROOT = Path(__file__).resolve().parents[2]
 # The loader's own words, as `import open3d` prints them on a machine without libusb (Open3D 0.19/0.20 wheels).

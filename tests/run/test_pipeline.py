@@ -127,9 +127,9 @@ def test_pose_from_a_trajectory_file_is_used_and_scored(tmp_path):
     assert m["pose_source"] == str(traj) and (tmp_path / "out" / "trajectory.txt").is_file()
 
 
-def test_a_tracked_and_pose_refined_map_is_aligned_to_the_ground_truth_by_its_refined_poses(tmp_path, monkeypatch):
-    """With a pose source the held-out ground-truth poses enter the map's frame by one alignment; the map lives in the
-    refined frame, so the alignment takes the refined tracked poses, not the tracked poses as they came."""
+def test_a_tracked_map_is_aligned_to_the_ground_truth_by_its_tracked_poses(tmp_path, monkeypatch):
+    """With a pose source the held-out ground-truth poses enter the map's frame by one alignment, fitted to the
+    tracked poses the map was made at."""
     from eligsir_o3d.datasets import open_sequence
     from eligsir_o3d.pose import accuracy, write_tum_trajectory
 
@@ -139,18 +139,12 @@ def test_a_tracked_and_pose_refined_map_is_aligned_to_the_ground_truth_by_its_re
     seen = []
     orig = accuracy.pose_alignment
     monkeypatch.setattr(accuracy, "pose_alignment", lambda est, gt: seen.append(list(est)) or orig(est, gt))
-    cfg = _cfg()
-    cfg.pose_refine.enabled, cfg.pose_refine.lr, cfg.pose_refine.min_updates = True, 2e-3, 0
-    p = MappingPipeline("synthetic", tmp_path / "out", cfg, _opts(max_frames=12, pose=str(traj), eval_every=0,
-                                                                  pictures=False))
+    p = MappingPipeline("synthetic", tmp_path / "out", _cfg(), _opts(max_frames=12, pose=str(traj), eval_every=0,
+                                                                     pictures=False))
     p.run()
-    ref = p.rec.pose_refine
-    assert ref.moved and seen
-    items = list(p.trajectory.items())
-    want = [ref.carried_pose(i, T, always=True) for i, (_, T) in items]
-    for got, w in zip(seen[-1], want):
-        np.testing.assert_allclose(got, w, atol=1e-12)
-    assert any(not np.allclose(w, T, atol=1e-9) for w, (_, (_, T)) in zip(want, items))
+    assert seen
+    for got, (_, (_, T)) in zip(seen[-1], p.trajectory.items()):
+        np.testing.assert_allclose(got, T, atol=1e-12)
 
 
 def test_cli_keeps_the_config_files_values_unless_an_option_overrides_them(tmp_path):
@@ -196,8 +190,9 @@ def test_progress_is_the_streams_so_a_run_that_drops_frames_still_ends_at_p_1(tm
     assert m["updates"] < 40 and len(ps) >= 8 and max(b - a for a, b in zip(ps, ps[1:])) <= 0.1 + 1 / 42 + 1e-9
 
 
-def test_pose_refined_run_renders_heldout_views_at_aligned_poses_and_reports_carried_and_given(tmp_path,
-                                                                                             monkeypatch):
+def test_heldout_views_render_at_their_given_poses(tmp_path, monkeypatch):
+    """The final evaluation renders each held-out view at its given pose; the figures of a pose-refined map stay
+    null in metrics.json and the rule is "given"."""
     from eligsir_o3d.reconstructor import Reconstructor
 
     rendered = []
@@ -208,30 +203,11 @@ def test_pose_refined_run_renders_heldout_views_at_aligned_poses_and_reports_car
         return orig(self, pose, *a, **kw)
 
     monkeypatch.setattr(Reconstructor, "render", spy)
-    cfg = _cfg()
-    cfg.pose_refine.enabled, cfg.pose_refine.lr, cfg.pose_refine.min_updates = True, 2e-3, 0
-    p = MappingPipeline("synthetic", tmp_path, cfg, _opts(max_frames=12, eval_every=0, pictures=False))
+    p = MappingPipeline("synthetic", tmp_path, _cfg(), _opts(max_frames=12, eval_every=0, pictures=False))
     m = p.run()
     held = p.heldout_frames
-    assert m["pose_refine"]["views"] > 0 and m["heldout_given_poses"]["psnr"] > 0
-    carried = [p.rec.pose_refine.carried_pose(f.index, f.T_world_cam, always=True) for f in held]
-    assert all(not np.allclose(c, f.T_world_cam, atol=1e-9) for c, f in zip(carried, held))
-    # the final evaluation rendered each held-out view at its aligned pose (the paper's rule, the headline), then
-    # under each rule: aligned (the training views' one rigid alignment), carried (the map's refined frame), given
-    n = len(held)
-    final = rendered[-4 * n:]
-    A = p.rec.pose_refine.alignment()
-    assert not np.allclose(A, np.eye(4), atol=1e-9)
-    aligned = [A @ f.T_world_cam for f in held]
-    for k, want in enumerate((aligned, aligned, carried, [f.T_world_cam for f in held])):
-        for w, r in zip(want, final[k * n:(k + 1) * n]):
-            np.testing.assert_allclose(r, w, atol=1e-12)
-    rules = m["heldout_by_pose_rule"]
-    assert list(rules) == ["aligned", "carried", "given"] and rules["given"] == m["heldout_given_poses"]
-    assert abs(rules["aligned"]["psnr"] - m["heldout"]["psnr"]) < 1e-9 and m["heldout_pose_rule"] == "aligned"
-    assert m["heldout"]["psnr"] != m["heldout_given_poses"]["psnr"]
-    rows = [ln.split() for ln in (tmp_path / "trajectory_refined.txt").read_text().splitlines()
-            if not ln.startswith("#")]
-    assert len(rows) == len(p.trajectory)
-    given = [ln.split() for ln in (tmp_path / "trajectory.txt").read_text().splitlines() if not ln.startswith("#")]
-    assert rows != given and [r[0] for r in rows] == [g[0] for g in given]  # same frames, refined poses
+    given = {f.T_world_cam.tobytes() for f in held}
+    assert held and given <= {r.tobytes() for r in rendered}
+    assert m["heldout_pose_rule"] == "given"
+    assert (m["pose_refine"], m["heldout_given_poses"], m["heldout_by_pose_rule"]) == (None, None, None)
+    assert not (tmp_path / "trajectory_refined.txt").exists()

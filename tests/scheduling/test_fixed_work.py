@@ -6,7 +6,7 @@ import pytest
 
 import eligsir_o3d as eo3d
 from eligsir_o3d.budget.stages import StageTimes, detail
-from eligsir_o3d.scheduling.fixed_work import FULL, FramePlan, LoadConfig, LoadScaledChecks
+from eligsir_o3d.scheduling.fixed_work import FULL, FramePlan, FixedWorkConfig, LoadScaledChecks
 
 
 def _plans(policy, backlogs, at_lowest=False):
@@ -20,7 +20,7 @@ def test_no_backlog_every_frame_gets_the_full_check():
 
 
 def test_checks_thin_out_with_the_backlog_and_come_back():
-    p = LoadScaledChecks(LoadConfig(max_check_every=4))
+    p = LoadScaledChecks(FixedWorkConfig(max_check_every=4))
     # backlog 1: every 2nd frame checked; backlog 3 (or more): every 4th
     assert [x.check for x in _plans(p, [1] * 6)] == [False, True] * 3
     assert [x.check for x in _plans(p, [5] * 8)] == [False, False, False, True] * 2
@@ -29,7 +29,7 @@ def test_checks_thin_out_with_the_backlog_and_come_back():
 
 
 def test_support_render_scale_and_updates_follow_the_depth_of_the_backlog():
-    cfg = LoadConfig(low_res_backlog=2, low_res_factor=0.5, shed_backlog=3)
+    cfg = FixedWorkConfig(low_res_backlog=2, low_res_factor=0.5, shed_backlog=3)
     p = LoadScaledChecks(cfg)
     one = p.plan(1)
     assert one.probe_factor == 1.0 and one.update_behind  # shallow backlog: full-res render, update kept
@@ -43,7 +43,7 @@ def test_support_render_scale_and_updates_follow_the_depth_of_the_backlog():
 
 
 def test_switched_off_it_plans_the_full_work_whatever_the_load():
-    p = LoadScaledChecks(LoadConfig(enabled=False))
+    p = LoadScaledChecks(FixedWorkConfig(enabled=False))
     assert all(x == FULL for x in _plans(p, [0, 1, 4, 10, 50], at_lowest=True))
 
 
@@ -57,7 +57,7 @@ def test_state_round_trip_continues_the_same_decisions():
 
 def test_bad_config_is_a_clear_error():
     with pytest.raises(ValueError, match="max_check_every"):
-        LoadScaledChecks(LoadConfig(max_check_every=0))
+        LoadScaledChecks(FixedWorkConfig(max_check_every=0))
 
 
 def _room(n=14):

@@ -200,14 +200,14 @@ def test_get_policies_swaps_each_ablated_mechanism():
     assert isinstance(v, StrideKeyframes) and isinstance(f, FixedFidelity) and f.scale() == 1.0
     assert isinstance(g, NewSpaceSeeding) and g.cfg.dense
     with pytest.raises(ValueError, match="unknown ablation"):
-        get_policies(eo3d.Config(ablate=("scheduling",)))  # the old name of "views": config files are migrated
+        get_policies(eo3d.Config(ablate=("scheduling",)))  # "views" is the name
 
 
 # ---- Targeted Geometry Growth -------------------------------------------------------------------------------------
 
 def test_growth_needs_repeated_evidence_before_inserting():
     ctx = _ctx()
-    growth = TargetedGrowth(GrowthConfig(min_views=2, seed_resolution="probe"))  # the probe's sparse grid
+    growth = TargetedGrowth(GrowthConfig(min_views=2))  # the probe's sparse grid
     T = _pose()
     seeded = growth.on_frame(_plane_frame(T, 0), True, ctx)
     assert seeded > 0 and growth.counts["seeded"] == seeded  # sparse support for space seen the first time
@@ -231,31 +231,6 @@ def test_growth_is_suppressed_where_the_map_explains_the_view():
     for i in range(1, 5):
         assert growth.on_frame(_plane_frame(T, i), True, ctx) == 0
     assert len(ctx.gmap) == n
-
-
-def test_adaptive_seeding_is_as_fine_as_the_room_under_the_cap_allows():
-    """New space is seeded from the source image on the finest grid the room allows (never finer than
-    seed_min_stride), with the grid cell's area-averaged colour and a scale of its footprint at its depth."""
-    f = _plane_frame(_pose(), 0)
-    ctx = _ctx()
-    growth = TargetedGrowth(GrowthConfig(seed_resolution="adaptive", seed_min_stride=2))
-    n_full = growth.on_frame(f, True, ctx)
-    assert n_full == len(ctx.gmap) == (64 // 2) * (48 // 2)  # one seed per 2x2 source pixels (the floor)
-    scales = ctx.gmap.scales.detach()
-    assert torch.allclose(scales, torch.full_like(scales, 2.0 * 2 / 50.0 * 0.5))  # depth * stride / f * footprint
-    block = f.color.reshape(24, 2, 32, 2, 3).mean((1, 3)).reshape(-1, 3)  # the 2x2 area averages
-    got = ctx.gmap.colors().detach()
-    assert torch.cdist(got, block).min(1).values.max() < 1e-4  # each seed carries one block's average
-    small = _ctx(cap=100)
-    n = TargetedGrowth(GrowthConfig(seed_resolution="adaptive", seed_min_stride=2)).on_frame(f, True, small)
-    assert 0 < n <= 100 and len(small.gmap) == n  # the cap bounds the seeds; the grid coarsens to fit
-    coarse = small.gmap.scales.detach()  # about ceil(sqrt(64 * 48 / 100)) = 6 source pixels per seed
-    assert torch.allclose(coarse, coarse[0, 0]) and 2.0 * 5 / 50 * 0.5 < float(coarse[0, 0]) < 2.0 * 7 / 50 * 0.5
-    sparse = _ctx()
-    n_probe = TargetedGrowth(GrowthConfig(seed_resolution="probe")).on_frame(f, True, sparse)
-    assert 0 < n_probe < n_full // 16  # the probe's grid (one seed per 16x16 source pixels) is far sparser
-    with pytest.raises(ValueError, match="seed_resolution"):
-        TargetedGrowth(GrowthConfig(seed_resolution="fine"))
 
 
 def test_seeds_are_spaced_in_pixels_of_the_seed_scale_and_earlier_views_get_the_finer_grid():

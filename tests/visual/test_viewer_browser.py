@@ -86,7 +86,7 @@ def test_eligsir_view_draws_a_third_party_sh3_map_in_chromium(tmp_path):
     from eligsir_o3d.pose.trajectory import read_tum_trajectory
 
     first = read_tum_trajectory(traj)[1][0]
-    from eligsir_o3d.export import DEFAULT_CAMERA
+    from eligsir_o3d.export.views import DEFAULT_CAMERA
 
     empty = MapViewer(port=0)  # the same page and start view with nothing in the scene
     empty.set_start_view(splats, first, DEFAULT_CAMERA)

@@ -11,9 +11,7 @@ VoxelBlockGrid call in :func:`extract_triangle_mesh`.
 
 from __future__ import annotations
 
-import json
 import logging
-import math
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -21,14 +19,11 @@ import numpy as np
 import open3d as o3d
 import torch
 
-from .core.camera import Camera, check_pose, invert_pose
-from .render.projection import quat_to_rotmat  # columns are the Gaussians' axes
-from .core.gaussians import GaussianMap, sh0_to_rgb
+from ..core.camera import Camera, check_pose, invert_pose
+from ..core.gaussians import GaussianMap, sh0_to_rgb
+from ..render.projection import quat_to_rotmat  # columns are the Gaussians' axes
 
 log = logging.getLogger("eligsir_o3d")
-
-DEFAULT_CAMERA = Camera(640, 480, 525.0, 525.0, 319.5, 239.5)  # the OpenNI / TUM default
-
 
 # ---- point cloud ---------------------------------------------------------------------------------------
 @torch.no_grad()
@@ -146,62 +141,7 @@ def extract_triangle_mesh(render_fn: Callable, poses: Sequence[np.ndarray], came
     return mesh
 
 
-# ---- viewpoints ----------------------------------------------------------------------------------------
-def look_at(eye: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """Camera-to-world pose (OpenCV axes: z forward, y down) at ``eye`` looking at ``target``."""
-    z = np.asarray(target, np.float64) - np.asarray(eye, np.float64)
-    z /= np.linalg.norm(z)
-    up = np.asarray(up, np.float64)
-    if abs(float(z @ up)) > 0.99:  # looking along the up axis: any other reference will do
-        up = np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, np.cross(z, x), z], axis=1)
-    T[:3, 3] = eye
-    return T
-
-
-def sphere_poses(points: np.ndarray, camera: Camera, n_views: int = 40,
-                 margin: float = 1.1) -> tuple[list[np.ndarray], float]:
-    """Cameras on a Fibonacci sphere around the bounding box of ``points`` [M, 3], looking at its centre, far
-    enough that the box fits the field of view. Returns (poses, the depth range they need)."""
-    lo, hi = np.percentile(points, 1, axis=0), np.percentile(points, 99, axis=0)  # robust to floaters
-    centre, radius = (lo + hi) / 2, max(float(np.linalg.norm(hi - lo)) / 2, 1e-3)
-    half_fov = min(math.atan(camera.width / (2 * camera.fx)), math.atan(camera.height / (2 * camera.fy)))
-    dist = margin * radius / math.sin(half_fov)
-    k = np.arange(n_views) + 0.5
-    polar = np.arccos(1 - 2 * k / n_views)
-    azimuth = math.pi * (1 + 5 ** 0.5) * k
-    dirs = np.stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)], -1)
-    return [look_at(centre + dist * d, centre) for d in dirs], dist + 2 * radius
-
-
-def _subsample(poses: list[np.ndarray], max_views: int) -> list[np.ndarray]:
-    if len(poses) <= max_views:
-        return poses
-    idx = np.unique(np.linspace(0, len(poses) - 1, max_views).round().astype(int))
-    return [poses[i] for i in idx]
-
-
-def camera_next_to(map_ply: Path) -> Camera | None:
-    """The camera recorded in a results folder's ``run.json`` (key ``camera``), a ``config.json`` (key ``camera``
-    or ``intrinsic``, as older versions wrote it) or ``intrinsics.json`` beside the map, if any."""
-    for name in ("run.json", "config.json", "intrinsics.json"):
-        f = map_ply.parent / name
-        if not f.is_file():
-            continue
-        try:
-            data = json.loads(f.read_text())
-        except (OSError, json.JSONDecodeError):
-            continue
-        for cand in (data.get("camera"), data.get("intrinsic"), data) if isinstance(data, dict) else ():
-            if isinstance(cand, dict) and all(k in cand for k in ("width", "height", "fx", "fy", "cx", "cy")):
-                return Camera(int(cand["width"]), int(cand["height"]), float(cand["fx"]), float(cand["fy"]),
-                              float(cand["cx"]), float(cand["cy"]))
-    return None
-
-
+# ---- a saved map ---------------------------------------------------------------------------------------
 def export_from_ply(map_ply: str | Path, mesh_path: str | Path | None = None, cloud_path: str | Path | None = None,
                     poses: Sequence[np.ndarray] | str | Path | None = None, camera: Camera | None = None,
                     voxel_size: float = 0.02, depth_max: float = 5.0, min_opacity: float = 0.1,
@@ -219,11 +159,11 @@ def export_from_ply(map_ply: str | Path, mesh_path: str | Path | None = None, cl
     fx = fy = 525; the mesh views are rendered at ``render_scale`` of it (half resolution already samples a
     surface 3 m away every 1.1 cm, finer than the default 2 cm voxels).
     """
-    from .datasets.base import read_tum_trajectory
-    from .io.ply import load_ply
-    from .render import get_renderer, render_map
-
-    from .io.guards import check_tsdf_memory, refuse_overwriting_inputs
+    from ..datasets.base import read_tum_trajectory
+    from ..io.guards import check_tsdf_memory, refuse_overwriting_inputs
+    from ..io.ply import load_ply
+    from ..render import get_renderer, render_map
+    from .views import DEFAULT_CAMERA, camera_next_to, sphere_poses, subsample
 
     map_ply = Path(map_ply)
     if mesh_path is None and cloud_path is None:
@@ -256,7 +196,7 @@ def export_from_ply(map_ply: str | Path, mesh_path: str | Path | None = None, cl
         poses, needed = sphere_poses(gmap.means.detach().cpu().numpy(), camera)
         mesh_depth_max = max(depth_max, needed)
         source = "sphere"
-    poses = _subsample([check_pose(T, f"view {i}: pose") for i, T in enumerate(poses)], max_views)
+    poses = subsample([check_pose(T, f"view {i}: pose") for i, T in enumerate(poses)], max_views)
     summary["views"], summary["view_source"] = len(poses), source
 
     if cloud_path is not None:

@@ -1,4 +1,4 @@
-"""Threads that pay on the CPU. The package waits passively for OpenMP work (``eligsir_o3d/__init__.py``: spinning
+"""Threads that pay on the CPU. The package waits passively for OpenMP work (:func:`eligsir_o3d.runtime.prepare`: spinning
 workers starve the main thread of a busy machine), so every parallel region wakes sleeping workers: ~55-60 us per
 region on the 2-core machines measured (a 2-thread region of trivial work; 1.5 us on one thread). A parallel step
 shorter than ~0.2 ms loses more to the wake-up than a second thread saves, and a 1/4-scale mapping update is made
@@ -34,7 +34,7 @@ from contextlib import contextmanager
 import torch
 
 PARALLEL_MIN_ROWS = 10_000  # Gaussians: compiled kernels over the rows in view (projection, culling, Adam, noise)
-# the same on numba's TBB layer (eligsir_o3d/tbb_runtime.py), whose workers need no wake-up: 4k in view at 1/4
+# the same on numba's TBB layer (eligsir_o3d/runtime/tbb.py), whose workers need no wake-up: 4k in view at 1/4
 # scale, 2 threads, stop 47: 7.6-7.9 -> 6.8-7.0 ms a quiet update (500-4000 alike), 14.4-16.6 -> 14.7-16.0 beside
 # a busy process
 PARALLEL_MIN_ROWS_TBB = 2_000
@@ -60,7 +60,7 @@ def torch_threads(n: int):
 
 def report() -> dict:
     """The threads a run had, for metrics.json: torch's count, and numba's count and threading layer once a
-    compiled kernel has run (``tbb`` where the ``tbb`` wheel loaded first, eligsir_o3d/tbb_runtime.py; else ``omp``)."""
+    compiled kernel has run (``tbb`` where the ``tbb`` wheel loaded first, eligsir_o3d/runtime/tbb.py; else ``omp``)."""
     import sys
 
     out = {"torch": torch.get_num_threads()}

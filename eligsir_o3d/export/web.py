@@ -1,9 +1,12 @@
-"""Maps for the web: SPZ (Niantic's compressed splats) and ``.splat`` (antimatter15's 32-byte records) from a 3DGS PLY.
+"""Maps for the web: SPZ (Niantic's compressed splats) and ``.splat`` (antimatter15's 32-byte records).
 
-    write_web_formats("runs/kitchen/map.ply", spz="map.spz", splat="map.splat")      # `eligsir export --spz ...`
+    write_web(rec.gmap, spz="map.spz", splat="map.splat", camera=rec.camera, poses=poses)   # `eligsir export --spz`
 
-Both are written by Open3D 0.20 (``o3d.t.io.write_point_cloud``), which writes what it is given. The formats'
-axis conventions differ, so this module converts first:
+The map goes from memory into Open3D's Gaussian-splat point cloud (:func:`splat_cloud`: the fields its 3DGS PLY
+reader makes), with the low-pass of the resolution it was supervised at baked in for players that add 3DGS's fixed
+0.3 px^2 (:func:`.viewers.for_viewers`; nothing is baked without a camera and poses). Both formats are written by
+Open3D 0.20 (``o3d.t.io.write_point_cloud``), which writes what it is given. The formats' axis conventions
+differ, so this module converts first:
 
 - SPZ stores RUB (x right, y up, z back: OpenGL / three.js), and its readers (the spz library, SuperSplat,
   Spark, Scaniverse) convert from RUB to their own axes. Our maps are RDF (x right, y down, z forward: OpenCV, the
@@ -27,10 +30,16 @@ degree 3 (the PLY at 248 bytes a Gaussian) SPZ is well over 6x smaller.
 
 from __future__ import annotations
 
+import functools
+import math
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import open3d as o3d
+
+from ..core.camera import Camera
+from ..core.gaussians import GaussianMap
 
 # sign of each real SH basis function (degrees 1..3, in the 3DGS order) under (x, y, z) -> (x, -y, -z)
 SH_SIGNS_RDF_RUB = np.array([-1, -1, 1,  # y, z, x
@@ -49,16 +58,33 @@ def parse_formats(text: str) -> list[str]:
     return ["ply"] + [t for t in dict.fromkeys(names) if t != "ply"]
 
 
-def read_splats(map_ply: str | Path) -> o3d.t.geometry.PointCloud:
-    """A 3DGS PLY as Open3D's Gaussian-splat point cloud (positions, f_dc, f_rest, opacity, scale, rot)."""
-    map_ply = Path(map_ply)
-    if not map_ply.is_file():
-        raise ValueError(f"{map_ply}: no such map")
-    pcd = o3d.t.io.read_point_cloud(str(map_ply))
-    missing = [k for k in ("positions", "f_dc", "opacity", "scale", "rot") if k not in pcd.point]
-    if missing:
-        raise ValueError(f"{map_ply}: not a 3DGS PLY (no {', '.join(missing)})")
-    return pcd
+def splat_cloud(gmap: GaussianMap) -> o3d.t.geometry.PointCloud:
+    """``gmap`` as Open3D's Gaussian-splat point cloud, field for field what Open3D's reader makes of the map's
+    3DGS PLY: positions [N, 3], f_dc [N, 3], f_rest [N, K, 3] (SH degree >= 1), opacity [N, 1] (logit), rot
+    [N, 4] (wxyz, as stored) and scale [N, 3] in metres (the log-scales through float32 ``expf``, as the reader
+    activates them)."""
+    p = {k: np.ascontiguousarray(v.detach().cpu().float().numpy()) for k, v in gmap.params.items()}
+    fields = {"positions": p["means"], "f_dc": p["sh0"][:, 0], "opacity": p["opacities"][:, None],
+              "scale": _expf()(p["scales"]), "rot": p["quats"]}
+    if p["shN"].shape[1]:
+        fields["f_rest"] = p["shN"]
+    cloud = o3d.t.geometry.PointCloud()
+    for key, a in fields.items():
+        cloud.point[key] = o3d.core.Tensor(np.ascontiguousarray(a, np.float32))
+    return cloud
+
+
+def _exp32(x):
+    return math.exp(x)
+
+
+@functools.lru_cache(maxsize=1)
+def _expf():
+    """A float32 ``exp`` ufunc by the C library's ``expf``, the one Open3D's PLY reader calls (numpy's and torch's
+    float32 ``exp`` differ from it in the last bit for some inputs)."""
+    from ..runtime import jit  # numba, with the process's threading layer chosen
+
+    return jit.numba.vectorize(["float32(float32)"], cache=True)(_exp32)
 
 
 def rdf_to_rub(pcd: o3d.t.geometry.PointCloud) -> o3d.t.geometry.PointCloud:
@@ -94,16 +120,8 @@ def _reordered(pcd: o3d.t.geometry.PointCloud, order: np.ndarray) -> o3d.t.geome
     return out
 
 
-def _splat_only(pcd: o3d.t.geometry.PointCloud) -> o3d.t.geometry.PointCloud:
-    out = o3d.t.geometry.PointCloud()
-    for key in ("positions", "f_dc", "opacity", "scale", "rot", "f_rest"):
-        if key in pcd.point:
-            out.point[key] = pcd.point[key]
-    return out
-
-
 def _write(path: Path, pcd) -> Path:
-    from .io.atomic import atomic_write  # written beside, then renamed: a reader never sees half a file
+    from ..io.atomic import atomic_write  # written beside, then renamed: a reader never sees half a file
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -118,20 +136,26 @@ def _write(path: Path, pcd) -> Path:
     return path
 
 
-def write_web_formats(map_ply: str | Path, spz: str | Path | None = None, splat: str | Path | None = None) -> dict:
-    """Write ``map_ply`` as SPZ (Gaussians in :func:`spz_order`) and/or ``.splat`` (in the PLY's order); returns
-    {"gaussians", "ply_bytes", "spz_bytes", "splat_bytes"}."""
+def write_web(gmap: GaussianMap, spz: str | Path | None = None, splat: str | Path | None = None,
+              camera: Camera | None = None, poses: Sequence[np.ndarray] | None = None) -> dict:
+    """Write ``gmap`` as SPZ (Gaussians in :func:`spz_order`) and/or ``.splat`` (in the map's order), its
+    low-pass baked in for ``camera`` at ``poses`` (camera-to-world; :func:`.viewers.for_viewers`). Returns
+    {"gaussians", "spz_bytes", "splat_bytes", "baked_low_pass_px2"} (0.3: nothing baked)."""
+    from .viewers import for_viewers
+
     if spz is None and splat is None:
         raise ValueError("nothing to write: give an .spz and/or a .splat path")
-    pcd = read_splats(map_ply)
-    summary = {"gaussians": int(pcd.point.positions.shape[0]), "ply_bytes": Path(map_ply).stat().st_size}
+    shown, low_pass = for_viewers(gmap, camera, poses)
+    cloud = splat_cloud(shown)
+    summary = {"gaussians": len(shown)}
     if spz is not None:
-        reach = float(np.abs(pcd.point.positions.numpy()).max(initial=0.0))
+        reach = float(np.abs(cloud.point.positions.numpy()).max(initial=0.0))
         if not reach < SPZ_REACH_M:  # 24-bit fixed point with 12 fractional bits: larger values would wrap around
-            raise ValueError(f"{map_ply}: a Gaussian lies {reach:.0f} m from the origin; SPZ positions reach "
+            raise ValueError(f"{spz}: a Gaussian lies {reach:.0f} m from the origin; SPZ positions reach "
                              f"{SPZ_REACH_M:.0f} m (recentre the map before exporting)")
-        rub = rdf_to_rub(pcd)
+        rub = rdf_to_rub(cloud)
         summary["spz_bytes"] = _write(Path(spz), _reordered(rub, spz_order(rub))).stat().st_size
     if splat is not None:
-        summary["splat_bytes"] = _write(Path(splat), _splat_only(pcd)).stat().st_size
+        summary["splat_bytes"] = _write(Path(splat), cloud).stat().st_size
+    summary["baked_low_pass_px2"] = low_pass
     return summary

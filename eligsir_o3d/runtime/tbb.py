@@ -1,7 +1,7 @@
 """oneTBB for numba's threading layer: load the ``tbb`` wheel's library before Open3D loads its own.
 
 Why numba should run its kernels on TBB here, not on OpenMP: the package makes OpenMP wait passively
-(``eligsir_o3d/__init__.py``: spinning workers starve the main thread of a busy machine), so every parallel
+(:func:`eligsir_o3d.runtime.prepare`: spinning workers starve the main thread of a busy machine), so every parallel
 region of an OpenMP kernel wakes a sleeping worker, ~55-60 us on the 2-core machines measured, and a 1/4-scale
 mapping update runs ~30 such regions. TBB's idle workers spin a little, yielding, before they sleep: the next
 region finds its worker awake, and on a loaded machine the yielding spin gives its time slice away. Measured on a
@@ -16,7 +16,7 @@ Two obstacles, both handled here with nothing but ``ctypes`` (``import eligsir_o
 - Open3D's Linux wheel bundles an older ``libtbb.so.12`` (interface 12050; numba needs >= 12060). Whichever
   library of that name loads first serves the whole process, Open3D included (oneTBB keeps its ABI within .12).
 
-So :func:`preload` runs before Open3D is imported. If Open3D came first (a script that imports open3d before
+So :func:`preload` runs before the package imports Open3D (:func:`eligsir_o3d.runtime.prepare`). If Open3D came first (a script that imports open3d before
 eligsir_o3d), its TBB serves and :func:`usable` is False: numba then runs on OpenMP, as before, with no warning.
 """
 

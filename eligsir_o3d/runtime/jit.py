@@ -2,8 +2,9 @@
 
 ``jit`` compiles a parallel kernel (``prange``), ``jit_serial`` a serial one; both are ``njit(cache=True)`` without
 fast-math (every target computes the same bits). Where numba finds no writable cache location the kernel still
-works, compiled once per process, after one warning. Importing this module imports numba and picks the threading
-layer, so only kernel modules import it (``import eligsir_o3d`` stays free of numba)."""
+works, compiled once per process, after one warning. Importing this module runs the process-level set-up
+(:func:`eligsir_o3d.runtime.prepare`), imports numba and picks the threading layer, so only kernel modules import
+it (``import eligsir_o3d`` stays free of numba)."""
 
 from __future__ import annotations
 
@@ -11,22 +12,24 @@ import os
 import warnings
 from contextlib import contextmanager
 
-import numba
+from . import prepare, tbb
 
-from .. import tbb_runtime
+prepare()  # the tbb wheel's library before Open3D's: numba's TBB layer needs the newer one
+
+import numba  # noqa: E402
 
 uncached: list[str] = []  # names of the kernels that compile in every process (no writable cache)
 
 
 def _select_threading_layer() -> bool:
-    """TBB where a recent enough one is loaded (:mod:`..tbb_runtime`: its workers need no wake-up per parallel region),
+    """TBB where a recent enough one is loaded (:mod:`.tbb`: its workers need no wake-up per parallel region),
     else OpenMP, never an old system TBB (numba would warn and skip it); the user's choice wins. True when the
     kernels will run on TBB."""
     if "NUMBA_THREADING_LAYER" in os.environ or "NUMBA_THREADING_LAYER_PRIORITY" in os.environ:
         return os.environ.get("NUMBA_THREADING_LAYER", "").lower() == "tbb"
-    tbb = tbb_runtime.usable()
-    numba.config.THREADING_LAYER_PRIORITY = (["tbb", "omp"] if tbb else ["omp", "tbb"]) + ["workqueue"]
-    return tbb
+    on_tbb = tbb.usable()
+    numba.config.THREADING_LAYER_PRIORITY = (["tbb", "omp"] if on_tbb else ["omp", "tbb"]) + ["workqueue"]
+    return on_tbb
 
 
 ON_TBB = _select_threading_layer()

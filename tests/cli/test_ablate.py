@@ -1,17 +1,32 @@
-"""tools/ablation.py (Table III): the table, its per-seed means, the CUC@20 cell counts and the issue's criteria,
-read back from results folders (--table-only), and the acquisition-speed default."""
+"""eligsir ablate (Table III): the table, its per-seed means, the CUC@20 cell counts and the paper's criteria, read
+back from results folders (--table-only); eligsir map's options and defaults; a short real run of two variants."""
 
+import inspect
 import json
 from pathlib import Path
 
 import pytest
+from typer.testing import CliRunner
 
-from helpers.scripts import load_script
+from eligsir_o3d.cli.ablate_cmd import ablate_cmd
+from eligsir_o3d.cli.app import app
+
+
+class _Cli:
+    """``main([...])`` runs ``eligsir ablate ...`` and returns its exit status; its output is printed (capsys)."""
+
+    @staticmethod
+    def main(argv) -> int:
+        r = CliRunner().invoke(app, ["ablate", *argv])
+        print(r.output)
+        if r.exit_code == 2 and "error:" in r.output:
+            raise SystemExit(r.output)
+        return r.exit_code
 
 
 @pytest.fixture(scope="module")
 def ablation():
-    return load_script("tools/ablation.py", "ablation_tool")
+    return _Cli()
 
 
 def _write(run: Path, psnr, auc, cuc_cells, n_cells, mpix):
@@ -24,8 +39,20 @@ def _write(run: Path, psnr, auc, cuc_cells, n_cells, mpix):
     (run / "metrics.json").write_text(json.dumps(m))
 
 
-def test_default_speed_is_the_recorded_rate(ablation):
-    assert ablation.parse_args([]).speed == 1.0  # the paper's online ablations run at acquisition speed
+def test_the_options_are_eligsir_maps():
+    """Every option of eligsir map that makes sense for several runs, with the same default; speed: the config's,
+    the recorded rate (the paper's online ablations run at acquisition speed)."""
+    from eligsir_o3d import Config
+    from eligsir_o3d.cli.app import map_cmd
+
+    mine, theirs = inspect.signature(ablate_cmd).parameters, inspect.signature(map_cmd).parameters
+    shared = set(mine) & set(theirs)
+    assert set(theirs) - shared == {"ablate", "rerun", "resume", "checkpoint_every", "force_unlock", "view",
+                                    "view_port", "view_host"}
+    assert set(mine) - shared == {"variants", "seeds", "table_only"}
+    for name in shared:
+        assert mine[name].default is theirs[name].default, name
+    assert Config().clock.speed == 1.0
 
 
 def test_seed_means_cell_counts_and_criteria(ablation, tmp_path, capsys):
@@ -57,6 +84,8 @@ def test_single_runs_keep_the_variant_folders(ablation, tmp_path, capsys):
 def test_bad_seeds_are_named(ablation, tmp_path):
     with pytest.raises(SystemExit, match="--seeds"):
         ablation.main(["--out", str(tmp_path), "--table-only", "--seeds", "0,x"])
+    with pytest.raises(SystemExit, match="unknown variant"):
+        ablation.main(["--out", str(tmp_path), "--table-only", "--variants", "full,scheduling"])
 
 
 def test_the_fidelity_trace_figure_is_drawn_beside_the_fixed_resolution_curve(ablation, tmp_path, capsys):
@@ -78,3 +107,17 @@ def test_the_fidelity_trace_figure_is_drawn_beside_the_fixed_resolution_curve(ab
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     assert (int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")) == (840, 780)
     assert f"fidelity trace: {tmp_path / 'fidelity_trace.png'}" in capsys.readouterr().out
+
+
+def test_a_short_run_of_two_variants(tmp_path):
+    """Each variant is an eligsir map run with the shared options; the ablated one records its ablation."""
+    out = tmp_path / "abl"
+    r = CliRunner().invoke(app, ["ablate", "synthetic", "--max-frames", "6", "--clock", "updates",
+                                 "--updates-per-frame", "2", "--eval-every", "0", "--holdout-every", "3",
+                                 "--no-pictures", "--variants", "full,growth", "--out", str(out), "-q"])
+    assert r.exit_code == 0, r.output
+    ablate = {v: json.loads((out / v / "config.json").read_text())["ablate"] for v in ("full", "growth")}
+    assert ablate == {"full": [], "growth": ["growth"]}
+    rows = json.loads((out / "table.json").read_text())["rows"]
+    assert set(rows) == {"full", "growth"} and rows["full"]["updates"] > 0
+    assert "| EliGSiR |" in r.output and "| w/o targeted growth |" in r.output
