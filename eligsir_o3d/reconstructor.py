@@ -89,7 +89,7 @@ class Reconstructor(ReconstructorState):
         self.callbacks: list[Callable[["Reconstructor"], None]] = []  # after every update; time excluded
         self.timing = StageTimes()  # wall seconds per stage (admission, growth, update, tracking): stage_times
         self._background = torch.tensor(self.config.background, dtype=torch.float32, device=self.device)
-        self.view, self.last_in_view = None, None  # the running update's InView (culled); the last one's size
+        self.view, self.last_in_view = None, None  # the running update's RowView (the rows in view); the last one's size
         self.set_load(0, self.config.clock.frame_period_s)
         if self.offline_frames is not None:  # the means' step size decays over the offline schedule
             install_means_lr_decay(self, self.fidelity, self.config.clock.offline_means_lr_final)

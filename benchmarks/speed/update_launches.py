@@ -177,8 +177,11 @@ def build(kernels: str, frames: int = 12, size: tuple[int, int] | None = None):
     from eligsir_o3d.datasets import open_sequence
     from eligsir_o3d.render.gsplat_backend import GsplatRenderer
 
-    sys.path.insert(0, str(ROOT / "tests"))
-    from helpers import gsplat_standin
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("gsplat_standin", ROOT / "tests" / "helpers" / "gsplat_standin.py")
+    gsplat_standin = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gsplat_standin)
 
     mp = pytest.MonkeyPatch()
     rasterization = gsplat_standin.patch(mp)

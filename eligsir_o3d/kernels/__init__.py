@@ -23,7 +23,8 @@ KERNEL_SETS = ("auto", "numba", "torch", "fused")
 __all__ = ["KERNEL_SETS", "KernelSet", "RowView", "StepTerms", "get_kernels"]
 
 
-def get_kernels(name: str = "auto", device: str | torch.device = "cpu", dtype: torch.dtype = torch.float32) -> KernelSet:
+def get_kernels(name: str = "auto", device: str | torch.device = "cpu",
+                dtype: torch.dtype = torch.float32) -> KernelSet:
     """The kernel set ``name`` (see the module docstring) for a map on ``device`` with parameters of ``dtype``."""
     device = torch.device(device)
     if name not in KERNEL_SETS:

@@ -15,6 +15,7 @@ import torch
 
 from ..core.camera import Camera
 from ..core.gaussians import EPS2D, PARAM_NAMES
+from ..render.culling import gather_rows as gather_raw
 from .base import KernelSet, RowView, StepTerms, adam_factors, moments
 
 
@@ -26,23 +27,6 @@ def regulariser(view: RowView, terms: StepTerms) -> torch.Tensor | None:
     lv = view.leaves
     return (terms.opacity_reg * torch.sigmoid(lv["opacities"]).sum()
             + terms.scale_reg * torch.exp(lv["scales"]).sum() / 3.0) / view.n_map
-
-
-def gather_raw(gmap, idx: torch.Tensor, grad: bool) -> dict:
-    """The rows ``idx`` of every raw parameter as new tensors (float32 contiguous CPU parameters: one compiled pass
-    for all of them; otherwise torch's indexing)."""
-    params = [gmap.params[n].detach() for n in PARAM_NAMES]
-    if idx.device.type != "cpu" or any(p.dtype != torch.float32 or not p.is_contiguous() for p in params):
-        return {n: p[idx].requires_grad_(grad) for n, p in zip(PARAM_NAMES, params)}
-    from ..runtime.jit import rows_threads
-    from ..render._cull_kernels import _gather_view
-
-    outs = [torch.empty((idx.numel(),) + tuple(p.shape[1:]), dtype=torch.float32) for p in params]
-    widths = [p[0].numel() if len(p) else 0 for p in params]  # shN of degree 0: width 0
-    with rows_threads(idx.numel()):
-        _gather_view(tuple(p.view(len(p), w).numpy() for p, w in zip(params, widths)), idx.numpy(),
-                     tuple(o.view(idx.numel(), w).numpy() for o, w in zip(outs, widths)))
-    return {n: o.requires_grad_(grad) for n, o in zip(PARAM_NAMES, outs)}
 
 
 class NumbaKernels(KernelSet):

@@ -14,25 +14,7 @@ from ..core.gaussians import EPS2D, PARAM_NAMES
 from ..render.projection import quat_to_rotmat
 from .base import KernelSet, RowView, StepTerms, adam_factors, moments
 from .cpu import regulariser
-
-
-def in_view_torch(means: torch.Tensor, log_scales: torch.Tensor, camera: Camera, T_world_cam,
-                  low_pass: float = EPS2D) -> torch.Tensor:
-    """Ids [M] (ascending, on the map's device) of the rows that can reach the image: the bound of
-    :func:`..render.culling.camera_bounds` in float64 torch operators."""
-    from ..render.culling import camera_bounds, view_matrix
-
-    cam = camera_bounds(camera, low_pass)
-    R, t = view_matrix(T_world_cam)
-    p = means.detach().double() @ torch.as_tensor(R.T, device=means.device) + torch.as_tensor(t, device=means.device)
-    x, y, z = p.unbind(-1)
-    front = z > cam[6]
-    zs = torch.where(front, z, torch.ones_like(z))
-    s = torch.exp(log_scales.detach().double().amax(-1).clamp(max=80.0))
-    r = 3.0 * torch.sqrt(s * s * cam[7] / (zs * zs) + cam[8]) * 1.001 + 2.0
-    u, v = cam[0] * x / zs + cam[2], cam[1] * y / zs + cam[3]
-    hit = front & (u + r > -0.5) & (u - r < cam[4] - 0.5) & (v + r > -0.5) & (v - r < cam[5] - 0.5)
-    return torch.nonzero(hit).squeeze(1)
+from ..render.culling import in_view_torch
 
 
 @torch.no_grad()

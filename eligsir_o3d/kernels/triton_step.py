@@ -132,7 +132,8 @@ def step_rows(params: dict, exp_avg: dict, exp_avg_sq: dict, idx, count, grads: 
            *pmv("means"), grad("means"), *pmv("quats"), grad("quats"), *pmv("scales"), grad("scales"),
            *pmv("opacities"), grad("opacities"), *pmv("sh0"), *pmv("shN"),
            dummy if gc is None else gc.contiguous(), z.contiguous() if noise else dummy,
-           *(_h(adam.get(k)) for k in ("means", "quats", "scales", "opacities", "sh0", "shN")), float(opacity_reg / n_map), float(scale_reg / (3.0 * n_map)),
+           *(_h(adam.get(k)) for k in ("means", "quats", "scales", "opacities", "sh0", "shN")),
+           float(opacity_reg / n_map), float(scale_reg / (3.0 * n_map)),
            float(scaler), k3, HAS_M=has["means"], HAS_Q=has["quats"], HAS_S=has["scales"], HAS_O=has["opacities"],
            HAS_C=gc is not None, DEG0=gc is not None and gc.ndim == 2, NOISE=noise, BLOCK=block,
            WSH=triton.next_power_of_2(k3 + 3))

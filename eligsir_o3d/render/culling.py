@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from ..core.camera import Camera
+from ..core.gaussians import PARAM_NAMES
 from .projection import EPS2D, NEAR, world_to_cam
 
 
@@ -46,10 +47,8 @@ def in_view(means: torch.Tensor, log_scales: torch.Tensor, camera: Camera, T_wor
             low_pass: float = EPS2D) -> torch.Tensor:
     """Ids [M] int64 (ascending, on the map's device) of the Gaussians (raw means [N, 3], log scales [N, 3]) that
     can reach ``camera``'s image at ``T_world_cam``; a superset of those the renderer draws (with ``low_pass``).
-    Compiled for float32 CPU rows, torch operators (:func:`..kernels.reference.in_view_torch`) otherwise."""
+    Compiled for float32 CPU rows, torch operators (:func:`in_view_torch`) otherwise."""
     if not compiled_rows(means, log_scales):
-        from ..kernels.reference import in_view_torch
-
         return in_view_torch(means, log_scales, camera, T_world_cam, low_pass)
     from ..runtime.jit import rows_threads
     from ._cull_kernels import frustum_rows
@@ -59,6 +58,23 @@ def in_view(means: torch.Tensor, log_scales: torch.Tensor, camera: Camera, T_wor
         rows = frustum_rows(means.detach().contiguous().numpy(), log_scales.detach().contiguous().numpy(), V,
                             camera_bounds(camera, low_pass))
     return torch.from_numpy(rows)
+
+
+def in_view_torch(means: torch.Tensor, log_scales: torch.Tensor, camera: Camera, T_world_cam,
+                  low_pass: float = EPS2D) -> torch.Tensor:
+    """Ids [M] (ascending, on the map's device) of the rows that can reach the image: the bound of
+    :func:`camera_bounds` in float64 torch operators."""
+    cam = camera_bounds(camera, low_pass)
+    R, t = view_matrix(T_world_cam)
+    p = means.detach().double() @ torch.as_tensor(R.T, device=means.device) + torch.as_tensor(t, device=means.device)
+    x, y, z = p.unbind(-1)
+    front = z > cam[6]
+    zs = torch.where(front, z, torch.ones_like(z))
+    s = torch.exp(log_scales.detach().double().amax(-1).clamp(max=80.0))
+    r = 3.0 * torch.sqrt(s * s * cam[7] / (zs * zs) + cam[8]) * 1.001 + 2.0
+    u, v = cam[0] * x / zs + cam[2], cam[1] * y / zs + cam[3]
+    hit = front & (u + r > -0.5) & (u - r < cam[4] - 0.5) & (v + r > -0.5) & (v - r < cam[5] - 0.5)
+    return torch.nonzero(hit).squeeze(1)
 
 
 def compiled_rows(*tensors: torch.Tensor) -> bool:
@@ -79,3 +95,20 @@ def map_in_view(gmap, camera: Camera, T_world_cam, low_pass: float = EPS2D) -> t
         gmap.row_index = CellIndex(gmap)
     V = world_to_cam(T_world_cam, "cpu", torch.float64).numpy()
     return torch.from_numpy(gmap.row_index.rows(V, camera_bounds(camera, low_pass)))
+
+
+def gather_rows(gmap, idx: torch.Tensor, grad: bool) -> dict:
+    """The rows ``idx`` of every raw parameter as new tensors (float32 contiguous CPU parameters: one compiled pass
+    for all of them; otherwise torch's indexing)."""
+    params = [gmap.params[n].detach() for n in PARAM_NAMES]
+    if idx.device.type != "cpu" or any(p.dtype != torch.float32 or not p.is_contiguous() for p in params):
+        return {n: p[idx].requires_grad_(grad) for n, p in zip(PARAM_NAMES, params)}
+    from ..runtime.jit import rows_threads
+    from ._cull_kernels import _gather_view
+
+    outs = [torch.empty((idx.numel(),) + tuple(p.shape[1:]), dtype=torch.float32) for p in params]
+    widths = [p[0].numel() if len(p) else 0 for p in params]  # shN of degree 0: width 0
+    with rows_threads(idx.numel()):
+        _gather_view(tuple(p.view(len(p), w).numpy() for p, w in zip(params, widths)), idx.numpy(),
+                     tuple(o.view(idx.numel(), w).numpy() for o, w in zip(outs, widths)))
+    return {n: o.requires_grad_(grad) for n, o in zip(PARAM_NAMES, outs)}
