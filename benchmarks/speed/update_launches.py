@@ -117,7 +117,8 @@ class _Functions(TorchFunctionMode):
     def __torch_function__(self, func, types, args=(), kwargs=None):
         c = self.c
         name = getattr(func, "__name__", "")
-        if not c.paused and not in_launch() and c.phase[-1] in DEVICE_PHASES and name in TRANSFERS:
+        made = name in ("tensor", "as_tensor") and args and isinstance(args[0], torch.Tensor)  # no data moves
+        if not c.paused and not in_launch() and c.phase[-1] in DEVICE_PHASES and name in TRANSFERS and not made:
             c.copies[c.phase[-1]] += 1
         return func(*args, **(kwargs or {}))
 

@@ -38,9 +38,11 @@ def camera_bounds(camera: Camera, low_pass: float = EPS2D) -> np.ndarray:
 
 
 def view_matrix(T_world_cam) -> tuple[np.ndarray, np.ndarray]:
-    """(R [3, 3], t [3]) float64 of the world-to-camera transform of ``T_world_cam``."""
-    V = world_to_cam(T_world_cam, "cpu", torch.float64).numpy()
-    return V[:3, :3], V[:3, 3]
+    """(R [3, 3], t [3]) float64 of the world-to-camera transform of ``T_world_cam`` (numpy: host arithmetic, no
+    tensor), the same numbers as :func:`.projection.world_to_cam`."""
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    R = T[:3, :3].T
+    return R, -R @ T[:3, 3]
 
 
 def in_view(means: torch.Tensor, log_scales: torch.Tensor, camera: Camera, T_world_cam,
