@@ -1,4 +1,4 @@
-"""Per-training-view pose refinement, learned jointly with the map (issue 16, "alignment").
+"""Per-training-view pose refinement, learned jointly with the map (the paper's "alignment").
 
 Real recordings carry pose errors of a few millimetres and a few tenths of a degree per frame (KinectFusion
 tracking on 7-Scenes, an SfM reconstruction on SUN3D), i.e. several pixels at 640x480: every training view then
@@ -20,8 +20,8 @@ is the identity forward and, in the update's backward, sums the gradients the re
 gradient of a right perturbation of the pose. The correction thus costs two small matrix products over the
 Gaussians per update, on every renderer (each differentiates means and rotations), and the renderer's pose stays a
 plain matrix; the per-view algebra (Rodrigues, Adam on the 6-vector) is numpy.
-Off by default (config ``pose_refine.enabled``, issue 32: it did not help at the true poses or at the paper's
-rule); with it off nothing is computed.
+Off by default (config ``pose_refine.enabled``: it did not help at the true poses or at the paper's rule, lab:
+pose-refine-off); with it off nothing is computed.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 
-# the paper's rule first: it is the headline figure (issue 32); "carried" is the figure in the map's refined frame
+# the paper's rule first: it is the headline figure; "carried" is the figure in the map's refined frame
 HELDOUT_POSE_RULES = ("aligned", "carried", "given")
 
 
@@ -46,22 +46,20 @@ def _check_rule(rule: str) -> str:
 
 @dataclass
 class PoseRefineConfig:
-    # off by default (issue 32): where the truth is known (the synthetic room, a known pose error added, scored at
-    # the true poses: benchmarks/quality/pose_truth.py) and at the paper's rule on the SUN3D study room and the 7-Scenes
-    # kitchen, maps refined this way scored below maps at the given poses
     enabled: bool = False
-    # the best of the settings measured in issue 16 on the 7-Scenes kitchen and the SUN3D study room, with held-out
-    # views carried (lr 2e-4 / 5e-4 / 1e-3 / 3e-3, reg 0 / 1 / 10 / 100, min_updates 0 / 10, warm start on / off)
-    lr: float = 1e-3  # Adam step on xi (radians for omega, metres for v)
-    reg: float = 1.0  # loss weight of |xi|^2 (pull toward the given pose); units: per rad^2 / m^2
-    min_updates: int = 10  # a view's pose moves only after it has supervised this many updates (map settles first)
-    centred: bool = False  # hold the views' mean correction (in the world frame) at zero: the map cannot drift
-    # how a held-out view's given pose enters the refined map's frame: "aligned" (one rigid alignment of the refined
-    # training poses to their given poses, the paper's "training-pose alignment": the headline figure, in the
-    # user's frame), "carried" (moved by its neighbouring training views' corrections: a figure in the map's
-    # refined frame, which moves with the sequence by 0-3 dB, issue 32) or "given" (as it is)
+    """Learn a small SE(3) correction per training view with the map (off: the given poses; lab: pose-refine-off)."""
+    lr: float = 1e-3
+    """Adam step on the correction ``xi`` (radians for omega, metres for v)."""
+    reg: float = 1.0
+    """Loss weight of ``|xi|^2``, the pull toward the given pose (per rad^2 and per m^2)."""
+    min_updates: int = 10
+    """A view's pose moves only after it has supervised this many updates (the map settles first)."""
+    centred: bool = False
+    """Hold the views' mean correction (in the world frame) at zero so the map cannot drift."""
     heldout_poses: str = "aligned"
-    warm_start: bool = False  # a new view starts at its refined predecessors' correction (not at the given pose)
+    """Held-out poses in the refined frame: ``aligned`` (the paper's rule), ``carried`` or ``given``."""
+    warm_start: bool = False
+    """A new view starts at its refined predecessor's correction instead of the given pose."""
 
 
 def _rot_log(R: np.ndarray) -> np.ndarray:

@@ -35,15 +35,20 @@ MODES = ("auto", "area", "point")
 
 @dataclass
 class SupervisionConfig:
-    mode: str = "auto"  # auto (measured per run) | area | point
-    pairs: int = 2  # admitted view pairs whose median coherence decides (auto)
-    # the decision's threshold: the first two pairs' medians measured 0.33-0.44 on four real recordings (7-Scenes
-    # kitchen x3, SUN3D), 0.785 on the rendered room (160x120 and 640x480); Replica's office pairs 0.87-0.89
+    mode: str = "auto"
+    """``auto`` (decided per run from the views' coherence), ``area`` (pixel averages) or ``point`` (samples)."""
+    pairs: int = 2
+    """Admitted view pairs whose median coherence decides ``auto``."""
     coherence_min: float = 0.6
-    band_px: int = 4  # the detail band: the image minus its band_px x band_px box blur (source pixels)
-    max_pixels: int = 80_000  # the coherence uses a centre crop of the later view of at most this many pixels
-    pair_translation_m: float = 0.05  # a pair's views are at least this far apart, or turned by at least
-    pair_rotation_deg: float = 5.0  # this much (views.min_translation_m / min_rotation_deg's defaults)
+    """Median detail-band coherence in [0, 1] at or above which ``auto`` takes point samples (lab: supervision-coherence)."""
+    band_px: int = 4
+    """Source pixels: the detail band is the image minus its band_px x band_px box blur."""
+    max_pixels: int = 80_000
+    """Pixels: the coherence uses a centre crop of the later view of at most this many."""
+    pair_translation_m: float = 0.05
+    """Metres: a pair's views are at least this far apart, or turned by ``pair_rotation_deg``."""
+    pair_rotation_deg: float = 5.0
+    """Degrees: the turn that makes two views a pair when they are closer than ``pair_translation_m``."""
 
 
 @dataclass
