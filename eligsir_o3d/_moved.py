@@ -1,4 +1,4 @@
-"""Old import paths of modules that moved in the layout by concern (issue 27), kept for one release.
+"""Old import paths of modules that moved in the layout by concern, kept for one release.
 
 ``import eligsir_o3d.pipeline`` (or ``from eligsir_o3d.checkpoint import ...``) still works: a finder at the head of
 ``sys.meta_path`` (ahead of an editable install's finder and of stale files of an older install) answers the old

@@ -5,7 +5,7 @@
 from __future__ import annotations
 
 from .base import FidelityPolicy
-from .keyframes import KeyframesConfig, StrideConfig, StrideKeyframes  # noqa: F401 (their home before issue 27)
+from .keyframes import KeyframesConfig, StrideConfig, StrideKeyframes  # noqa: F401 (their earlier home)
 from .seeding import NewSpaceSeeding, SeedingConfig, unsupported_mask  # noqa: F401
 
 

@@ -5,8 +5,7 @@ map to k x k averages of the source image: what a recording whose poses and dept
 pixels can teach (the average also averages that misregistration and the sensor's noise). *Point* supervision fits
 it to every k-th source pixel from a random phase per update, rendered with the source resolution's low-pass: the
 same number of pixels and the same cost, but over updates the map sees every source pixel unblurred, so it can hold
-the detail of data that agrees at full resolution (rendered sequences: the embedded room at 640x480 +0.5-0.75 dB at
-the default budget, docs/evaluation.md).
+the detail of data that agrees at full resolution (rendered sequences; lab: supervision-coherence).
 
 Which one a sequence gets is measured, not configured per dataset: :func:`detail_coherence` warps the last view
 measured into a newly admitted one (the later view's depth, both given poses) and correlates the two
@@ -150,8 +149,7 @@ class SupervisionGrid:
         """The image scale whose pixels the growth policy spaces new seeds in. With point samples, the updates'
         scale: a region is seeded as finely as it is supervised (the growth's 4-pixel stride then means 4 supervised
         pixels, e.g. 8 source pixels at 1/2-scale updates instead of 16). With area averages None, the support
-        probe's scale: fine seeds from depth that disagrees with its colour by pixels fit that noise (finer seeds
-        lost 0.25-0.4 dB on two kitchen stretches, docs/evaluation.md)."""
+        probe's scale: fine seeds from depth that disagrees with its colour by pixels fit that noise (lab: growth-seed-detail)."""
         return update_scale if self.mode == "point" else None
 
     def _apart(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:
