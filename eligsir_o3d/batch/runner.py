@@ -50,9 +50,9 @@ def map_many(inputs: Iterable, out: str | Path = "runs/batch", *, address: str |
         checkpoint_every: source frames between checkpoints.
         run_options: any other RunOptions field, for every sequence.
         echo: where progress lines go (None: nowhere).
-        **rest: the batch's defaults for ``eligsir map``'s options (``max_frames``, ``pose``, ``speed``,
+        max_frames: the batch's default for ``eligsir map``'s option of that name, as are ``pose``, ``speed``,
             ``config``, ``updates_per_frame``, ``eval_every``, ``holdout_every``, ``seed``, ``cost_model``,
-            ``device``, ``plots``); a manifest line's own options win. ``cost_model`` None uses the config's
+            ``device`` and ``plots``; a manifest line's own options win. ``cost_model`` None uses the config's
             (``eligsir_o3d.run.options.COST_MODEL_RULE``).
 
     Returns:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import inspect
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from . import folder, polycam, record3d, record3d_exr, replica, rosbag, rsbag, scannet, stray, tum
 from .base import DatasetError, RGBDSequence
@@ -51,7 +51,7 @@ def _call(fmt_name: str, fn: Callable[..., RGBDSequence], *args, **options) -> R
 
 
 def open_sequence(path_or_name: str | Path, kind: str = "auto", *, register: bool = True,
-                  **options) -> RGBDSequence:
+                  **options: Any) -> RGBDSequence:
     """Open a recorded RGB-D sequence (or the synthetic scene) as an :class:`RGBDSequence`.
 
     Args:

@@ -52,7 +52,7 @@ def is_colmap_model(path: Path) -> bool:
     return find_model_dir(path) is not None
 
 
-def get_pose_source(spec: str | Path, *, sequence: Any = None, **options) -> PoseSource:
+def get_pose_source(spec: str | Path, *, sequence: Any = None, **options: Any) -> PoseSource:
     """A pose source from a name (``gt``, ``odometry``, ``kiss-icp``, ``colmap``) or a path.
 
     Args:

@@ -13,7 +13,7 @@ import logging
 import math
 import time
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -52,7 +52,7 @@ def heldout_indices(n: int, every: int, listfile: str | None = None) -> list[int
 
 
 def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, opts: RunOptions | None = None,
-                **overrides) -> dict:
+                **overrides: Any) -> dict:
     """Map the sequence at ``path`` into ``out_dir`` by the paper's protocol, as ``eligsir map`` does.
 
     Args:
