@@ -26,7 +26,7 @@ poses, off only by the tracking drift), else at the identity. Where the frames d
 trajectory file from elsewhere), ``trajectory_accuracy(est, gt, return_alignment=True)["T_gt_est"]`` is the rigid
 Umeyama alignment; ``inv(T_gt_est) @ T_gt`` brings a ground-truth pose into the map's frame.
 
-Each source's measured accuracy and time: docs/measurements.md ("Pose sources").
+Each source's measured accuracy and time: docs/lab/measurements.md ("Pose sources").
 """
 
 from __future__ import annotations
