@@ -98,3 +98,15 @@ def test_the_checks_catch_what_they_are_for(tmp_path):
     assert dangling_names("eligsir_o3d.scheduling.views.ViewConfig, eligsir_o3d/config.py, tests/helpers") == []
     assert dangling_names("eligsir_o3d.config.NoSuchThing") == ["eligsir_o3d.config.NoSuchThing"]
     assert slug("The `cpu` renderer: on CUDA (gsplat)") == "the-cpu-renderer-on-cuda-gsplat"
+
+
+LAB_NOTE = re.compile(r"\bstops? \d+|\bissues? #?\d+|\b20\d{2}-\d{2}-\d{2}\b|\d\s?dB\b", re.I)
+
+
+def test_user_pages_state_rules_and_leave_figures_to_results_and_the_lab():
+    """The user pages (everything outside docs/lab/ but the Results page) carry no dated entry, issue or session
+    number and no dB figure."""
+    pages = [p for p in (ROOT / "docs").rglob("*.md") if "lab" not in p.relative_to(ROOT / "docs").parts
+             and p.name != "results.md"]
+    found = {str(p.relative_to(ROOT)): LAB_NOTE.findall(p.read_text()) for p in pages}
+    assert not {k: v for k, v in found.items() if v}
