@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from .budget.clock import ClockConfig
+from .config_checks import ConfigError, checked_value
 from .core.frame import DEPTH_MAX
 from .core.gaussians import LearningRates
 from .optim.adam import AdamConfig
@@ -34,45 +35,69 @@ ABLATION_RENAMED = {"scheduling": "views"}
 
 @dataclass
 class OptimConfig:
+    """The optimiser: learning rates, loss weights, Adam's constants, view culling and torch's threads."""
+
     lrs: LearningRates = field(default_factory=LearningRates)
+    """Per-parameter learning rates (means in metres per step, the others in their stored units)."""
     loss: LossConfig = field(default_factory=LossConfig)
-    adam: AdamConfig = field(default_factory=AdamConfig)  # Adam's betas and eps (torch's Adam)
-    refine_scale: float = 1.0  # refine(): supervision scale of post-mapping updates (+N PM)
-    # view culling (eligsir_o3d.culling): an update renders, steps (Adam), noises and
-    # relocates only the Gaussians that can reach its view, so its cost follows the Gaussians in view; renders for
-    # admission, growth and evaluation draw only those too (same images). False: every update covers the whole map
+    """Weights of the photometric, D-SSIM and depth terms of the mapping loss."""
+    adam: AdamConfig = field(default_factory=AdamConfig)
+    """Adam's betas and eps (torch's Adam)."""
+    refine_scale: float = 1.0
+    """Supervision scale (share of the source resolution) of the post-mapping updates of ``refine()``."""
     cull: bool = True
+    """An update renders, steps and relocates only the Gaussians that can reach its view; false: the whole map."""
     kernels: str = "auto"
     """The kernel set that runs an update's stages (eligsir_o3d.kernels): auto | numba | torch | fused; auto = numba
     for a float32 map on the CPU, fused on CUDA, torch otherwise."""
-    # torch's threads for the mapper's CPU work on images below runtime.threads.TORCH_MIN_PIXELS (admission, growth,
-    # updates up to 1/2 scale of VGA); 0: leave torch's own setting. Such ops are too small for a second thread, and
-    # each parallel op wakes sleeping OpenMP workers (eligsir_o3d/runtime/threads.py). Kernels use numba's threads
     torch_threads: int = 1
+    """Torch's threads for the mapper's CPU work on small images (``core.threads``); 0 leaves torch's setting."""
 
 
 @dataclass
 class Config:
+    """Everything a run is configured by, written with every result as ``config.json``."""
+
     device: str = "cpu"
-    renderer: str = "auto"  # auto | torch | cpu | gsplat
+    """Torch device the map lives on: ``cpu``, ``cuda`` or ``cuda:N``."""
+    renderer: str = "auto"
+    """Rasteriser: ``auto`` (gsplat on CUDA, else cpu), ``torch``, ``cpu`` or ``gsplat``."""
     sh_degree: int = 0
+    """Degree of the spherical-harmonic colour of each Gaussian (0: one RGB colour)."""
     max_gaussians: int = 300_000
-    depth_scale: float = 1000.0  # integer depth / depth_scale = metres (Open3D's spelling)
-    depth_max: float = DEPTH_MAX  # metres; farther depth counts as no measurement
+    """Hard cap on the map's Gaussians; growth and MCMC stop adding at it."""
+    depth_scale: float = 1000.0
+    """Integer depth divided by this is metres (Open3D's spelling); float depth is already metres."""
+    depth_max: float = DEPTH_MAX
+    """Metres; depth farther than this counts as no measurement."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    max_image_side: int = 16384  # pixels: an image file whose header declares more is refused before decoding
+    """RGB in [0, 1] composited behind the Gaussians."""
+    max_image_side: int = 16384
+    """Pixels; an image file whose header declares a longer side is refused before decoding."""
     seed: int = 0
-    ablate: tuple[str, ...] = ()  # any of: views, fidelity, growth (each swaps in the plain policy)
+    """Random seed of every sampler in the mapper: one seed, one map."""
+    ablate: tuple[str, ...] = ()
+    """Mechanisms replaced by their plain policy: any of ``views``, ``fidelity``, ``growth``."""
     optim: OptimConfig = field(default_factory=OptimConfig)
-    keyframes: KeyframesConfig = field(default_factory=KeyframesConfig)  # plain view policy (views ablated)
-    seeding: SeedingConfig = field(default_factory=SeedingConfig)  # plain growth policy (growth ablated)
-    views: ViewConfig = field(default_factory=ViewConfig)  # Map-Guided View Scheduling
-    fidelity: FidelityConfig = field(default_factory=FidelityConfig)  # Load-Adaptive Fidelity
-    growth: GrowthConfig = field(default_factory=GrowthConfig)  # Targeted Geometry Growth (+ 3DGS-MCMC)
-    support: SupportConfig = field(default_factory=SupportConfig)  # the low-res support render admission and growth share
-    supervision: SupervisionConfig = field(default_factory=SupervisionConfig)  # area / point samples (measured per run)
-    clock: ClockConfig = field(default_factory=ClockConfig)  # the budget: clock mode, per-frame/drain/offline budgets
-    fixed_work: FixedWorkConfig = field(default_factory=FixedWorkConfig)  # per-frame fixed work scaled with the backlog (issue 18)
+    """The optimiser."""
+    keyframes: KeyframesConfig = field(default_factory=KeyframesConfig)
+    """The plain view policy, used when ``views`` is ablated."""
+    seeding: SeedingConfig = field(default_factory=SeedingConfig)
+    """The plain growth policy, used when ``growth`` is ablated."""
+    views: ViewConfig = field(default_factory=ViewConfig)
+    """Map-Guided View Scheduling."""
+    fidelity: FidelityConfig = field(default_factory=FidelityConfig)
+    """Load-Adaptive Fidelity."""
+    growth: GrowthConfig = field(default_factory=GrowthConfig)
+    """Targeted Geometry Growth and its 3DGS-MCMC population refinement."""
+    support: SupportConfig = field(default_factory=SupportConfig)
+    """The low-resolution support render that admission and growth share."""
+    supervision: SupervisionConfig = field(default_factory=SupervisionConfig)
+    """How update pixels are sampled: area averages or point samples, decided per run."""
+    clock: ClockConfig = field(default_factory=ClockConfig)
+    """The budget: clock mode, per-frame, drain and offline budgets, the cost model."""
+    fixed_work: FixedWorkConfig = field(default_factory=FixedWorkConfig)
+    """Per-frame fixed work that thins out as the backlog grows."""
 
     def resolve(self, **changes) -> "Config":
         """A copy with ``changes`` (top-level fields) applied and every derived value computed, in this one
@@ -157,49 +182,9 @@ def _build(tp, data: Any, where: str, prefix: str):
         if dataclasses.is_dataclass(default):
             value = _build(type(default), value, where, f"{prefix}{name}.")
         else:
-            value = _checked_value(default, value, where, prefix + name)
+            value = checked_value(default, value, where, prefix + name)
         kwargs[name] = value
     return tp(**kwargs)
-
-
-class ConfigError(ValueError):
-    """A config file or dict that cannot be used: the message names the file and the key."""
-
-
-def _checked_value(default: Any, value: Any, where: str, key: str) -> Any:
-    """``value`` for a key whose default is ``default``, of the default's type: an int key takes an integer (an
-    integral float such as 3e5 too), a float key a number, a str key a string, a tuple key a list of values of
-    its elements' type; a bool is neither an int nor a float here."""
-    given = value
-
-    def wrong(want: str):
-        return ConfigError(f"{where}: {key} takes {want}, got {type(given).__name__} {given!r}")
-
-    if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise wrong("true or false")
-    elif isinstance(default, int):
-        if isinstance(value, float) and value.is_integer():
-            value = int(value)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise wrong("an integer")
-    elif isinstance(default, float):
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise wrong("a number")
-    elif isinstance(default, str):
-        if not isinstance(value, str):
-            raise wrong("a string")
-    elif isinstance(default, tuple):
-        if not isinstance(value, (list, tuple)):
-            raise wrong("a list")
-        value = tuple(value)
-        kinds = {type(x) for x in default}
-        if kinds == {str} and not all(isinstance(x, str) for x in value):
-            raise wrong("a list of strings")
-        if kinds and kinds <= {int, float} and not all(isinstance(x, (int, float)) and not isinstance(x, bool)
-                                                     for x in value):
-            raise wrong("a list of numbers")
-    return value
 
 
 def _nearest(key: str, names, prefix: str) -> str:

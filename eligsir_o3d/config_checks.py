@@ -1,4 +1,4 @@
-"""Values no run can use, refused when a Config is resolved (issue 31 item 9), whichever way they came in
+"""Values no run can use, refused when a Config is resolved, whichever way they came in
 (``--set``, ``--depth-max``, a config file, the API): one line naming the key.
 
 - Every number in the config tree is finite (NaN and infinities are refused; no key's default is one).
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 POSITIVE = ("max_gaussians", "depth_max", "depth_scale", "max_image_side", "supervision.pairs", "supervision.band_px")
 ANY_INTEGER: tuple[str, ...] = ()  # none: numpy's generators take no negative seed
@@ -55,3 +56,43 @@ def check_values(cfg) -> None:
 
     if cfg.optim.kernels not in KERNEL_SETS:
         raise ValueError(f"config key optim.kernels: choose from {', '.join(KERNEL_SETS)}, got {cfg.optim.kernels!r}")
+
+
+class ConfigError(ValueError):
+    """A config file or dict that cannot be used: the message names the file and the key."""
+
+
+def checked_value(default: Any, value: Any, where: str, key: str) -> Any:
+    """``value`` for a key whose default is ``default``, of the default's type: an int key takes an integer (an
+    integral float such as 3e5 too), a float key a number, a str key a string, a tuple key a list of values of
+    its elements' type; a bool is neither an int nor a float here."""
+    given = value
+
+    def wrong(want: str):
+        return ConfigError(f"{where}: {key} takes {want}, got {type(given).__name__} {given!r}")
+
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise wrong("true or false")
+    elif isinstance(default, int):
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise wrong("an integer")
+    elif isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise wrong("a number")
+    elif isinstance(default, str):
+        if not isinstance(value, str):
+            raise wrong("a string")
+    elif isinstance(default, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise wrong("a list")
+        value = tuple(value)
+        kinds = {type(x) for x in default}
+        if kinds == {str} and not all(isinstance(x, str) for x in value):
+            raise wrong("a list of strings")
+        if kinds and kinds <= {int, float} and not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                     for x in value):
+            raise wrong("a list of numbers")
+    return value

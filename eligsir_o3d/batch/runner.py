@@ -36,13 +36,38 @@ def map_many(inputs: Iterable, out: str | Path = "runs/batch", *, address: str |
              live: bool | None = None) -> list[SequenceResult]:
     """Map many sequences, one Ray task each, into ``out/<name>/`` (the results folder of ``eligsir map``).
 
-    inputs: sequence paths, manifest files (see :mod:`eligsir_o3d.batch.specs`) or SequenceSpec objects. The
-    keyword options are the batch's defaults (a manifest line's own options win); ``run_options`` sets any other
-    RunOptions field; ``cost_model`` None uses the config's (``eligsir_o3d.run.options.COST_MODEL_RULE``). Finished sequences (``out/<name>/batch.json`` says done for the same request) are not mapped
-    again; unfinished ones resume from their last checkpoint. address: None starts Ray in this process with this
-    machine's CPUs and GPUs (or joins the cluster of ``ray job submit``); "auto" or "ray://host:port" joins one.
-    gpus_per_task None: 1 when the cluster has GPUs, else 0 (CPU renderer, ``cpus_per_task`` threads).
-    Returns a SequenceResult per sequence, in input order; writes ``out/summary.csv``.
+    Finished sequences (``out/<name>/batch.json`` says done for the same request) are not mapped again;
+    unfinished ones resume from their last checkpoint.
+
+    Args:
+        inputs: sequence paths, manifest files (see :mod:`eligsir_o3d.batch.specs`) or SequenceSpec objects.
+        out: the batch folder: one results folder per sequence and ``summary.csv``.
+        address: None starts Ray in this process with this machine's CPUs and GPUs (or joins the cluster of
+            ``ray job submit``); ``"auto"`` or ``"ray://host:port"`` joins one.
+        cpus_per_task: CPUs per sequence (also its torch and numba thread count).
+        gpus_per_task: GPUs per sequence; None: 1 when the cluster has GPUs, else 0 (the CPU renderer).
+        max_retries: retries of a sequence whose worker died, each resuming from its last checkpoint.
+        checkpoint_every: source frames between checkpoints.
+        run_options: any other RunOptions field, for every sequence.
+        echo: where progress lines go (None: nowhere).
+        max_frames: the batch's default for ``eligsir map``'s option of that name, as are ``pose``, ``speed``,
+            ``config``, ``updates_per_frame``, ``eval_every``, ``holdout_every``, ``seed``, ``cost_model``,
+            ``device`` and ``plots``; a manifest line's own options win. ``cost_model`` None uses the config's
+            (``eligsir_o3d.run.options.COST_MODEL_RULE``).
+
+    Returns:
+        One :class:`~eligsir_o3d.batch.report.SequenceResult` per sequence, in input order (``status`` done,
+        done-earlier or failed; ``metrics``); ``out/summary.csv`` holds the same.
+
+    Example:
+        ```python
+        from eligsir_o3d.batch import map_many
+
+        results = map_many(["synthetic"], "runs/api-batch", max_frames=4, eval_every=0, plots=False,
+                           run_options={"sequence_options": {"n_frames": 4, "width": 160, "height": 120}},
+                           echo=None)
+        print([r.status for r in results])  # ['done']
+        ```
     """
     echo = echo or (lambda line: None)
     specs = expand_inputs(inputs)

@@ -47,11 +47,9 @@ def machine_key(device, renderer: str) -> dict:
     return {"host": platform.node(), "machine": platform.machine(), "cpus": os.cpu_count(), "device": str(dev),
             "device_name": name, "renderer": renderer, "torch": torch.__version__, "eligsir_o3d": __version__,
             "numba_layer": "tbb" if _on_tbb() else "other",
-            "fit": 6}  # 2: frame_s measured (fits cached before scaled it with the updates); 3: refined updates timed;
-    # 4: updates ~1.3x cheaper on 2 threads (runtime.threads: small work on one thread), so older fits over-price them;
-    # 5: the compositing kernels ~1.2x cheaper on 2 threads (stop 41); 6: tighter block lists and numba on TBB
-    # (stop 47: updates ~1.2x cheaper on 2 threads). The layer is a key of its own: a process that imported Open3D
-    # before eligsir_o3d runs numba on OpenMP (eligsir_o3d/runtime/tbb.py), slower on 2 threads
+            "fit": 6}  # raised whenever the kernels' cost changes, so that older cached fits are retaken
+    # (lab: calibration-fit-versions). The layer is a key of its own: a process that imported Open3D before
+    # eligsir_o3d runs numba on OpenMP (eligsir_o3d/runtime/tbb.py), slower on 2 threads
 
 
 def _on_tbb() -> bool:
@@ -132,8 +130,8 @@ def calibrate(rec, frames=None, *, n_frames: int = 6, updates_per_scale: int = 3
     model = CostModel(**{name: v * k for name, v in model.to_dict().items()})
     if len(frm):
         # the per-frame fixed work (support render, growth, view bookkeeping) as measured, not scaled with the
-        # updates: on the 2-core machine under load the shipped shape charged a frame 3.4 ms where 8.8 ms were
-        # measured, while it over-charged updates 1.6x (issue 18); the median, for the load's long tail
+        # updates: under load the update and frame terms drift apart (lab: calibration-frame-term); the median,
+        # for the load's long tail
         model.frame_s = float(np.median(np.maximum(frm[:, 1] - model.gaussian_s * frm[:, 0], 0.0)))
     ratios = model.ratios(upd)
     report = {"samples": int(len(upd)), "seconds": time.perf_counter() - t0,

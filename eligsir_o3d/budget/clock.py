@@ -13,37 +13,38 @@ COST_SOURCES = ("config", "calibrate")
 
 @dataclass
 class ClockConfig:
-    # cost: deterministic replay against the cost model (modelled time; backlog, drops);
-    # updates: deterministic, ``updates_per_frame`` updates for every frame (no backlog);
-    # realtime: replay against the wall clock
     mode: str = "cost"
-    speed: float = 1.0  # replay speed: 0.25 releases frames at a quarter of the recorded rate
-    queue_size: int = 4  # frames that may wait for the mapper; beyond it the oldest waiting frame is dropped
-    min_updates_behind: int = 1  # updates granted to a frame integrated while others wait (the map keeps learning)
-    on_bad_frame: str = "skip"  # skip | stop
-    frame_period_s: float = DEFAULT_FRAME_PERIOD_S  # period of frames without timestamps, and before a clock runs
-    updates_per_frame: int = 8  # mode "updates", and Reconstructor.integrate() without a clock
-    drain_updates: int = 100  # finalize(): bounded drain after the stream (the paper's ME state)
-    realtime_drain_fraction: float = 0.03  # realtime: the drain also stops after this share of the stream
-    # offline reference: its schedule is this many updates per source frame (coarse to fine; what it reaches:
-    # docs/measurements.md, "Offline reference")
+    """``cost`` (replay against the cost model's modelled time), ``updates`` (a fixed count per frame) or ``realtime``."""
+    speed: float = 1.0
+    """Replay speed: 0.25 releases frames at a quarter of the recorded rate."""
+    queue_size: int = 4
+    """Frames that may wait for the mapper; beyond it the oldest waiting frame is dropped."""
+    min_updates_behind: int = 1
+    """Updates granted to a frame integrated while others wait, so the map keeps learning."""
+    on_bad_frame: str = "skip"
+    """A frame that cannot be read: ``skip`` it (logged and counted) or ``stop`` the run."""
+    frame_period_s: float = DEFAULT_FRAME_PERIOD_S
+    """Seconds between frames without timestamps, and before a clock has seen two."""
+    updates_per_frame: int = 8
+    """Updates per frame in mode ``updates``, and for ``Reconstructor.integrate()`` without a clock."""
+    drain_updates: int = 100
+    """Updates of ``finalize()``'s bounded drain after the stream (the paper's mapping-end state)."""
+    realtime_drain_fraction: float = 0.03
+    """In mode ``realtime`` the drain also stops after this share of the stream's duration."""
     offline_updates_per_frame: int = 40
-    offline_updates: int = 0  # offline reference: a fixed schedule length instead (0: per source frame)
-    # offline reference: (scale, share) stages of its coarse-to-fine supervision, and the means' step size at the
-    # schedule's end as a share of optim.lrs.means (log-linear decay, 3DGS's 100x; 1: constant; measured effect:
-    # docs/measurements.md)
+    """Offline reference: schedule length in updates per source frame."""
+    offline_updates: int = 0
+    """Offline reference: a fixed schedule length in updates instead (0: per source frame)."""
     offline_stages: tuple = ((0.25, 0.4), (0.5, 0.3), (1.0, 0.3))
+    """Offline reference: (scale, share of the schedule) stages of its coarse-to-fine supervision."""
     offline_means_lr_final: float = 0.01
-    # where mode "cost" takes its model: "config" (``cost`` below: the shipped fit unless a file set it) or
-    # "calibrate" (fit this machine, device and renderer, cached; see eligsir_o3d.budget.calibrate)
+    """Offline reference: the means' step at the schedule's end as a share of ``optim.lrs.means`` (log-linear)."""
     cost_source: str = "config"
+    """Mode ``cost`` takes its model from ``config`` (``cost`` below) or ``calibrate`` (fit this machine, cached)."""
     cost: CostModel = field(default_factory=CostModel)
-    # mode "cost": weight of each measured / modelled ratio of the mapper's work in a running correction of the cost
-    # model (0: none, the run is deterministic). A calibration fits a dozen frames; the run's own work drifts from
-    # it (larger maps, the views' bookkeeping, another process taking a core), so ``eligsir map`` with a calibrated
-    # model turns this on and the budget follows what the work costs on this machine now (issue 32: K 200 frames,
-    # measured / modelled 1.64 without it)
+    """The cost model's constants (the shipped fit unless a file or a calibration sets them)."""
     cost_feedback: float = 0.0
+    """Weight of each measured / modelled work ratio in a running correction of the cost model (0: deterministic)."""
 
 
 def check_clock_config(c: ClockConfig) -> None:

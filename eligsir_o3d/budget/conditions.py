@@ -1,4 +1,4 @@
-"""The conditions a cost-model calibration is taken under (issue 31 item 13). A fit timed while another job ran
+"""The conditions a cost-model calibration is taken under. A fit timed while another job ran
 prices every update too high, and every later run on the machine would get too small a budget; so each cached fit
 records its conditions, and :func:`~.calibrate.cached_cost_model` refuses to reuse one that looks wrong:
 

@@ -27,31 +27,21 @@ class CostModel:
     grow with N; blending grows with pixels times the Gaussians overlapping each pixel). One integrated frame
     (admission render, growth): ``frame_s + gaussian_s * gaussians``.
 
-    Defaults ("shipped"): ``python benchmarks/budget/cost_model.py --frames 300`` on the project's reference machine (2
-    cores, the ``cpu`` renderer on 2 threads, an otherwise idle machine, the default policies mapping the first 300
-    frames of 7-Scenes redkitchen, 0.8k-7.3k Gaussians): an 80x60 update ~5 ms, 160x120 ~8 ms, 320x240 ~21 ms,
-    640x480 ~70 ms; median predicted/measured 0.99 (refitted 2026-11-29 after the update kernels of issue 16 made
-    updates ~2x cheaper than the previous fit said). 2026-12-02 (issue 32): ``update_s`` 2.8 -> 1.18 ms and
-    ``frame_s`` 1.8 -> 0.76 ms after small work stopped waking sleeping OpenMP workers (:mod:`..runtime.threads`): the
-    default kitchen run (the same map bit for bit) mapped 1.29x faster side by side, three interleaved pairs on one
-    machine, and that saving is the fixed per-update and per-frame work's; the per-Gaussian and pixel terms stand.
-    2026-12-03 (issue 32, stop 41): the four update terms x0.82 after the compositing kernels' scratch left their
-    parallel loop and the tiles are gathered once (renderers.md): the default kitchen run's updates cost 0.82 of
-    the time of the code of the last fit (median of five interleaved pairs on one machine, mapping time 0.74-0.94,
-    per update 0.73-0.93; each run from a neutral folder so that PYTHONPATH chose the checkout), the frame terms
-    unchanged. At 3k Gaussians: 80x60 / 160x120 / 320x240 / 640x480 updates at 2.8 / 5.2 / 15 / 54 ms.
-    2026-12-04 (issue 32, stop 47): the four update terms x0.82 again, after the forward gather's tighter block
-    lists (stop 46) and numba's kernels on TBB (:mod:`..runtime.tbb`): the default kitchen run's updates, against the
-    code of the last fit (db912e2), three warm interleaved pairs, 7.16 / 7.24 / 7.23 -> 5.84 / 5.83 / 5.95 ms per update
-    (0.81-0.82; a map of 3.9k Gaussians against 3.7k), the frame terms unchanged. At 3k Gaussians: 80x60 /
-    160x120 / 320x240 / 640x480 updates at 2.3 / 4.3 / 12 / 44 ms.
+    Defaults ("shipped"): ``python benchmarks/budget/cost_model.py --frames 300`` on the project's reference machine
+    (2 cores, the ``cpu`` renderer on 2 threads, an otherwise idle machine, the default policies mapping the first
+    300 frames of 7-Scenes redkitchen); each refit and its figures are in the lab notebook (lab: cost-model-fits).
     """
 
     update_s: float = 0.000795
+    """Seconds of fixed work per update."""
     gaussian_s: float = 2.71e-7
+    """Seconds per Gaussian per update (projection, Adam) and per integrated frame."""
     pixel_s: float = 8.6e-8
+    """Seconds per supervised pixel per update."""
     pixel_gaussian_s: float = 1.75e-11
+    """Seconds per supervised pixel per Gaussian per update (blending)."""
     frame_s: float = 0.00076
+    """Seconds of fixed work per integrated frame (admission render, growth)."""
 
     @classmethod
     def fit(cls, updates: np.ndarray, frames: np.ndarray) -> "CostModel":

@@ -92,12 +92,21 @@ def _live_view(host: str, port: int):
 def config_cmd(
     set_: List[str] = typer.Option([], "--set", metavar="KEY=VALUE", help="Override a key before printing."),
     config: Optional[Path] = typer.Option(None, help="Start from this config file instead of the defaults."),
+    explain: Optional[str] = typer.Option(None, metavar="KEY", help="Print KEY's type, default and rule instead."),
 ) -> None:
     """Print the default config (or a config file's, with overrides) as JSON: every key --set and --config take."""
     import json
 
     from ..config import Config, apply_override
 
+    if explain is not None:
+        from .config_explain import explain as explain_key
+
+        try:
+            typer.echo(explain_key(explain))
+        except ValueError as e:
+            _fail(str(e))
+        return
     try:
         cfg = Config.load(config) if config else Config()
         for item in set_:

@@ -1,5 +1,5 @@
 """``eligsir calibrate [--force]``: show the cached cost-model fit of this machine, device and renderer (when and
-under what conditions it was taken, whether it is still reused), or take it again (issue 31 item 13)."""
+under what conditions it was taken, whether it is still reused), or take it again."""
 
 from __future__ import annotations
 

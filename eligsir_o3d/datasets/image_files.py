@@ -16,7 +16,7 @@ def _read_image(path: Path, index: int, what: str, camera: Camera | None = None)
 
     if not path.is_file():
         raise DatasetError(f"frame {index}: {what} file {path} does not exist")
-    # the header first: a small file may declare a huge image (issue 31), refused before it is decoded
+    # the header first: a small file may declare a huge image, refused before it is decoded
     check_declared_size(path, index, what, None if camera is None else (camera.width, camera.height))
     if path.suffix.lower() in (".jpg", ".jpeg") and not _jpeg_complete(path):
         # libjpeg decodes a cut-off JPEG without an error (the missing rows grey): a truncated file, not a frame

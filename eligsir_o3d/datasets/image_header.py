@@ -1,4 +1,4 @@
-"""Image dimensions from the file header, read before anything is decoded (issue 31 item 6): a 3 MB PNG can
+"""Image dimensions from the file header, read before anything is decoded: a 3 MB PNG can
 declare 40000x40000 16-bit pixels (3.2 GB decoded), so a reader checks the declared size first.
 
 - :func:`image_size`: (width, height) of a PNG (its IHDR chunk) or a baseline/progressive JPEG (its SOF segment),

@@ -10,7 +10,7 @@ from __future__ import annotations
 import inspect
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 from . import folder, polycam, record3d, record3d_exr, replica, rosbag, rsbag, scannet, stray, tum
 from .base import DatasetError, RGBDSequence
@@ -51,17 +51,36 @@ def _call(fmt_name: str, fn: Callable[..., RGBDSequence], *args, **options) -> R
 
 
 def open_sequence(path_or_name: str | Path, kind: str = "auto", *, register: bool = True,
-                  **options) -> RGBDSequence:
+                  **options: Any) -> RGBDSequence:
     """Open a recorded RGB-D sequence (or the synthetic scene) as an :class:`RGBDSequence`.
 
-    kind: "auto" (detect from the folder's files) or one of :func:`list_formats`. Options go to the reader,
-    for example ``max_dt=0.02`` (tum, rosbag, realsense), ``fps=30`` (replica, folder, scannet), ``depth_scale=``,
-    ``rgb_topic, depth_topic, rgb_info_topic, depth_info_topic, pose_topic, pose_frames, intrinsics`` (rosbag),
-    ``n_frames, width, height, seed`` (synthetic),
-    ``min_confidence, max_depth, color_width`` (record3d, stray, polycam; record3d_exr: no confidence; see
-    :mod:`.phone`). register=False ignores a separate colour camera
-    (the sidecar's ``color`` block or a recording's two CameraInfos): depth is not registered and the depth camera
-    serves both images.
+    Args:
+        path_or_name: a sequence folder, a bag, a ``.sens`` or ``.r3d`` file, or ``"synthetic"`` (the embedded
+            room; ``"synthetic:NAME"`` for another built-in scene).
+        kind: ``"auto"`` (detect the layout from the files) or one of :func:`list_formats`.
+        register: False ignores a separate colour camera (the sidecar's ``color`` block or a recording's two
+            CameraInfos): depth is not registered and the depth camera serves both images.
+        **options: passed to the reader, for example ``max_dt=0.02`` (tum, rosbag, realsense), ``fps=30``
+            (replica, folder, scannet), ``depth_scale=``, ``rgb_topic, depth_topic, rgb_info_topic,
+            depth_info_topic, pose_topic, pose_frames, intrinsics`` (rosbag), ``n_frames, width, height, seed``
+            (synthetic), ``min_confidence, max_depth, color_width`` (record3d, stray, polycam; see :mod:`.phone`).
+
+    Returns:
+        The sequence: ``len(seq)`` frames, ``seq.intrinsic`` (``o3d.camera.PinholeCameraIntrinsic``),
+        ``seq.depth_scale``, and items with ``rgbd`` (``o3d.t.geometry.RGBDImage``), ``T_world_cam`` (camera-to-world
+        [4, 4], None without poses) and ``timestamp`` (seconds).
+
+    Raises:
+        DatasetError: the path does not exist, its layout is not recognised, or an option is unknown.
+
+    Example:
+        ```python
+        from eligsir_o3d.datasets import open_sequence
+
+        seq = open_sequence("synthetic", n_frames=4, width=160, height=120)
+        item = seq[0]
+        print(len(seq), seq.intrinsic.width, item.T_world_cam.shape)  # 4 160 (4, 4)
+        ```
     """
     seq = _open(path_or_name, kind, **options)
     if not register:

@@ -215,7 +215,7 @@ def spatial_table(pairs: dict[str, list[tuple]]) -> dict[str, dict]:
 
 
 def view_criteria(full: dict, abl: dict | None, sp: dict | None) -> list[str]:
-    """Issue 30's checks on Table III rows (means with ``<key>_sd``) and :func:`spread` of full vs w/o view scheduling:
+    """The view-scheduling checks on Table III rows (means with ``<key>_sd``) and :func:`spread` of full vs w/o view scheduling:
     PSNR and CUC@20 no lower by more than one seed sd, full's own weakest decile higher, cells > 10 dB."""
     lines = []
     for key, name in (("psnr", "held-out PSNR"), ("cuc20", "CUC@20")) if abl else ():

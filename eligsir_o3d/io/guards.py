@@ -1,4 +1,4 @@
-"""Small checks that keep a command from destroying its own input or exhausting memory (issue 31 items 4 and 8).
+"""Small checks that keep a command from destroying its own input or exhausting memory.
 
 - :func:`refuse_overwriting_inputs`: an output path that is one of the command's inputs (the same path, or the
   same file through a symbolic or hard link) is refused before anything is read or written.

@@ -26,7 +26,7 @@ poses, off only by the tracking drift), else at the identity. Where the frames d
 trajectory file from elsewhere), ``trajectory_accuracy(est, gt, return_alignment=True)["T_gt_est"]`` is the rigid
 Umeyama alignment; ``inv(T_gt_est) @ T_gt`` brings a ground-truth pose into the map's frame.
 
-Each source's measured accuracy and time: docs/measurements.md ("Pose sources").
+Each source's measured accuracy and time: docs/lab/measurements.md ("Pose sources").
 """
 
 from __future__ import annotations
@@ -52,11 +52,33 @@ def is_colmap_model(path: Path) -> bool:
     return find_model_dir(path) is not None
 
 
-def get_pose_source(spec: str | Path, *, sequence: Any = None, **options) -> PoseSource:
+def get_pose_source(spec: str | Path, *, sequence: Any = None, **options: Any) -> PoseSource:
     """A pose source from a name (``gt``, ``odometry``, ``kiss-icp``, ``colmap``) or a path.
 
-    ``sequence`` is kept for ``prepare()``; ``options`` go to the source's constructor (see each class). Call
-    ``src.prepare(sequence)`` once before the first ``track``: offline sources (colmap) do their work there.
+    Args:
+        spec: ``gt`` (the recording's poses), ``odometry`` (Open3D RGB-D odometry), ``kiss-icp``, ``colmap``, a TUM
+            trajectory file, or a folder holding a COLMAP model.
+        sequence: the sequence the source will track, kept for ``prepare()``.
+        **options: passed to the source's constructor (see each class).
+
+    Returns:
+        A :class:`PoseSource`. Call ``src.prepare(sequence)`` once before the first ``track``: offline sources
+        (colmap) do their work there. ``track(index, timestamp, color, depth, camera)`` returns ``T_world_cam``
+        (camera-to-world [4, 4], metres) or raises :class:`TrackingLost`.
+
+    Raises:
+        ValueError: an unknown name, or a path that is neither a trajectory file nor a COLMAP model.
+
+    Example:
+        ```python
+        from eligsir_o3d.datasets import open_sequence
+        from eligsir_o3d.pose import get_pose_source
+
+        seq = open_sequence("synthetic", n_frames=4, width=160, height=120)
+        src = get_pose_source("gt", sequence=seq)
+        src.prepare(seq)
+        print(type(src).__name__)  # GroundTruthSource
+        ```
     """
     key = str(spec).strip()
     low = key.lower()

@@ -1,4 +1,4 @@
-"""A results folder holds one run's results, never two mixed (issue 31 items 2 and 3).
+"""A results folder holds one run's results, never two mixed.
 
 - A folder that holds another run's results (any of :data:`RESULT_FILES`) is refused unless the run is given
   ``overwrite`` (``eligsir map --overwrite``) or ``resume`` with a checkpoint there (``--resume``; the checkpoint

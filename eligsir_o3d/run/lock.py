@@ -58,7 +58,7 @@ def pid_alive(pid: int) -> bool:
 
 
 def describe(owner: dict) -> str:
-    """``pid 123 on host h, started 2026-11-29 21:30:00 UTC (eligsir map ... )``."""
+    """``pid 123 on host h, started YYYY-MM-DD hh:mm:ss UTC (eligsir map ... )``."""
     cmd = f" ({owner['command']})" if owner.get("command") else ""
     return f"pid {owner.get('pid', '?')} on host {owner.get('host', '?')}, started {owner.get('started', '?')}{cmd}"
 

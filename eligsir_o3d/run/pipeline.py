@@ -13,7 +13,7 @@ import logging
 import math
 import time
 from pathlib import Path
-from typing import Iterator
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -51,9 +51,31 @@ def heldout_indices(n: int, every: int, listfile: str | None = None) -> list[int
 
 
 def run_mapping(path: str, out_dir: str | Path, config: Config | None = None, opts: RunOptions | None = None,
-                **overrides) -> dict:
-    """Map the sequence at ``path`` into ``out_dir``; returns the metrics dict also written as metrics.json.
-    ``overrides``: RunOptions fields (``run_mapping(p, out, cfg, max_frames=50)``)."""
+                **overrides: Any) -> dict:
+    """Map the sequence at ``path`` into ``out_dir`` by the paper's protocol, as ``eligsir map`` does.
+
+    Args:
+        path: anything :func:`~eligsir_o3d.datasets.open_sequence` opens (``"synthetic"`` included).
+        out_dir: the results folder (``map.ply``, ``metrics.json``, ``trajectory.txt``, ``config.json``, ...).
+        config: the mapper's configuration (default: ``Config()``, its shipped cost model).
+        opts: how the sequence is run (frames, held-out split, pose source, outputs); default ``RunOptions()``.
+        **overrides: :class:`RunOptions` fields set on ``opts``, e.g. ``max_frames=50``.
+
+    Returns:
+        The metrics dict, also written as ``metrics.json`` (``heldout``, ``cvq_auc``, ``updates``, ...).
+
+    Raises:
+        TypeError: an override that is not a RunOptions field.
+
+    Example:
+        ```python
+        from eligsir_o3d.run.pipeline import run_mapping
+
+        m = run_mapping("synthetic", "runs/api-room", max_frames=6, eval_every=0, plots=False, pictures=False,
+                        sequence_options={"n_frames": 6, "width": 160, "height": 120})
+        print(m["frames_total"], m["heldout"]["psnr"] > 0)  # 6 True
+        ```
+    """
     opts = opts or RunOptions()
     for k, v in overrides.items():
         if not hasattr(opts, k):

@@ -4,10 +4,9 @@ Why numba should run its kernels on TBB here, not on OpenMP: the package makes O
 (:func:`eligsir_o3d.runtime.prepare`: spinning workers starve the main thread of a busy machine), so every parallel
 region of an OpenMP kernel wakes a sleeping worker, ~55-60 us on the 2-core machines measured, and a 1/4-scale
 mapping update runs ~30 such regions. TBB's idle workers spin a little, yielding, before they sleep: the next
-region finds its worker awake, and on a loaded machine the yielding spin gives its time slice away. Measured on a
-quiet 2-core Xeon, stop 47 (``benchmarks/speed/update_time.py``, 2 threads, 1/4-scale updates of the kitchen
-maps): 16k Gaussians in view 14.4 -> 13.2 ms, 4k in view 8.4 -> 7.8 ms; with 2-4 busy processes beside it the
-same as OpenMP, within the noise (docs/platforms.md).
+region finds its worker awake, and on a loaded machine the yielding spin gives its time slice away. Measured with
+``benchmarks/speed/update_time.py`` (lab: tbb-layer): faster on a quiet machine, the same as OpenMP beside busy
+processes.
 
 Two obstacles, both handled here with nothing but ``ctypes`` (``import eligsir_o3d`` stays free of numba):
 

@@ -30,39 +30,38 @@ from .resolution import coarser_for
 
 @dataclass
 class FidelityConfig:
-    scales: tuple[float, ...] = (0.125, 0.25, 0.5, 1.0)  # the paper's discrete supervision scales, ascending
-    start_scale: float = 0.25  # before anything is measured (cheap, raised within a few updates if it fits)
-    # a scale fits if this many of its updates fit in one frame period: below this a finer scale loses more to the
-    # missing updates than it gains in detail (7-Scenes, 200 frames, 2-core CPU, old cost model: 6 vs 3 at 0.1x,
-    # i.e. 1/2 instead of full resolution: 7-Scenes 22.41 vs 21.51 dB, SUN3D study room 20.71 vs 20.24; 1/4 is too
-    # coarse there: 21.85 / 20.18 dB). The refitted cost model (issue 16) prices an update at half the old figure,
-    # so the same 1/2-vs-full decision needs twice the count: with 6 a young map went to full resolution again
-    # (848 of 1993 updates, 7-Scenes 0.1x); 12 keeps 1/2 (3 seeds, 0.1x: 7-Scenes 22.41 -> 22.75 dB, SUN3D
-    # 20.81 -> 21.05). In real time the floor below decides.
+    scales: tuple[float, ...] = (0.125, 0.25, 0.5, 1.0)
+    """The paper's discrete supervision scales (shares of the source resolution), ascending."""
+    start_scale: float = 0.25
+    """Scale before anything is measured; raised within a few updates if a finer one fits."""
     min_updates_per_frame: float = 12.0
-    backlog_frames: float = 2.0  # a backlog of this many frames halves the time granted per update
-    # The lowest scale used while no frame waits (backlog EMA below floor_backlog): only load takes the controller
-    # below it. Without it a slow machine sits at 1/8 for a whole real-time run, and on real data 80x60 supervision
-    # is too coarse to pay for its extra updates (7-Scenes, 200 frames, 2-core CPU: 18.56 dB at 1/8 x 694 updates,
-    # 19.03 dB at 1/4 x 386).
+    """A scale fits if this many of its updates fit in one frame period (lab: fidelity-min-updates)."""
+    backlog_frames: float = 2.0
+    """A backlog of this many frames halves the time granted per update."""
     idle_floor_scale: float = 0.25
-    # ... times a power of two on a camera larger than 640x480 (:func:`.resolution.coarser_for`: 1/8 at 1280x960,
-    # whose 1/4-scale updates cost four times a 640x480 stream's: a 7-Scenes stretch resampled to 1280x960 ran 788
-    # updates, 21.58 dB; with floor, cap pricing and support render at 160x120, 2006 updates, 22.46); never finer.
-    # False: the scale above whatever the camera
+    """Lowest scale used while no frame waits; only load takes the controller below it (lab: fidelity-idle-floor)."""
     floor_follows_camera: bool = True
+    """On a camera larger than 640x480 the floor is multiplied by a power of two (``resolution.coarser_for``)."""
     floor_backlog: float = 0.5
-    cost_ema: float = 0.3  # weight of a new cost measurement
-    backlog_ema: float = 0.3  # weight of a new backlog reading
-    gamma_prior: float = 0.6  # cost ~ pixels^gamma before a scale change has measured it (CPU, 640x480: 0.3-0.8)
-    up_margin: float = 0.15  # raising the scale needs the next scale to fit with this fraction of slack
-    up_patience: int = 5  # consecutive "raise" votes before the scale goes up (one step)
-    down_patience: int = 2  # consecutive "lower" votes before the scale goes down (to the fitting scale)
-    trace_every: int = 1  # keep every k-th decision in ``trace``
-    # at most this many decisions in ``trace`` (0: no bound): beyond it every other one is dropped and the stride
-    # doubles, so the trace still spans the whole stream at a coarser step and a long stream's memory stays bounded
+    """Frames: below this backlog average no frame counts as waiting and the idle floor holds."""
+    cost_ema: float = 0.3
+    """Weight in [0, 1] of a new cost measurement in the running cost."""
+    backlog_ema: float = 0.3
+    """Weight in [0, 1] of a new backlog reading in the running backlog."""
+    gamma_prior: float = 0.6
+    """Exponent of cost ~ pixels^gamma before a scale change has measured it."""
+    up_margin: float = 0.15
+    """Raising the scale needs the next scale to fit with this share of slack."""
+    up_patience: int = 5
+    """Consecutive "raise" votes before the scale goes up one step."""
+    down_patience: int = 2
+    """Consecutive "lower" votes before the scale goes down to the fitting scale."""
+    trace_every: int = 1
+    """Keep every k-th decision in ``trace`` (``fidelity_trace.csv``)."""
     trace_max: int = 2000
-    fixed_scale: float = 1.0  # the supervision scale when fidelity is ablated (1.0 = native, as in the paper)
+    """Decisions kept in ``trace`` (0: no bound); beyond it every other one is dropped and the stride doubles."""
+    fixed_scale: float = 1.0
+    """Supervision scale when fidelity is ablated (1.0: native resolution, as in the paper)."""
 
 
 class LoadAdaptiveFidelity(FidelityPolicy):

@@ -1,4 +1,4 @@
-"""Fixed per-frame work that scales with load (issue 18; the paper's "degrade gracefully under load").
+"""Fixed per-frame work that scales with load (the paper's "degrade gracefully under load").
 
 Load-Adaptive Fidelity makes an *update* cheaper when frames wait, but every integrated frame also pays fixed work
 that does not shrink with the supervision scale: the support render of admission, the evidence voxel hash and
@@ -28,11 +28,17 @@ from dataclasses import dataclass
 @dataclass
 class FixedWorkConfig:
     enabled: bool = True
-    busy_backlog: int = 1  # frames waiting at which full checks thin out
-    max_check_every: int = 4  # under the heaviest load, one frame in this many gets the full check
-    low_res_backlog: int = 2  # frames waiting at which the support render drops to low_res_factor of its scale
-    low_res_factor: float = 0.5  # 1/4 -> 1/8 of the source resolution (80x60 for 640x480)
-    shed_backlog: int = 3  # frames waiting at which frames without the full check get no update while behind
+    """Scale the per-frame fixed work with the backlog; false: every frame gets the full check."""
+    busy_backlog: int = 1
+    """Frames waiting at which full admission checks thin out."""
+    max_check_every: int = 4
+    """Under the heaviest load, one frame in this many gets the full check."""
+    low_res_backlog: int = 2
+    """Frames waiting at which the support render drops to ``low_res_factor`` of its scale."""
+    low_res_factor: float = 0.5
+    """Factor on the support render's scale under load (0.5: 1/4 of the source resolution becomes 1/8)."""
+    shed_backlog: int = 3
+    """Frames waiting at which frames without the full check get no update while the mapper is behind."""
 
 
 

@@ -34,35 +34,38 @@ from .support import SupportProbe
 
 @dataclass
 class GrowthConfig:
-    voxel_size: float = 0.05  # metres per evidence voxel (about 4x4 probe pixels of a 640x480 view at 2 m)
-    seed_stride: int = 4  # sparse support: one seed per 4x4 probe pixels (16x16 source pixels at probe scale 1/4)
-    max_seeds_per_frame: int = 1500  # bound on the sparse support one frame may add
-    # where the run's views agree at full resolution (point supervision, ``MapContext.seed_scale``), seed_stride
-    # counts pixels of the updates' scale instead of the probe's: 8 source pixels apart at 1/2-scale updates, 4 at
-    # full scale, unchanged at 1/4. The rendered room, seeds 0 / 1: 160x120 22.30 / 22.59 -> 24.65 / 24.85 dB,
-    # at --speed 0.1 24.97 -> 27.75 (docs/evaluation.md); the real recordings decide area and keep their maps
+    voxel_size: float = 0.05
+    """Metres: edge of an evidence voxel."""
+    seed_stride: int = 4
+    """Support-render pixels: one sparse-support seed per stride x stride block."""
+    max_seeds_per_frame: int = 1500
+    """Bound on the sparse support one frame may add."""
     seed_follows_detail: bool = True
-    insert_stride: int = 2  # evidence-gated insertion: one Gaussian per 2x2 probe pixels of a ready voxel
-    max_insert_per_frame: int = 2000  # bound on one frame's insertions
-    min_views: int = 2  # distinct views that must find a voxel unexplained before it grows
-    min_fraction: float = 0.5  # a view votes for a voxel when at least this share of its samples there are unexplained
-    init_opacity: float = 0.5  # opacity of inserted Gaussians (3DGS-MCMC initialises at 0.5)
-    footprint: float = 0.5  # a new Gaussian's scale as a share of its stride x stride pixel block (0.5: seeds touch)
-    # budget cap (scheduling.capacity): the map grows only while one source frame still buys this many updates at
-    # ``budget_scale`` (0: the cap is config.max_gaussians alone). 4: 7-Scenes kitchen, 200 frames, default budget
-    # (map held at 3.8k instead of 4.1k-4.6k Gaussians), seeds 0/1/2: 21.48/21.65/21.64 dB vs 21.27/21.51/21.36;
-    # SUN3D study room: the cap does not bind (2.8k); at --speed 0.1 it does not bind either (77k)
+    """Where point supervision is chosen, ``seed_stride`` counts pixels of the updates' scale (lab: growth-seed-detail)."""
+    insert_stride: int = 2
+    """Support-render pixels: evidence-gated insertion adds one Gaussian per stride x stride block of a ready voxel."""
+    max_insert_per_frame: int = 2000
+    """Bound on one frame's insertions."""
+    min_views: int = 2
+    """Distinct views that must find a voxel unexplained before it grows."""
+    min_fraction: float = 0.5
+    """A view votes for a voxel when at least this share of its samples there are unexplained."""
+    init_opacity: float = 0.5
+    """Opacity in (0, 1) of inserted Gaussians (3DGS-MCMC's initial value)."""
+    footprint: float = 0.5
+    """A new Gaussian's scale as a share of its stride x stride pixel block (0.5: neighbours touch)."""
     budget_updates: float = 4.0
-    # the supervision scale that prices the cap: the fidelity controller's idle floor, so the cap does not depend on
-    # the scale of the moment (0: the current update's scale; then a growing map pushes the controller to coarser
-    # scales, which lift the cap again: SUN3D at --speed 0.1 ran away to 105k Gaussians at 1/4, -0.28 dB)
+    """The map grows only while a source frame still buys this many updates at ``budget_scale`` (0: no budget cap)."""
     budget_scale: float = 0.25
-    # ... times a power of two on a camera larger than 640x480, as the fidelity floor (FidelityConfig.
-    # floor_follows_camera); False: budget_scale whatever the camera
+    """Supervision scale that prices the budget cap (0: the current update's scale) (lab: growth-budget-cap)."""
     budget_follows_camera: bool = True
-    budget_min_gaussians: int = 1000  # the budget cap never goes below this
-    budget_fill: float = 0.0  # with a budget cap: each MCMC densification adds at least this share of the room left
+    """On a camera larger than 640x480, ``budget_scale`` times a power of two, as the fidelity floor."""
+    budget_min_gaussians: int = 1000
+    """The budget cap never goes below this many Gaussians."""
+    budget_fill: float = 0.0
+    """Under a budget cap, each MCMC densification adds at least this share of the room left."""
     mcmc: MCMCConfig = field(default_factory=MCMCConfig)
+    """3DGS-MCMC population refinement: relocation, replacement and densification under the cap."""
 
 
 class TargetedGrowth(GrowthPolicy):
@@ -148,8 +151,7 @@ class TargetedGrowth(GrowthPolicy):
         """When seeds have just become finer (``ctx.seed_scale`` set: the views were found to agree at full
         resolution), the views admitted before got seeds on the coarser grid: each gets the finer grid's seeds over
         all its valid depth, on top of what it has (the coarse seeds sit between them; relocation reuses those that
-        fade). Without it the first views of the rendered room stay coarse: 160x120 23.46 / 23.23 dB instead of
-        24.65 / 24.85."""
+        fade). Without it the first views stay on the coarse grid (lab: growth-reseed)."""
         added = 0
         if ctx.seed_scale is None or not self.cfg.seed_follows_detail:
             return added  # seeds on the probe's grid: nothing finer to add

@@ -15,9 +15,12 @@ from .views_trace import ViewsTrace
 
 @dataclass
 class KeyframesConfig:
-    every: int = 5  # keep every k-th released frame
-    newest_fraction: float = 0.25  # share of updates spent on the newest retained view
-    max_views: int = 400  # retained views kept in memory (oldest evicted first beyond this)
+    every: int = 5
+    """Keep every k-th released frame as a training view."""
+    newest_fraction: float = 0.25
+    """Share of updates spent on the newest retained view; the rest are drawn uniformly from the others."""
+    max_views: int = 400
+    """Retained views kept in memory; beyond this the oldest is evicted first."""
 
 
 class StrideKeyframes(ViewPolicy):

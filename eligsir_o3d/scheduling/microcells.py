@@ -117,10 +117,14 @@ def grow(t: torch.Tensor, n: int, fill) -> torch.Tensor:
 
 @dataclass
 class MicrocellConfig:
-    cell_size: float = 0.25  # metres; a few cells per view at indoor depths (0.5 m is the evaluation's coarser cell)
-    ema: float = 0.3  # weight of a new error observation in a cell's running error
-    init_error: float = 0.15  # assumed photometric L1 of a cell that no training render has measured yet
-    samples: int = 1024  # depth samples per view for its cell footprint and for splatting its error
+    cell_size: float = 0.25
+    """Metres: edge of a microcell; a few cells per view at indoor depths (the evaluation's cells are coarser)."""
+    ema: float = 0.3
+    """Weight in [0, 1] of a new error observation in a cell's running error."""
+    init_error: float = 0.15
+    """Photometric L1 assumed for a cell that no training render has measured yet."""
+    samples: int = 1024
+    """Depth samples per view for its cell footprint and for splatting its error."""
 
 
 class Microcells:

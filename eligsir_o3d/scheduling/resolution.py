@@ -3,12 +3,11 @@
 The support render's scale, the fidelity controller's idle floor and the budget cap's pricing scale are set for a
 640x480 stream, where 1/4 is a 160x120 image. On a larger camera the same fraction is more work: at 1280x960 every
 update at the 1/4 floor supervises 320x240 pixels, four times a 640x480 stream's, and each frame's support render
-is four times as large (the kitchen's frames 0-199 resampled to 1280x960: 788 updates, 21.58 dB on the TSDF's
-pixels; with the three at 160x120, 2006 updates, 22.46). So on a larger camera each of them is the configured scale
+is four times as large (lab: fidelity-idle-floor). So on a larger camera each of them is the configured scale
 times :func:`camera_factor`, a power of two (whole-pixel area averages of the source): 1/2 for 1280x960 or 1280x720,
 1/4 for 2560x1920; 640x480 and 848x480 streams keep the configured scales, and so do smaller cameras (a finer
-support render for a 320x240 stream seeded it four times as densely: +1.8 dB at the default budget, -1.0 dB at
-``--speed 0.1``, and -0.5 dB on the 160x120 demo; docs/evaluation.md, stop 49).
+support render for a smaller stream seeds it more densely, which helps at one budget and hurts at another, lab:
+resolution-small-cameras).
 """
 
 from __future__ import annotations

@@ -40,10 +40,14 @@ def seeds_from_depth(color: torch.Tensor, depth: torch.Tensor, camera: Camera, T
 
 @dataclass
 class SeedingConfig:
-    pixel_stride: int = 8  # seed one Gaussian per stride x stride block of unsupported depth pixels
+    pixel_stride: int = 8
+    """Source pixels: one Gaussian per stride x stride block of unsupported depth pixels."""
     max_per_frame: int = 3000
+    """Bound on the Gaussians one frame may seed."""
     init_opacity: float = 0.5
-    dense: bool = False  # ablation: insert at every frame whether or not the map already supports it
+    """Opacity in (0, 1) of a seeded Gaussian."""
+    dense: bool = False
+    """Seed every frame whether or not the map already supports it (an ablation)."""
 
 
 class NewSpaceSeeding(GrowthPolicy):

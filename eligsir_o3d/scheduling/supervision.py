@@ -5,8 +5,7 @@ map to k x k averages of the source image: what a recording whose poses and dept
 pixels can teach (the average also averages that misregistration and the sensor's noise). *Point* supervision fits
 it to every k-th source pixel from a random phase per update, rendered with the source resolution's low-pass: the
 same number of pixels and the same cost, but over updates the map sees every source pixel unblurred, so it can hold
-the detail of data that agrees at full resolution (rendered sequences: the embedded room at 640x480 +0.5-0.75 dB at
-the default budget, docs/evaluation.md).
+the detail of data that agrees at full resolution (rendered sequences; lab: supervision-coherence).
 
 Which one a sequence gets is measured, not configured per dataset: :func:`detail_coherence` warps the last view
 measured into a newly admitted one (the later view's depth, both given poses) and correlates the two
@@ -35,15 +34,20 @@ MODES = ("auto", "area", "point")
 
 @dataclass
 class SupervisionConfig:
-    mode: str = "auto"  # auto (measured per run) | area | point
-    pairs: int = 2  # admitted view pairs whose median coherence decides (auto)
-    # the decision's threshold: the first two pairs' medians measured 0.33-0.44 on four real recordings (7-Scenes
-    # kitchen x3, SUN3D), 0.785 on the rendered room (160x120 and 640x480); Replica's office pairs 0.87-0.89
+    mode: str = "auto"
+    """``auto`` (decided per run from the views' coherence), ``area`` (pixel averages) or ``point`` (samples)."""
+    pairs: int = 2
+    """Admitted view pairs whose median coherence decides ``auto``."""
     coherence_min: float = 0.6
-    band_px: int = 4  # the detail band: the image minus its band_px x band_px box blur (source pixels)
-    max_pixels: int = 80_000  # the coherence uses a centre crop of the later view of at most this many pixels
-    pair_translation_m: float = 0.05  # a pair's views are at least this far apart, or turned by at least
-    pair_rotation_deg: float = 5.0  # this much (views.min_translation_m / min_rotation_deg's defaults)
+    """Median detail-band coherence in [0, 1] at or above which ``auto`` takes point samples (lab: supervision-coherence)."""
+    band_px: int = 4
+    """Source pixels: the detail band is the image minus its band_px x band_px box blur."""
+    max_pixels: int = 80_000
+    """Pixels: the coherence uses a centre crop of the later view of at most this many."""
+    pair_translation_m: float = 0.05
+    """Metres: a pair's views are at least this far apart, or turned by ``pair_rotation_deg``."""
+    pair_rotation_deg: float = 5.0
+    """Degrees: the turn that makes two views a pair when they are closer than ``pair_translation_m``."""
 
 
 @dataclass
@@ -145,8 +149,7 @@ class SupervisionGrid:
         """The image scale whose pixels the growth policy spaces new seeds in. With point samples, the updates'
         scale: a region is seeded as finely as it is supervised (the growth's 4-pixel stride then means 4 supervised
         pixels, e.g. 8 source pixels at 1/2-scale updates instead of 16). With area averages None, the support
-        probe's scale: fine seeds from depth that disagrees with its colour by pixels fit that noise (finer seeds
-        lost 0.25-0.4 dB on two kitchen stretches, docs/evaluation.md)."""
+        probe's scale: fine seeds from depth that disagrees with its colour by pixels fit that noise (lab: growth-seed-detail)."""
         return update_scale if self.mode == "point" else None
 
     def _apart(self, T_a: np.ndarray, T_b: np.ndarray) -> bool:

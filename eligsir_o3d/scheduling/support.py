@@ -15,13 +15,16 @@ from .resolution import coarser_for
 
 @dataclass
 class SupportConfig:
-    scale: float = 0.25  # render scale of the support check for a 640x480 stream (160x120)
-    # ... times a power of two on a larger camera (:func:`.resolution.coarser_for`: 1/8 at 1280x960), so the render
-    # costs a frame what it costs a 640x480 stream's; False: ``scale`` of every camera
+    scale: float = 0.25
+    """Share of the source resolution at which the support check renders a 640x480 stream."""
     follow_camera: bool = True
-    alpha_min: float = 0.5  # rendered opacity below this: the map does not support the pixel
-    depth_tol_m: float = 0.05  # rendered depth further than tol_m + tol_rel * z from the observation: misplaced
-    depth_tol_rel: float = 0.03  # (Kinect-class depth noise is ~1-3 cm at 2 m)
+    """Larger cameras render at ``scale`` times a power of two (``resolution.coarser_for``); false: ``scale``."""
+    alpha_min: float = 0.5
+    """Rendered opacity below this means the map does not support the pixel."""
+    depth_tol_m: float = 0.05
+    """Metres: rendered depth farther than ``depth_tol_m + depth_tol_rel * z`` from the observation is misplaced."""
+    depth_tol_rel: float = 0.03
+    """Share of the observed depth added to ``depth_tol_m`` (depth noise grows with distance)."""
 
     def scale_for(self, camera: Camera) -> float:
         """The support render's scale for frames of ``camera``."""

@@ -1,4 +1,4 @@
-"""Checks made before a viewer starts serving (issue 31 item 5): viser binds in a background thread, so a port
+"""Checks made before a viewer starts serving: viser binds in a background thread, so a port
 out of range, a host that does not resolve or an address this machine does not have would otherwise print a thread
 traceback and hang. Each is a ValueError here, one line (``eligsir view`` exits 2).
 

@@ -42,7 +42,7 @@ def test_wildcard_urls_and_warning():
 @pytest.mark.parametrize("args, said", [(["--port", "70000"], "not a port number"),
                                         (["--host", "10.1.2.3"], "not an address of this machine")])
 def test_eligsir_view_exits_2_at_once(tmp_path, args, said):
-    from tests.cli.test_safety_oneline import map_ply  # noqa: F401  (fixture body reused below)
+    from tests.cli.test_one_line_errors import map_ply  # noqa: F401  (fixture body reused below)
     import torch
 
     from eligsir_o3d.core.gaussians import GaussianMap
