@@ -51,7 +51,7 @@ class OptimConfig:
     """The kernel set that runs an update's stages (eligsir_o3d.kernels): auto | numba | torch | fused; auto = numba
     for a float32 map on the CPU, fused on CUDA, torch otherwise."""
     torch_threads: int = 1
-    """Torch's threads for the mapper's CPU work on small images (``core.threads``); 0 leaves torch's setting."""
+    """Torch's threads for the mapper's CPU work on small images (``runtime.threads``); 0 leaves torch's setting."""
 
 
 @dataclass
