@@ -150,11 +150,13 @@ class Config:
 
     @classmethod
     def load(cls, path: str | Path) -> "Config":
+        from .io.inputs import read_json
+
         path = Path(path)
-        try:
-            data = json.loads(path.read_text(encoding="utf-8-sig"))
-        except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise ConfigError(f"{path}: not a readable JSON config file ({e})") from None
+        try:  # a regular file, size-capped: /dev/zero, a FIFO or a folder is one line, not a hang
+            data = read_json(path, "config file")
+        except ValueError as e:
+            raise ConfigError(f"{e} (expected a JSON config file)") from None
         cfg = cls.from_dict(data, str(path))
         from .config_checks import check_values
 

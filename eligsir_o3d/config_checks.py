@@ -2,7 +2,9 @@
 (``--set``, ``--depth-max``, a config file, the API): one line naming the key.
 
 - Every number in the config tree is finite (NaN and infinities are refused; no key's default is one).
-- Every integer (counts, periods, ``seed``) is >= 0.
+- Every integer (counts, periods, ``seed``) is >= 0 and fits in 64 bits.
+- ``clock.speed``, ``clock.updates_per_frame``, ``clock.offline_updates``, ``seed`` and ``depth_max`` lie in the
+  range of the run-options table (:mod:`.run.option_table`), as ``--speed`` etc. do.
 - The keys in :data:`POSITIVE` are > 0 (``max_gaussians=-5`` would map nothing and report it as a result).
 - ``sh_degree`` is 0..3, ``background`` three numbers in [0, 1].
 - ``supervision.mode`` is one of auto / area / point, with ``supervision.pairs`` and ``band_px`` >= 1.
@@ -16,6 +18,7 @@ from typing import Any
 
 POSITIVE = ("max_gaussians", "depth_max", "depth_scale", "max_image_side", "supervision.pairs", "supervision.band_px")
 ANY_INTEGER: tuple[str, ...] = ()  # none: numpy's generators take no negative seed
+MAX_INTEGER = 2 ** 63 - 1  # torch and numpy take integers up to a signed 64-bit one
 
 
 def _walk(obj, prefix: str = ""):
@@ -38,8 +41,23 @@ def check_values(cfg) -> None:
                 raise ValueError(f"config key {key}: {v!r} is not a finite number")
             if isinstance(x, int) and x < 0 and key not in ANY_INTEGER:
                 raise ValueError(f"config key {key}: {v!r} is negative (must be >= 0)")
+            if isinstance(x, int) and x > MAX_INTEGER:
+                raise ValueError(f"config key {key}: {x} is too large (at most 2**63 - 1)")
         if key in POSITIVE and not (isinstance(v, (int, float)) and v > 0):
             raise ValueError(f"config key {key}: must be > 0, got {v!r}")
+    from .run.option_table import check_option
+
+    for key, name in (("clock.speed", "speed"), ("clock.updates_per_frame", "updates_per_frame"),
+                      ("seed", "seed"), ("depth_max", "depth_max"), ("clock.offline_updates", "offline_updates")):
+        obj = cfg
+        for part in key.split(".")[:-1]:
+            obj = getattr(obj, part)
+        value = getattr(obj, key.split(".")[-1], None)
+        if value is not None:
+            try:
+                check_option(name, value, f"config key {key}")
+            except ValueError as e:
+                raise ValueError(str(e).replace(f"config key {key} ", f"config key {key}: ", 1)) from None
     if not (isinstance(cfg.sh_degree, int) and 0 <= cfg.sh_degree <= 3):
         raise ValueError(f"config key sh_degree: must be 0, 1, 2 or 3, got {cfg.sh_degree!r}")
     bg = cfg.background

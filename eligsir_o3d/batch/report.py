@@ -124,20 +124,25 @@ SUMMARY_COLUMNS = ["name", "status", "psnr_db", "ssim", "depth_rmse_m", "cvq_auc
 
 def write_summary(results: list[SequenceResult], out: Path) -> Path:
     """``out/summary.csv``: a row per sequence (failed ones with their one-line error)."""
+    import io
+
+    from ..io.atomic import atomic_write_text
+
     path = Path(out) / "summary.csv"
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=SUMMARY_COLUMNS)
-        w.writeheader()
-        for r in results:
-            m = r.metrics or {}
-            h = m.get("heldout") or {}
-            w.writerow({"name": r.name, "status": r.status, "psnr_db": h.get("psnr"), "ssim": h.get("ssim"),
-                        "depth_rmse_m": h.get("depth_rmse_m"), "cvq_auc_db": m.get("cvq_auc"),
-                        "cuc20": m.get("cuc20_final"), "mapping_time_s": m.get("mapping_time_s"),
-                        "wall_time_s": m.get("wall_time_s"), "peak_rss_mb": m.get("peak_rss_mb"),
-                        "updates": m.get("updates"), "gaussians": m.get("gaussians"),
-                        "frames_source": m.get("frames_source"), "attempts": r.attempts,
-                        "resumed_from": r.resumed_from, "path": r.path, "folder": r.folder, "error": r.error})
+    f = io.StringIO(newline="")  # written whole, then atomically: a failure names summary.csv, keeps the old one
+    w = csv.DictWriter(f, fieldnames=SUMMARY_COLUMNS)
+    w.writeheader()
+    for r in results:
+        m = r.metrics or {}
+        h = m.get("heldout") or {}
+        w.writerow({"name": r.name, "status": r.status, "psnr_db": h.get("psnr"), "ssim": h.get("ssim"),
+                    "depth_rmse_m": h.get("depth_rmse_m"), "cvq_auc_db": m.get("cvq_auc"),
+                    "cuc20": m.get("cuc20_final"), "mapping_time_s": m.get("mapping_time_s"),
+                    "wall_time_s": m.get("wall_time_s"), "peak_rss_mb": m.get("peak_rss_mb"),
+                    "updates": m.get("updates"), "gaussians": m.get("gaussians"),
+                    "frames_source": m.get("frames_source"), "attempts": r.attempts,
+                    "resumed_from": r.resumed_from, "path": r.path, "folder": r.folder, "error": r.error})
+    atomic_write_text(path, f.getvalue())
     return path
 
 

@@ -10,6 +10,10 @@ import sys
 from pathlib import Path
 from typing import Callable, Iterable
 
+from ..io.inputs import printable
+from ..io.outputs import check_output_folder
+from ..run.option_table import check_option, default
+from .limits import check_resources, task_timeout as timeout_for
 from .report import Progress, SequenceResult, comparison, write_summary
 from .specs import BatchError, Defaults, build_request, expand_inputs, folder_status, read_state
 from .task import map_sequence, one_line
@@ -27,11 +31,12 @@ def import_ray():
 
 
 def map_many(inputs: Iterable, out: str | Path = "runs/batch", *, address: str | None = None,
-             cpus_per_task: float = 1, gpus_per_task: float | None = None, max_retries: int = 3,
-             checkpoint_every: int = 50, max_frames: int | None = None, pose: str = "gt", speed: float | None = None,
-             config: str | None = None, updates_per_frame: int | None = None, eval_every: int = 100,
-             holdout_every: int = 8, seed: int | None = None, cost_model: str | None = None,
-             device: str | None = None, plots: bool = True,
+             cpus_per_task: float = default("cpus_per_task"), gpus_per_task: float | None = None,
+             max_retries: int = default("max_retries"), checkpoint_every: int = default("checkpoint_every"),
+             max_frames: int | None = None, pose: str = "gt", speed: float | None = None,
+             config: str | None = None, updates_per_frame: int | None = None, eval_every: int = default("eval_every"),
+             holdout_every: int = default("holdout_every"), seed: int | None = None, cost_model: str | None = None,
+             device: str | None = None, plots: bool = True, task_timeout: float = default("task_timeout"),
              run_options: dict | None = None, echo: Callable[[str], None] | None = print,
              live: bool | None = None) -> list[SequenceResult]:
     """Map many sequences, one Ray task each, into ``out/<name>/`` (the results folder of ``eligsir map``).
@@ -53,7 +58,11 @@ def map_many(inputs: Iterable, out: str | Path = "runs/batch", *, address: str |
         max_frames: the batch's default for ``eligsir map``'s option of that name, as are ``pose``, ``speed``,
             ``config``, ``updates_per_frame``, ``eval_every``, ``holdout_every``, ``seed``, ``cost_model``,
             ``device`` and ``plots``; a manifest line's own options win. ``cost_model`` None uses the config's
-            (``eligsir_o3d.run.options.COST_MODEL_RULE``).
+            (``eligsir_o3d.run.options.COST_MODEL_RULE``). Numeric options are checked against the run-options
+            table (:mod:`eligsir_o3d.run.option_table`), the CPUs and GPUs per task against the cluster's
+            machines, before anything is mapped.
+        task_timeout: seconds a task may run before it is stopped and reported failed (0: from its recording's
+            length and speed, :mod:`.limits`).
 
     Returns:
         One :class:`~eligsir_o3d.batch.report.SequenceResult` per sequence, in input order (``status`` done,
@@ -70,6 +79,11 @@ def map_many(inputs: Iterable, out: str | Path = "runs/batch", *, address: str |
         ```
     """
     echo = echo or (lambda line: None)
+    cpus_per_task = check_option("cpus_per_task", cpus_per_task)
+    gpus_per_task = check_option("gpus_per_task", gpus_per_task)
+    max_retries = check_option("max_retries", max_retries)
+    task_timeout = check_option("task_timeout", task_timeout)
+    check_output_folder(out, "--out")  # a file there: one line, exit 3
     specs = expand_inputs(inputs)
     d = Defaults(max_frames=max_frames, pose=pose, speed=speed, config=config, updates_per_frame=updates_per_frame,
                  eval_every=eval_every, holdout_every=holdout_every, seed=seed, cost_model=cost_model, device=device,
@@ -99,20 +113,25 @@ def map_many(inputs: Iterable, out: str | Path = "runs/batch", *, address: str |
         results[req["name"]] = res
 
     if todo:
-        _run_tasks(todo, out, results, address, cpus_per_task, gpus_per_task, max_retries, device, echo, live)
+        limits = {r["name"]: timeout_for(r, task_timeout) for r in todo}
+        _run_tasks(todo, out, results, address, cpus_per_task, gpus_per_task, max_retries, device, echo, live,
+                   limits)
     ordered = [results[r["name"]] for r in requests]
     write_summary(ordered, out)
     return ordered
 
 
 def _run_tasks(todo: list[dict], out: Path, results: dict, address, cpus_per_task, gpus_per_task, max_retries,
-               device, echo, live) -> None:
+               device, echo, live, limits: dict) -> None:
+    import time
+
     ray = import_ray()
     started = _connect(ray, address)
     try:
         gpus = gpus_per_task
         if gpus is None:
             gpus = 1 if ray.cluster_resources().get("GPU", 0) > 0 else 0
+        check_resources(ray, cpus_per_task, gpus)  # a request no machine can meet would wait for ever
         if device is None and gpus > 0:
             device = "cuda:0"  # Ray hands each task its own GPUs as CUDA_VISIBLE_DEVICES
         cpus = ray.cluster_resources().get("CPU", 0)
@@ -132,8 +151,12 @@ def _run_tasks(todo: list[dict], out: Path, results: dict, address, cpus_per_tas
         progress = Progress([r["name"] for r in todo], echo=echo,
                             live=sys.stdout.isatty() if live is None else live)
         pending = list(refs)
+        deadline = {ref: time.monotonic() + limits[name] for ref, name in refs.items()}
         while pending:
             ready, pending = ray.wait(pending, num_returns=len(pending), timeout=0.5)
+            for ref in [r for r in pending if time.monotonic() > deadline[r]]:
+                pending.remove(ref)
+                _stop(ray, ref, refs[ref], limits[refs[ref]], out, results, progress)
             for name, info in _drain(board):
                 progress.handle(name, info)
             for ref in ready:
@@ -154,6 +177,16 @@ def _run_tasks(todo: list[dict], out: Path, results: dict, address, cpus_per_tas
     finally:
         if started:
             ray.shutdown()
+
+
+def _stop(ray, ref, name: str, limit: float, out: Path, results: dict, progress) -> None:
+    """Cancel the task ``ref`` of sequence ``name`` that ran past ``limit`` seconds; report it failed."""
+    ray.cancel(ref, force=True)
+    msg = f"stopped after {limit:.0f} s (--task-timeout; 0 derives it from the recording's length and speed)"
+    progress.handle(name, {"event": "failed", "error": msg})
+    st = read_state(out / name) or {}
+    results[name] = SequenceResult(name, results[name].path, str(out / name), "failed", msg,
+                                   attempts=st.get("attempts", 0))
 
 
 def _ray_task(request: dict, out_root: str, cpus: float, device: str | None, board) -> dict:
@@ -195,7 +228,7 @@ def format_report(results: list[SequenceResult], out: Path) -> list[str]:
     if table:
         lines += ["", table, ""]
     for r in failed:
-        lines.append(f"FAILED {r.name}: {r.error}")
+        lines.append(printable(f"FAILED {r.name}: {r.error}"))
     lines.append(f"{len(done)} of {len(results)} sequences finished ({earlier} earlier), {len(failed)} failed; "
                  f"summary in {Path(out) / 'summary.csv'}")
     return lines

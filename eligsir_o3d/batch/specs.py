@@ -25,6 +25,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from ..io.atomic import atomic_write_text
+from ..io.inputs import printable, read_json, read_text
+from ..run.option_table import check_option, default
+from .limits import RESERVED_NAMES
 
 MANIFEST_SUFFIXES = (".txt", ".list", ".manifest")
 STATE_FILE = "batch.json"
@@ -77,9 +80,9 @@ def read_manifest(path: str | Path) -> list[SequenceSpec]:
     """The sequences listed in a manifest file (see the module docstring); errors name the file and line."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as e:
-        raise BatchError(f"{path}: cannot read the manifest ({getattr(e, 'strerror', None) or e})") from None
+        text = read_text(path, "manifest")  # a regular file, size-capped
+    except ValueError as e:
+        raise BatchError(str(e)) from None
     parser, specs = _line_parser(), []
     for no, line in enumerate(text.splitlines(), 1):
         where = f"{path}:{no}"
@@ -115,6 +118,12 @@ def expand_inputs(inputs) -> list[SequenceSpec]:
         raise BatchError("no sequences given")
     bases = [re.sub(r"[^A-Za-z0-9._-]+", "_", s.name or Path(s.path.rstrip("/")).name or "sequence").strip("._")
              or "sequence" for s in specs]
+    for k, (s, base) in enumerate(zip(specs, bases)):
+        if base.lower() in RESERVED_NAMES:  # the batch folder's own files
+            if s.name is not None:
+                raise BatchError(f"{printable(s.where)}: --name {s.name!r} is the batch folder's own "
+                                 f"{base}; choose another name")
+            bases[k] = f"{base}-sequence"
     named: set[str] = set()
     for s, base in zip(specs, bases):
         if s.name is not None:
@@ -149,12 +158,12 @@ class Defaults:
     speed: float | None = None
     config: str | None = None
     updates_per_frame: int | None = None
-    eval_every: int = 100
-    holdout_every: int = 8
+    eval_every: int = default("eval_every")
+    holdout_every: int = default("holdout_every")
     seed: int | None = None
     cost_model: str | None = None  # None: the config's (shipped by default), see COST_MODEL_RULE
     device: str | None = None
-    checkpoint_every: int = 50
+    checkpoint_every: int = default("checkpoint_every")
     plots: bool = True  # also the pictures (heldout/*.png, flythrough.mp4)
     extra_options: dict = field(default_factory=dict)  # any other RunOptions field, for the Python API
 
@@ -169,6 +178,12 @@ def build_request(spec: SequenceSpec, d: Defaults) -> dict:
 
     pick = lambda name: getattr(spec, name) if getattr(spec, name) is not None else getattr(d, name)  # noqa: E731
     cfg_path = pick("config")
+    try:  # the run-options table: the same ranges and messages as eligsir map
+        checked = {n: check_option(n, pick(n)) for n in ("max_frames", "speed", "updates_per_frame", "eval_every",
+                                                         "holdout_every", "seed")}
+        check_option("checkpoint_every", d.checkpoint_every)
+    except ValueError as e:
+        raise BatchError(f"{printable(spec.where)}: {e}") from None
     asked = MapOptions(config=cfg_path, seed=pick("seed"), updates_per_frame=pick("updates_per_frame"),
                        speed=pick("speed"), device=d.device, cost_model=pick("cost_model"))
     try:
@@ -176,8 +191,8 @@ def build_request(spec: SequenceSpec, d: Defaults) -> dict:
     except (OSError, ValueError, TypeError) as e:
         raise BatchError(f"{spec.where}: cannot read config {cfg_path}: {e}") from None
     path = spec.path if spec.path == "synthetic" else str(Path(spec.path).resolve())
-    opts = dict(max_frames=pick("max_frames"), pose=pick("pose"), eval_every=pick("eval_every"),
-                holdout_every=pick("holdout_every"), checkpoint_every=d.checkpoint_every, plots=d.plots,
+    opts = dict(max_frames=checked["max_frames"], pose=pick("pose"), eval_every=checked["eval_every"],
+                holdout_every=checked["holdout_every"], checkpoint_every=d.checkpoint_every, plots=d.plots,
                 pictures=d.plots,
                 **d.extra_options)
     return {"name": spec.name, "path": path, "options": opts, "config": cfg.to_dict()}
@@ -194,8 +209,8 @@ def _comparable(request: dict) -> dict:
 
 def read_state(folder: Path) -> dict | None:
     try:
-        return json.loads((folder / STATE_FILE).read_text())
-    except (OSError, ValueError):
+        return read_json(folder / STATE_FILE, "batch state")
+    except ValueError:
         return None
 
 

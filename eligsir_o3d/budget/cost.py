@@ -9,7 +9,6 @@ machine a run is on, and a JSON file of the constants pins one (``eligsir map --
 from __future__ import annotations
 
 import dataclasses
-import json
 from dataclasses import dataclass
 from itertools import combinations
 from pathlib import Path
@@ -99,11 +98,13 @@ class CostModel:
     def load(cls, path: str | Path) -> "CostModel":
         """A cost model from a JSON file: its terms, or a config file holding them under ``clock.cost`` (as
         ``benchmarks/budget/cost_model.py --json`` and the calibration cache write)."""
+        from ..io.inputs import read_json
+
         path = Path(path)
-        try:
-            data = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise ValueError(f"{path}: not a readable cost-model JSON file ({e})") from None
+        try:  # a regular file, size-capped
+            data = read_json(path, "cost-model file")
+        except ValueError as e:
+            raise ValueError(f"{e} (expected a cost-model JSON file)") from None
         if isinstance(data, dict) and "clock" in data:
             data = data["clock"].get("cost", {}) if isinstance(data["clock"], dict) else {}
         elif isinstance(data, dict) and "model" in data:

@@ -9,7 +9,7 @@ from typing import List, Optional
 
 import typer
 
-from .commands import COMMANDS, _serve_until_interrupted
+from .commands import COMMANDS, _serve_until_interrupted, setup_logging
 from .commands import fail as _fail
 from .map_options import map_options, with_options
 
@@ -40,7 +40,7 @@ def map_cmd(**kw) -> None:
     from ..run.pipeline import read_run, run_mapping
     from ..run.folder_guard import fresh_folder
 
-    logging.basicConfig(level=logging.WARNING if kw["quiet"] else logging.INFO, format="%(levelname)s %(message)s")
+    setup_logging(logging.WARNING if kw["quiet"] else logging.INFO)
     path, out, opts = kw["path"], kw["out"], None
     try:
         if kw["rerun"] is not None:
@@ -173,7 +173,7 @@ def demo(
 
     from ..run.folder_guard import fresh_folder
 
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    setup_logging()
     out = out or fresh_folder("runs/demo")
     # speed 0.1: the mapper gets 10x the recording's duration (modelled, deterministic); the config's cost model
     cfg, opts = resolve(MapOptions(device=device, speed=speed, max_frames=frames, eval_every=200,
@@ -207,10 +207,17 @@ def export(
     from ..export import export_from_ply, write_for_viewers, write_web
     from ..export.views import camera_next_to, poses_next_to
     from ..io.ply import load_ply
+    from ..io.outputs import check_export_outputs
 
     if mesh is None and point_cloud is None and spz is None and splat is None and for_viewers is None:
         _fail("nothing to do: give --mesh, --point-cloud, --spz, --splat and/or --for-viewers")
+    from ..run.option_table import check_option
+
     try:
+        voxel_size, min_opacity = check_option("voxel_size", voxel_size), check_option("min_opacity", min_opacity)
+        depth_max = check_option("depth_max", depth_max)
+        check_export_outputs(map_ply, poses, mesh=mesh, point_cloud=point_cloud, spz=spz, splat=splat,
+                             for_viewers=for_viewers)  # before anything is read or written
         summary = {}
         if for_viewers is not None:
             summary.update(write_for_viewers(map_ply, for_viewers, poses=poses))
@@ -223,7 +230,7 @@ def export(
             summary.update(export_from_ply(map_ply, mesh, point_cloud, poses=poses, voxel_size=voxel_size,
                                            depth_max=depth_max, min_opacity=min_opacity, device=device))
     except (ValueError, OSError, RuntimeError) as e:
-        _fail(str(e))
+        _fail(str(e), getattr(e, "exit_code", 2))  # 3: an output could not be written
     except MemoryError:
         _fail(f"{map_ply}: not enough memory for this export (try a larger --voxel-size)")
     for k, v in summary.items():
@@ -250,8 +257,12 @@ def eval_cmd(
     if len(results) == 2:
         from ..eval.spatial import compare_spatial, format_summary
 
+        from ..io.atomic import WriteFailed
+
         try:
             typer.echo(format_summary(compare_spatial(results[0], results[1], spatial_out)))
+        except WriteFailed as e:  # --spatial-out unwritable (read-only, a file, a full disk): exit 3
+            _fail(str(e), e.exit_code)
         except (ValueError, FileNotFoundError) as e:
             typer.echo(f"no per-cell comparison: {e}")
 

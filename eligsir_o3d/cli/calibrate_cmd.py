@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from .commands import Renderer, fail
+from .commands import Renderer, fail, setup_logging
 
 
 def describe(path, data: dict | None) -> list[str]:
@@ -41,7 +41,7 @@ def calibrate_cmd(
     from ..budget.calibrate import cache_path, machine_key, read_cached
     from ..config import Config
 
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    setup_logging()
     try:
         cfg = (Config.load(config) if config else Config())
         cfg.device, cfg.renderer = device, renderer.value

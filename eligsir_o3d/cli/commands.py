@@ -12,13 +12,35 @@ from typing import List, Optional
 
 import typer
 
+from ..run.option_table import default
 from ..run.options import COST_MODEL_RULE
 
 
 def fail(msg: str, code: int = 2) -> None:
-    """One red line on stderr and exit status 2: how every command reports bad input (README: exit codes)."""
-    typer.secho(f"error: {msg}", fg=typer.colors.RED, err=True)
+    """One red line on stderr and exit status 2: how every command reports bad input (README: exit codes). Control
+    characters in ``msg`` (a file name with a newline) are escaped, so the line stays one line."""
+    from ..io.inputs import printable
+
+    typer.secho(f"error: {printable(msg)}", fg=typer.colors.RED, err=True)
     raise typer.Exit(code)
+
+
+class _Printable(logging.Filter):
+    """Escapes control characters in every log line (names read from a recording cannot forge a line)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        from ..io.inputs import printable
+
+        record.msg, record.args = printable(record.getMessage()), ()
+        return True
+
+
+def setup_logging(level: int = logging.INFO) -> None:
+    """The commands' logging: ``LEVEL message`` lines on stderr, control characters escaped."""
+    logging.basicConfig(level=level, format="%(levelname)s %(message)s")
+    for handler in logging.getLogger().handlers:
+        if not any(isinstance(f, _Printable) for f in handler.filters):
+            handler.addFilter(_Printable())
 
 
 _fail = fail
@@ -68,10 +90,13 @@ def live(
     from ..config import Config
     from ..run.live_run import RSBagReplay, RealSenseCamera, SequenceReplay, run_live
 
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
-    cfg = Config.load(config) if config else Config()
-    cfg.device = device
+    from ..run.option_table import check_option
+
+    setup_logging()
     try:
+        frames, seconds = check_option("frames", frames), check_option("seconds", seconds)
+        cfg = Config.load(config) if config else Config()  # an unknown key, a folder, /dev/zero: one line
+        cfg.device = device
         if replay is None:
             source = RealSenseCamera()
         elif replay.endswith(".bag") and _is_realsense(replay):
@@ -106,7 +131,7 @@ def view(
     """Look at a map in the browser: the splats, the trajectory's cameras, the mesh / point cloud."""
     from ..visual.viewer import open_map_viewer
 
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(message)s")
+    setup_logging()
     try:
         viewer = open_map_viewer(map_ply, host, port, trajectory, mesh, point_cloud, max_cameras)
     except (ValueError, OSError, RuntimeError) as e:
@@ -117,11 +142,11 @@ def view(
 
 def show_urls(viewer, host: str, what: str) -> None:
     """Print where ``viewer`` is served; for a wildcard host every address, and that it is on the network."""
-    from ..visual.bind_check import NETWORK_WARNING, WILDCARD
+    from ..visual.bind_check import NETWORK_WARNING, is_wildcard
 
     urls = getattr(viewer, "urls", None) or [viewer.url]
     typer.echo(f"{what} at {'  '.join(urls)}  (Ctrl-C to stop)")
-    if host in WILDCARD:
+    if is_wildcard(host):
         typer.secho(NETWORK_WARNING.format(host=host or "0.0.0.0"), fg=typer.colors.YELLOW, err=True)
 
 
@@ -154,13 +179,16 @@ def render(
     """Render a map along a camera path into PNG frames and/or a video."""
     from ..visual.video import render_map_file
 
+    from ..run.option_table import check_option
+
     if out is None and video is None:
         _fail("nothing to do: give --out and/or --video")
     try:
+        fps, smooth = check_option("fps", fps), check_option("smooth", smooth)
         summary = render_map_file(map_ply, poses, out, video, scale=scale, smooth=smooth, fps=fps,
                                   renderer=renderer.value, device=device)
     except (ValueError, OSError, RuntimeError) as e:
-        _fail(str(e))
+        _fail(str(e), getattr(e, "exit_code", 2))  # 3: an output could not be written
     except MemoryError:
         _fail(f"{map_ply}: not enough memory to render at --scale {scale:g}; use a smaller --scale")
     for k, v in summary.items():
@@ -171,16 +199,17 @@ def batch_cmd(
     inputs: List[str] = typer.Argument(..., help="Sequence paths and/or manifest files (.txt/.list/.manifest: one sequence a line, optionally with its own --name --max-frames --pose --speed --config --updates-per-frame --eval-every --holdout-every --seed --cost-model)."),
     out: Path = typer.Option(Path("runs/batch"), "--out", "-o", help="Batch folder: one results folder per sequence, summary.csv."),
     address: Optional[str] = typer.Option(None, help="Ray cluster to join: 'auto' or ray://host:port [default: a local Ray in this process, or the cluster of `ray job submit`]."),
-    cpus_per_task: float = typer.Option(1, help="CPUs per sequence (also its torch/numba thread count)."),
+    cpus_per_task: float = typer.Option(default("cpus_per_task"), help="CPUs per sequence (also its torch/numba thread count; at most what one machine of the cluster has)."),
     gpus_per_task: Optional[float] = typer.Option(None, help="GPUs per sequence [default: 1 where the cluster has GPUs, else 0]."),
-    max_retries: int = typer.Option(3, help="Retries of a sequence whose worker died; each resumes from its last checkpoint."),
-    checkpoint_every: int = typer.Option(50, help="Checkpoint every N source frames (what a retry resumes from)."),
+    max_retries: int = typer.Option(default("max_retries"), help="Retries of a sequence whose worker died; each resumes from its last checkpoint."),
+    checkpoint_every: int = typer.Option(default("checkpoint_every"), help="Checkpoint every N source frames (what a retry resumes from; 0: none)."),
+    task_timeout: float = typer.Option(default("task_timeout"), help="Seconds one sequence may take before it is stopped and reported failed (0: from the recording's length and the speed)."),
     max_frames: Optional[int] = typer.Option(None, help="Use only the first N frames of each sequence."),
     pose: str = typer.Option("gt", help="Pose source, as for `eligsir map`."),
     speed: Optional[float] = typer.Option(None, help="Replay speed, as for `eligsir map`."),
     updates_per_frame: Optional[int] = typer.Option(None, help="Deterministic budget: updates per source frame."),
-    eval_every: int = typer.Option(100, help="Held-out checkpoint every N updates (0: only at the end)."),
-    holdout_every: int = typer.Option(8, help="Hold out every N-th frame for evaluation."),
+    eval_every: int = typer.Option(default("eval_every"), help="Held-out checkpoint every N updates (0: only at the end)."),
+    holdout_every: int = typer.Option(default("holdout_every"), help="Hold out every N-th frame for evaluation (0: none)."),
     config: Optional[Path] = typer.Option(None, help="config.json to start every sequence from."),
     seed: Optional[int] = typer.Option(None, help="Random seed [default: the config's, else 0]."),
     cost_model: Optional[str] = typer.Option(None, help="calibrate | shipped | FILE (default: the config's, shipped). " + COST_MODEL_RULE),
@@ -193,11 +222,12 @@ def batch_cmd(
     try:
         results = map_many(inputs, out, address=address, cpus_per_task=cpus_per_task, gpus_per_task=gpus_per_task,
                            max_retries=max_retries, checkpoint_every=checkpoint_every, max_frames=max_frames,
+                           task_timeout=task_timeout,
                            pose=pose, speed=speed, config=str(config) if config else None,
                            updates_per_frame=updates_per_frame, eval_every=eval_every, holdout_every=holdout_every,
                            seed=seed, cost_model=cost_model, device=device, plots=plots, echo=typer.echo)
     except (BatchError, ValueError, OSError) as e:
-        _fail(str(e))
+        _fail(str(e), getattr(e, "exit_code", 2))  # 3: the batch folder cannot be written
     for line in format_report(results, out):
         typer.echo(line)
     if any(r.status == "failed" for r in results):

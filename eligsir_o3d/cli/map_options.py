@@ -12,6 +12,7 @@ from typing import List, Optional
 import typer
 
 from ..config import ABLATION_RENAMED
+from ..run.option_table import default
 from ..run.options import COST_MODEL_RULE
 from ..scheduling import ABLATIONS
 from .commands import Renderer
@@ -95,14 +96,17 @@ BUDGET_OPTIONS = [
                                   BUDGET)),
 ]
 EVAL_OPTIONS = [
-    ("holdout_every", int, _opt(8, "Hold out every N-th frame for evaluation (never mapped).", EVAL)),
+    ("holdout_every", int, _opt(default("holdout_every"), "Hold out every N-th frame for evaluation (never mapped; "
+                                "0: none).", EVAL)),
     ("holdout_list", Optional[Path], _opt(None, "File of frame indices to hold out instead.", EVAL)),
-    ("eval_every", int, _opt(100, "Held-out checkpoint every N updates (0: only at the end).", EVAL)),
+    ("eval_every", int, _opt(default("eval_every"), "Held-out checkpoint every N updates (0: only at the end).",
+                             EVAL)),
 ]
 OUTPUT_OPTIONS = [
     ("out", Optional[Path], _opt(None, "Results folder (default: runs/map, or runs/map-2, -3, ... if taken; with "
                                  "--rerun DIR: DIR-rerun, likewise).", OUTPUT, "--out", "-o")),
-    ("checkpoint_every", int, _opt(0, "Write OUT/checkpoint.pt every N source frames (atomic).", OUTPUT)),
+    ("checkpoint_every", int, _opt(default("checkpoint_every"), "Write OUT/checkpoint.pt every N source frames "
+                                   "(atomic; what --resume continues from; 0: none).", OUTPUT)),
     ("resume", bool, _opt(False, "Continue from OUT/checkpoint.pt of an interrupted run.", OUTPUT, "--resume")),
     ("overwrite", bool, _opt(False, "Replace the results of another run in OUT (its files are removed first; "
                              "without it such a folder is refused).", OUTPUT, "--overwrite")),

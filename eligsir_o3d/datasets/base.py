@@ -7,7 +7,6 @@ sequence costs only the text parsing.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -78,7 +77,11 @@ class RGBDSequence:
         if self.color_paths and (len(self.color_paths) != n or len(self.depth_paths) != n):
             raise DatasetError(f"{where}: {len(self.color_paths)} colour and {len(self.depth_paths)} depth files "
                                f"for {n} timestamps")
-        bad = np.flatnonzero(np.diff(self.timestamps) <= 0)
+        nonfinite = np.flatnonzero(~np.isfinite(self.timestamps))
+        if nonfinite.size:  # NaN passes every comparison below as false: a clock would never release the frame
+            i = int(nonfinite[0])
+            raise DatasetError(f"{where}: frame {i} has timestamp {self.timestamps[i]} (timestamps must be finite)")
+        bad = np.flatnonzero(~(np.diff(self.timestamps) > 0))
         if bad.size:
             i = int(bad[0]) + 1
             raise DatasetError(f"{where}: timestamps must be strictly increasing; frame {i} has "
@@ -206,8 +209,10 @@ def read_table(path: Path, columns: int | tuple[int, ...], *, text_fields: int =
     Raises DatasetError naming ``file:line`` for a malformed line.
     """
     allowed = (columns,) if isinstance(columns, int) else tuple(columns)
-    try:
-        text = Path(path).read_text(encoding="utf-8-sig")  # a UTF-8 byte-order mark (Windows editors) is no field
+    from ..io.inputs import read_text
+
+    try:  # a regular file, size-capped; a UTF-8 byte-order mark (Windows editors) is no field
+        text = read_text(path, "text file", error=DatasetError)
     except (OSError, UnicodeDecodeError) as e:
         raise DatasetError(f"cannot read {path}: {e}") from None
     rows = []
@@ -279,10 +284,9 @@ def read_matrix_file(path: Path) -> np.ndarray:
 
 def read_intrinsics_json(path: Path) -> tuple[Camera, float | None]:
     """``intrinsics.json``: {width, height, fx, fy, cx, cy[, depth_scale]} -> (Camera, depth_scale or None)."""
-    try:
-        data = json.loads(Path(path).read_text(encoding="utf-8-sig"))
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(f"cannot read intrinsics {path}: {e}") from None
+    from ..io.inputs import read_json
+
+    data = read_json(path, "intrinsics", error=DatasetError)
     if isinstance(data, dict) and isinstance(data.get("camera"), dict):
         data = data["camera"]
     missing = [k for k in ("width", "height", "fx", "fy", "cx", "cy") if not isinstance(data, dict) or k not in data]

@@ -14,8 +14,11 @@ from .errors import DatasetError
 def _read_image(path: Path, index: int, what: str, camera: Camera | None = None) -> o3d.t.geometry.Image:
     from .image_header import check_declared_size
 
-    if not path.is_file():
-        raise DatasetError(f"frame {index}: {what} file {path} does not exist")
+    from ..io.inputs import check_regular, printable
+
+    if not path.is_file() and not path.is_symlink() and not path.exists():
+        raise DatasetError(f"frame {index}: {what} file {printable(path)} does not exist")
+    check_regular(path, f"{what} file of frame {index}", DatasetError)  # a FIFO, a device, a looping link
     # the header first: a small file may declare a huge image, refused before it is decoded
     check_declared_size(path, index, what, None if camera is None else (camera.width, camera.height))
     if path.suffix.lower() in (".jpg", ".jpeg") and not _jpeg_complete(path):

@@ -159,6 +159,34 @@ def check_frame_count(path: Path, what: str, have: int, need: int) -> None:
         raise DatasetError(f"{path}: {what} for {have} frames but the capture has {need} (truncated file?)")
 
 
+PROBED_FILES = 5  # readable depth files whose most common size is the capture's depth size
+
+
+def probe_size(frames: list, size_of: Callable[[object], tuple[int, int]], where: str) -> tuple[int, int]:
+    """The depth size (w, h) of a capture that does not declare it: the most common ``size_of(frame)`` among the
+    first :data:`PROBED_FILES` frames that can be read. An unreadable or odd-sized file is its own frame's fault
+    (the bad-frame rule applies when the stream reaches it), not the capture's."""
+    return probe_sizes(frames, size_of, where)[0]
+
+
+def probe_sizes(frames: list, size_of: Callable[[object], tuple[int, int]], where: str):
+    """(size, the first frame of that size) of :func:`probe_size`."""
+    sizes, seen, first_error = [], [], None
+    for n in frames[:4 * PROBED_FILES]:
+        try:
+            sizes.append(tuple(size_of(n)))
+            seen.append(n)
+        except (ValueError, OSError) as e:
+            first_error = first_error or e
+        if len(sizes) == PROBED_FILES:
+            break
+    if not sizes:
+        raise DatasetError(f"{where}: none of the first {min(len(frames), 4 * PROBED_FILES)} depth files can be "
+                           f"read ({first_error})")
+    best = max(set(sizes), key=lambda s: (sizes.count(s), -sizes.index(s)))
+    return best, seen[sizes.index(best)]
+
+
 def import_lzfse():
     """The ``liblzfse`` module (PyPI ``pyliblzfse``), with an install hint when it is missing."""
     try:

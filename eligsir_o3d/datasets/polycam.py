@@ -24,14 +24,16 @@ by default, as nerfstudio does; Polycam's README asks to mask it). Options: ``mi
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from ..core.camera import Camera
+from ..io.inputs import check_regular, printable, read_bytes, read_json
 from .base import DatasetError
-from .phone import PhoneOptions, PhoneSequence, gl_to_cv, read_confidence_png, scaled_to
+from .image_header import image_size
+from .phone import PhoneOptions, PhoneSequence, gl_to_cv, probe_size, read_confidence_png, scaled_to
+from .phone_meta import PolycamCamera, validated
 
 T_KEYS = [f"t_{r}{c}" for r in range(3) for c in range(4)]
 
@@ -59,18 +61,15 @@ def _timestamps(stamps: list, n: int, fps: float | None) -> list[float]:
 
 
 def _read_camera(path: Path) -> tuple[Camera, np.ndarray | None, object]:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(f"{path}: cannot read the camera JSON ({e})") from None
-    missing = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if k not in data]
-    if missing:
-        raise DatasetError(f"{path}: missing field(s) {', '.join(missing)}")
-    cam = Camera(int(data["width"]), int(data["height"]), float(data["fx"]), float(data["fy"]), float(data["cx"]),
-                 float(data["cy"]))
+    data = read_json(path, "camera JSON", error=DatasetError)
+    missing = [k for k in ("fx", "fy", "cx", "cy", "width", "height") if not isinstance(data, dict) or k not in data]
+    if isinstance(data, dict) and missing:
+        raise DatasetError(f"{printable(path)}: missing field(s) {', '.join(missing)}")
+    c = validated(PolycamCamera, data, str(path))  # each field's type, finiteness and range, named in the error
+    cam = Camera(c.width, c.height, c.fx, c.fy, c.cx, c.cy)
     try:
         M = np.array([float(data[k]) for k in T_KEYS]).reshape(3, 4)
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, OverflowError):
         return cam, None, None
     if not np.all(np.isfinite(M)):
         return cam, None, None
@@ -82,15 +81,32 @@ def _read_camera(path: Path) -> tuple[Camera, np.ndarray | None, object]:
     return cam, gl_to_cv(T), stamp
 
 
+def _depth_size(path: Path) -> tuple[int, int]:
+    """(w, h) of a 16-bit depth PNG from its header (decoded only when the header cannot be parsed)."""
+    import cv2
+
+    check_regular(path, "depth file", DatasetError)
+    size = image_size(path)
+    if size is not None:
+        return size
+    d = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if d is None or d.dtype != np.uint16 or d.ndim != 2:
+        raise DatasetError(f"{printable(path)}: missing or not a 16-bit single-channel PNG")
+    return d.shape[1], d.shape[0]
+
+
 def _read_frame(i: int, ip: Path, k: Path, name: str):
     """Frame i as exported: colour uint8 [H, W, 3] RGB, depth float32 metres, confidence 0/1/2 or None."""
     import cv2
 
     dp, cp = k / "depth" / f"{name}.png", k / "confidence" / f"{name}.png"
+    for p, what in ((ip, "colour file"), (dp, "depth file")):
+        if p.exists() or p.is_symlink():
+            check_regular(p, f"{what} of frame {i}", DatasetError)
     bgr = cv2.imread(str(ip), cv2.IMREAD_COLOR)
     if bgr is None:
         raise DatasetError(f"frame {i}: colour file {ip} is missing or corrupt")
-    if ip.suffix == ".jpg" and b"\xff\xd9" not in ip.read_bytes()[-64:]:
+    if ip.suffix == ".jpg" and b"\xff\xd9" not in read_bytes(ip, "colour file", 2 ** 28, DatasetError)[-64:]:
         raise DatasetError(f"frame {i}: colour file {ip} is truncated (no JPEG end-of-image marker)")
     d = cv2.imread(str(dp), cv2.IMREAD_UNCHANGED)
     if d is None or d.dtype != np.uint16 or d.ndim != 2:
@@ -133,11 +149,8 @@ def open_polycam(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0,
         stamps.append(stamp)
     if not names:
         raise DatasetError(f"{cam_dir}: none of the {len(files)} camera files has a valid pose")
-    first_depth = k / "depth" / f"{names[0]}.png"
-    d0 = cv2.imread(str(first_depth), cv2.IMREAD_UNCHANGED)
-    if d0 is None or d0.dtype != np.uint16 or d0.ndim != 2:
-        raise DatasetError(f"frame 0: depth file {first_depth} is missing or not a 16-bit single-channel PNG")
-    depth_cam = scaled_to(color_cam, d0.shape[1], d0.shape[0])  # the depth covers the whole image
+    dw, dh = probe_size(names, lambda name: _depth_size(k / "depth" / f"{name}.png"), str(k / "depth"))
+    depth_cam = scaled_to(color_cam, dw, dh)  # the depth covers the whole image
     b = (15 if corrected else 0) if crop_border is None else int(crop_border)
     if not 0 <= 2 * b < min(color_cam.width, color_cam.height):
         raise DatasetError(f"crop_border must be 0 to {min(color_cam.width, color_cam.height) // 2 - 1} pixels for "

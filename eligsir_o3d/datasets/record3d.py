@@ -20,7 +20,7 @@ than the frames) is left out and listed in ``skipped_frames``. LZFSE comes from 
 
 from __future__ import annotations
 
-import json
+import math
 import re
 import zipfile
 from pathlib import Path
@@ -28,8 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from ..core.camera import Camera, pose_from_tum
+from ..io.inputs import MAX_TEXT_BYTES, lzfse_decompress, parse_json, printable, read_bytes, read_zip_member
 from .base import DatasetError
-from .phone import PhoneOptions, PhoneSequence, gl_to_cv, import_lzfse, scaled_to
+from .phone import PhoneOptions, PhoneSequence, gl_to_cv, import_lzfse, probe_size, scaled_to
+from .phone_meta import Record3DMeta, usable_stamps, validated
 
 _FRAME = re.compile(r"^rgbd/(\d+)\.jpg$")
 
@@ -57,41 +59,46 @@ class _Archive:
             self.names = {p.relative_to(path).as_posix() for p in path.rglob("*") if p.is_file()}
 
     def where(self, name: str) -> str:
-        return f"{self.path}:{name}" if self.zip is not None else str(self.path / name)
+        return printable(f"{self.path}:{name}" if self.zip is not None else str(self.path / name))
 
-    def read(self, name: str) -> bytes:
+    def read(self, name: str, max_bytes: int | None = None) -> bytes:
+        """Member ``name``, its declared and inflated size capped (``max_bytes``, default the blob cap)."""
         if name not in self.names:
             raise DatasetError(f"{self.where(name)}: missing from the capture")
+        cap = {} if max_bytes is None else {"max_bytes": max_bytes}
+        if self.zip is None:
+            return read_bytes(self.path / name, "capture file", error=DatasetError, **cap)
         try:
-            return self.zip.read(name) if self.zip is not None else (self.path / name).read_bytes()
-        except (zipfile.BadZipFile, OSError, EOFError, zipfile.LargeZipFile) as e:
+            return read_zip_member(self.zip, name, self.where(name), error=DatasetError, **cap)
+        except (zipfile.BadZipFile, OSError, EOFError, zipfile.LargeZipFile, NotImplementedError, RuntimeError,
+                ValueError) as e:
+            if isinstance(e, DatasetError):
+                raise
             raise DatasetError(f"{self.where(name)}: cannot read ({e}; truncated capture?)") from None
 
 
 def parse_metadata(raw: bytes, where: str) -> dict:
     """The capture's metadata JSON (``metadata`` in a .r3d, ``metadata.json`` in the EXR + JPG export), its
     required fields checked; ``where`` names the file in errors."""
-    try:
-        meta = json.loads(raw)
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise DatasetError(f"{where}: not valid JSON ({e})") from None
+    meta = parse_json(raw, where, DatasetError)
     missing = [k for k in ("w", "h", "K", "poses") if not isinstance(meta, dict) or k not in meta]
     if missing:
-        raise DatasetError(f"{where}: missing field(s) {', '.join(missing)}")
+        raise DatasetError(f"{printable(where)}: missing field(s) {', '.join(missing)}")
+    validated(Record3DMeta, meta, where)  # type, finiteness and range of every field, named in the error
     return meta
 
 
 def _metadata(ar: _Archive) -> dict:
     if "metadata" not in ar.names:
         raise DatasetError(f"{ar.where('metadata')}: no metadata in the capture (is it a Record3D .r3d export?)")
-    return parse_metadata(ar.read("metadata"), ar.where("metadata"))
+    return parse_metadata(ar.read("metadata", MAX_TEXT_BYTES), ar.where("metadata"))
 
 
 def intrinsics_from_K(K: list, w: int, h: int, where: str) -> Camera:
     """Record3D's K (9 numbers, column-major: [fx, 0, 0, 0, fy, 0, cx, cy, 1]) -> Camera of the colour size."""
     try:
         M = np.asarray(K, dtype=np.float64).reshape(3, 3).T  # column-major -> the usual row-major matrix
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise DatasetError(f"{where}: K must be 9 numbers, got {K!r:.80}") from None
     if abs(M[2, 2] - 1.0) > 1e-6 or abs(M[0, 2]) < 1 or abs(M[1, 2]) < 1 or abs(M[2, 0]) + abs(M[2, 1]) > 1e-6:
         raise DatasetError(f"{where}: K is not a column-major pinhole matrix [fx 0 0 0 fy 0 cx cy 1]: {K}")
@@ -107,7 +114,7 @@ def color_camera(meta: dict, where: str) -> Camera:
         return cam
     try:
         c = np.asarray(coeffs, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         c = np.zeros(0)
     if c.ndim != 2 or c.shape[1] != 4 or not np.all(np.isfinite(c)) or not np.all(c[:, :2] > 0):
         raise DatasetError(f"{where}: perFrameIntrinsicCoeffs must be [fx, fy, cx, cy] per frame, got "
@@ -125,7 +132,7 @@ def poses_from_metadata(meta: dict) -> list[np.ndarray | None]:
     for p in meta["poses"]:
         try:
             v = np.asarray(p, dtype=np.float64).reshape(-1)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             v = np.zeros(0)
         if v.shape != (7,) or not np.all(np.isfinite(v)) or np.linalg.norm(v[:4]) < 1e-6:
             poses.append(None)  # a lost-tracking / malformed entry: the frame is skipped
@@ -134,14 +141,19 @@ def poses_from_metadata(meta: dict) -> list[np.ndarray | None]:
     return poses
 
 
-def frame_timestamps(meta: dict, frames: list[int], keep: list[int], fps: float | None) -> list[float]:
-    """Seconds of the kept frames: ``frameTimestamps`` when it covers every frame, else N / fps."""
+def frame_timestamps(meta: dict, frames: list[int], keep: list[int], fps: float | None,
+                     where=str) -> tuple[list[int], list[float], list[str]]:
+    """(kept frames, their seconds, reports): ``frameTimestamps`` when it covers every frame, else N / fps. A frame
+    whose stamp is not finite or not later than the one before is left out and reported (``where(n)`` names it)."""
+    if fps is not None and not (isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0):
+        raise DatasetError(f"fps must be a positive number of frames per second, got {printable(fps)}")
     rate = float(fps or meta.get("fps") or 30.0)
     stamps = meta.get("frameTimestamps")
-    if isinstance(stamps, list) and len(stamps) > max(frames) and \
-            all(isinstance(t, (int, float)) for t in stamps):
-        return [float(stamps[n]) for n in keep]
-    return [n / rate for n in keep]
+    if isinstance(stamps, list) and len(stamps) > max(frames) and fps is None:
+        ok, reports = usable_stamps([stamps[n] for n in keep], [f"{where(n)}" for n in keep])
+        kept = [n for n, good in zip(keep, ok) if good]
+        return kept, [float(stamps[n]) for n in kept], reports
+    return keep, [n / rate for n in keep], []
 
 
 def open_record3d(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0, color_width: int = 640,
@@ -155,13 +167,17 @@ def open_record3d(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0
     frames = sorted(int(m.group(1)) for m in (_FRAME.match(n) for n in ar.names) if m)
     if not frames:
         raise DatasetError(f"{ar.path}: no rgbd/N.jpg frames in the capture (empty recording)")
-    lz = import_lzfse()
-    if "dw" in meta and "dh" in meta:
+    import_lzfse()
+    if meta.get("dw") is not None and meta.get("dh") is not None:
         dw, dh = int(meta["dw"]), int(meta["dh"])
-    else:  # older captures: the first blob's size and the colour aspect say it
-        n = len(lz.decompress(ar.read(f"rgbd/{frames[0]}.depth"))) // 4
-        dw = int(round(np.sqrt(n * color_cam.width / color_cam.height)))
-        dh = n // max(dw, 1)
+    else:  # older captures: the blobs' size and the colour aspect say it (an unreadable blob is its frame's fault)
+        def blob_size(n: int) -> tuple[int, int]:
+            values = len(lzfse_decompress(ar.read(f"rgbd/{n}.depth"), ar.where(f"rgbd/{n}.depth"),
+                                          error=DatasetError)) // 4
+            w = int(round(np.sqrt(values * color_cam.width / color_cam.height)))
+            return w, values // max(w, 1)
+
+        dw, dh = probe_size(frames, blob_size, ar.where("rgbd/*.depth"))
     depth_cam = scaled_to(color_cam, dw, dh)
     poses = poses_from_metadata(meta)
     keep = [n for n in frames if n < len(poses) and poses[n] is not None]
@@ -169,7 +185,10 @@ def open_record3d(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0
                for n in frames if n not in set(keep)]
     if not keep:
         raise DatasetError(f"{mwhere}: none of the {len(frames)} frames has a pose")
-    timestamps = frame_timestamps(meta, frames, keep, fps)
+    keep, timestamps, late = frame_timestamps(meta, frames, keep, fps, lambda n: ar.where(f"rgbd/{n}.jpg"))
+    skipped += late
+    if not keep:
+        raise DatasetError(f"{mwhere}: none of the {len(frames)} frames has a usable timestamp")
 
     def blob(n: int, ext: str, dtype, required: bool):
         name = f"rgbd/{n}.{ext}"
@@ -177,13 +196,8 @@ def open_record3d(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0
             if required:
                 raise DatasetError(f"{ar.where(name)}: missing from the capture")
             return None
-        try:
-            raw = lz.decompress(ar.read(name))
-        except DatasetError:
-            raise
-        except Exception as e:  # liblzfse raises its own error type for corrupt data
-            raise DatasetError(f"{ar.where(name)}: not LZFSE data ({e})") from None
-        a = np.frombuffer(raw, dtype=dtype)
+        raw = lzfse_decompress(ar.read(name), ar.where(name), error=DatasetError)
+        a = np.frombuffer(raw[:len(raw) - len(raw) % np.dtype(dtype).itemsize], dtype=dtype)
         if a.size != dw * dh:
             raise DatasetError(f"{ar.where(name)}: {a.size} values, expected dw x dh = {dw}x{dh} = {dw * dh}")
         return a.reshape(dh, dw)

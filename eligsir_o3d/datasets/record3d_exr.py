@@ -23,8 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.inputs import check_regular, printable, read_bytes
 from .base import DatasetError
-from .phone import PhoneOptions, PhoneSequence, scaled_to
+from .phone import PhoneOptions, PhoneSequence, probe_sizes, scaled_to
 from .record3d import color_camera, frame_timestamps, parse_metadata, poses_from_metadata
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
@@ -49,8 +50,9 @@ def read_exr_depth(path: Path) -> np.ndarray:
     except ImportError:
         raise DatasetError("reading Record3D's EXR depth needs OpenEXR: pip install OpenEXR "
                            "(or pip install 'eligsir-o3d[phone]')") from None
-    if not path.is_file():
-        raise DatasetError(f"{path}: missing from the export")
+    if not path.is_file() and not path.is_symlink():
+        raise DatasetError(f"{printable(path)}: missing from the export")
+    check_regular(path, "depth file", DatasetError)
     try:
         with OpenEXR.File(str(path), separate_channels=True) as f:
             channels = {name: ch.pixels for name, ch in f.channels().items()}
@@ -84,10 +86,7 @@ def open_record3d_exr(path: Path, *, max_depth: float = 5.0, color_width: int = 
     opts = PhoneOptions(0, max_depth, color_width)
     root = _root(Path(path))
     mpath = root / "metadata.json"
-    try:
-        raw = mpath.read_bytes()
-    except OSError as e:
-        raise DatasetError(f"{mpath}: cannot read ({e})") from None
+    raw = read_bytes(mpath, "metadata", error=DatasetError)
     meta = parse_metadata(raw, str(mpath))
     color_cam = color_camera(meta, str(mpath))
     images, depths = _frames(root / "rgb", IMAGE_SUFFIXES), _frames(root / "depth", (".exr",))
@@ -105,16 +104,20 @@ def open_record3d_exr(path: Path, *, max_depth: float = 5.0, color_width: int = 
             keep.append(n)
     if not keep:
         raise DatasetError(f"{root}: none of the {len(frames)} frames has both a pose and a depth file")
-    d0 = read_exr_depth(depths[keep[0]])
-    dw, dh = d0.shape[1], d0.shape[0]
-    if "dw" in meta and "dh" in meta and (int(meta["dw"]), int(meta["dh"])) != (dw, dh):
-        raise DatasetError(f"{depths[keep[0]]}: depth is {dw}x{dh} but metadata.json says dw x dh = "
-                           f"{meta['dw']}x{meta['dh']}")
+    keep, stamps, late = frame_timestamps(meta, frames, keep, fps, lambda n: str(images[n]))
+    skipped += late
+    if not keep:
+        raise DatasetError(f"{printable(mpath)}: none of the {len(frames)} frames has a usable timestamp")
+    # the files' common size (an unreadable or odd-sized file is its own frame's fault, when the stream reads it)
+    (dw, dh), n0 = probe_sizes(keep, lambda n: read_exr_depth(depths[n]).shape[::-1], str(root / "depth"))
+    if meta.get("dw") is not None and meta.get("dh") is not None and (int(meta["dw"]), int(meta["dh"])) != (dw, dh):
+        raise DatasetError(f"{printable(depths[n0])}: depth is {dw}x{dh} (as most depth files) but metadata.json "
+                           f"says dw x dh = {meta['dw']}x{meta['dh']}")
     depth_cam = scaled_to(color_cam, dw, dh)
 
     def native(i: int):
         n = keep[i]
-        data = np.frombuffer(images[n].read_bytes(), dtype=np.uint8)
+        data = np.frombuffer(read_bytes(images[n], "colour file", 2 ** 28, DatasetError), dtype=np.uint8)
         bgr = cv2.imdecode(data, cv2.IMREAD_COLOR)
         jpeg = images[n].suffix.lower() != ".png"
         if bgr is None or (jpeg and b"\xff\xd9" not in data[-64:].tobytes()):  # a cut-off JPEG decodes silently
@@ -123,7 +126,7 @@ def open_record3d_exr(path: Path, *, max_depth: float = 5.0, color_width: int = 
 
     seq = PhoneSequence(native=native, color_native=color_cam, depth_native=depth_cam, opts=opts,
                         where=lambda i: f"{images[keep[i]]} / {depths[keep[i]].name}", name=Path(path).name,
-                        path=Path(path), timestamps=frame_timestamps(meta, frames, keep, fps),
+                        path=Path(path), timestamps=stamps,
                         poses=[poses[n] for n in keep], format="record3d_exr")
     seq.skipped_frames = skipped
     seq.frame_numbers = keep  # rgb/N of each frame

@@ -143,11 +143,10 @@ def read_color_block(path: Path, depth_camera: Camera) -> TwoCameraRig | None:
 
     Raises ValueError naming the file and field for a malformed block.
     """
+    from ..io.inputs import read_json
+
     path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"cannot read intrinsics {path}: {e}") from None
+    data = read_json(path, "intrinsics")  # a regular file, size-capped
     block = data.get("color") if isinstance(data, dict) else None
     if block is None:
         return None

@@ -14,13 +14,13 @@ Frames are matched by sorted file name; timestamps are index / fps (``fps=30``).
 
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..core.camera import Camera
+from ..io.inputs import read_json
 from .base import DatasetError, RGBDSequence, read_intrinsics_json, read_matrix_rows
 
 REPLICA_CAMERA = Camera(1200, 680, 600.0, 600.0, 599.5, 339.5)
@@ -40,7 +40,7 @@ def _cam_params(path: Path) -> tuple[Camera, float]:
     for f in (path / "cam_params.json", path.parent / "cam_params.json"):
         if f.is_file():
             try:
-                c = json.loads(f.read_text())["camera"]
+                c = read_json(f, "camera parameters", error=DatasetError)["camera"]
                 return Camera(int(c["w"]), int(c["h"]), float(c["fx"]), float(c["fy"]), float(c["cx"]),
                               float(c["cy"])), float(c["scale"])
             except (OSError, ValueError, KeyError, TypeError) as e:

@@ -128,7 +128,7 @@ def _pick_topics(reader, conns: dict, topics: dict, path: Path, rgb_topic, depth
                  depth_info_topic, pose_topic, pose_frames):
     """(colour, depth, colour CameraInfo, depth CameraInfo, pose) topics: the given ones, checked, else the only
     candidate of each kind (an ambiguous or missing choice is a DatasetError that lists the candidates)."""
-    colors, depths = [], []
+    colors, depths, unsupported = [], [], []
     for t, typ in sorted(topics.items()):
         if typ == COMPRESSED_TYPE:
             (depths if "depth" in t.lower() else colors).append((t, "CompressedImage"))
@@ -139,6 +139,12 @@ def _pick_topics(reader, conns: dict, topics: dict, path: Path, rgb_topic, depth
                 colors.append((t, f"Image {enc}"))
             elif enc in DEPTH_ENCODINGS or "depth" in t.lower():
                 depths.append((t, f"Image {enc}"))
+            else:
+                unsupported.append(f"{t} (Image {enc})")
+    if not colors and rgb_topic is None and unsupported:  # say why the image topic there is not taken
+        raise DatasetError(f"{path}: no colour image topic with a supported encoding "
+                           f"({', '.join(sorted(COLOR_ENCODINGS))}); the bag's image topic(s) "
+                           f"{', '.join(unsupported)} have another encoding")
     aligned = [c for c in depths if "aligned" in c[0]]
     if depth_topic is None and len(aligned) == 1:
         depths = aligned

@@ -22,28 +22,29 @@ Options: ``min_confidence``, ``max_depth``, ``color_width``, ``fps``
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 
 from ..core.camera import Camera, pose_from_tum
+from ..io.inputs import check_regular, printable, read_bytes, read_text
 from .base import DatasetError
-from .phone import PhoneOptions, PhoneSequence, check_frame_count, read_confidence_png, scaled_to
+from .image_header import image_size
+from .phone import PhoneOptions, PhoneSequence, check_frame_count, probe_size, read_confidence_png, scaled_to
+from .phone_meta import OdometryRow, usable_stamps, validated
 
 POSE_COLUMNS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 
 
 def detect(path: Path) -> bool:
-    return path.is_dir() and (path / "odometry.csv").is_file() and (path / "depth").is_dir() and \
+    return path.is_dir() and os.path.lexists(path / "odometry.csv") and (path / "depth").is_dir() and \
         ((path / "rgb.mp4").is_file() or (path / "camera_matrix.csv").is_file())
 
 
 def read_odometry(path: Path) -> list[dict]:
     """Rows of ``odometry.csv`` as dicts of floats (keys from the header, or :data:`POSE_COLUMNS`)."""
-    try:
-        lines = [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
-    except (OSError, UnicodeDecodeError) as e:
-        raise DatasetError(f"cannot read {path}: {e}") from None
+    lines = [ln.strip() for ln in read_text(path, "odometry", error=DatasetError).splitlines() if ln.strip()]
     if not lines:
         raise DatasetError(f"{path}: empty file (no poses)")
     first = [f.strip() for f in lines[0].split(",")]
@@ -61,9 +62,11 @@ def read_odometry(path: Path) -> list[dict]:
         if len(fields) != len(header):
             raise DatasetError(f"{path}:{lineno}: expected {len(header)} fields, got {len(fields)}")
         try:
-            rows.append({k: float(v) for k, v in zip(header, fields)})
+            row = {k: float(v) for k, v in zip(header, fields)}
         except ValueError:
-            raise DatasetError(f"{path}:{lineno}: not a number in {line[:80]!r}") from None
+            raise DatasetError(f"{printable(path)}:{lineno}: not a number in {printable(line[:80])!r}") from None
+        validated(OdometryRow, row, f"{path}:{lineno}")  # e.g. a frame number that is not finite
+        rows.append(row)
     return rows
 
 
@@ -103,11 +106,14 @@ class _Video:
 
 
 def _camera_matrix(path: Path, size: tuple[int, int]) -> Camera:
+    import io
+
+    text = read_text(path, "camera matrix", error=DatasetError)
     try:
-        K = np.loadtxt(path, delimiter=",", dtype=np.float64).reshape(3, 3)
+        K = np.loadtxt(io.StringIO(text), delimiter=",", dtype=np.float64).reshape(3, 3)
     except (OSError, ValueError) as e:
         raise DatasetError(f"{path}: expected a 3x3 comma-separated camera matrix ({e})") from None
-    if abs(K[2, 2] - 1.0) > 1e-6 or not K[0, 0] > 0 or not K[1, 1] > 0:
+    if not np.all(np.isfinite(K)) or abs(K[2, 2] - 1.0) > 1e-6 or not K[0, 0] > 0 or not K[1, 1] > 0:
         raise DatasetError(f"{path}: not a pinhole camera matrix [[fx 0 cx] [0 fy cy] [0 0 1]]: {K.tolist()}")
     return Camera(size[0], size[1], float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
 
@@ -124,11 +130,14 @@ def _depth_files(folder: Path) -> dict[int, Path]:
 
 def read_depth_mm(path: Path, i: int) -> np.ndarray:
     """Depth [h, w] float32 metres from a uint16 millimetre PNG or .npy (the app's two encodings)."""
+    import io
+
     import cv2
 
+    check_regular(path, f"depth file of frame {i}", DatasetError)
     if path.suffix.lower() == ".npy":
         try:
-            d = np.load(path, allow_pickle=False)
+            d = np.load(io.BytesIO(read_bytes(path, "depth file", 2 ** 28, DatasetError)), allow_pickle=False)
         except (OSError, ValueError, EOFError) as e:
             raise DatasetError(f"frame {i}: depth file {path} is not a readable .npy array ({e})") from None
     else:
@@ -140,10 +149,23 @@ def read_depth_mm(path: Path, i: int) -> np.ndarray:
     return d.astype(np.float32) / 1000.0
 
 
+def _depth_size(path: Path) -> tuple[int, int]:
+    """(w, h) of a depth file: from a PNG's header, else (a .npy) from its array."""
+    if path.suffix.lower() == ".png":
+        check_regular(path, "depth file", DatasetError)
+        size = image_size(path)
+        if size is not None:
+            return size
+    d = read_depth_mm(path, -1)
+    return d.shape[1], d.shape[0]
+
+
 def _rows_by_frame(path: Path, rows: list[dict], numbers: list[int]) -> dict[int, dict]:
     """odometry.csv rows by frame number (its ``frame`` column, or the row index in older files), every depth
     frame checked to have one."""
     by_frame = {int(r["frame"]): r for r in rows} if rows and "frame" in rows[0] else dict(enumerate(rows))
+    if len(by_frame) < len(rows):
+        raise DatasetError(f"{printable(path)}: a frame number appears on two rows")
     check_frame_count(path, "poses", len(rows), len(numbers))
     missing = [n for n in numbers if n not in by_frame]
     if missing:
@@ -160,12 +182,13 @@ def open_stray(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0, c
     if not depths:
         raise DatasetError(f"{path / 'depth'}: no depth PNGs (empty recording)")
     video = _Video(path / "rgb.mp4")
-    if not video.path.is_file():
-        raise DatasetError(f"{video.path}: missing (the capture's colour video)")
+    if not video.path.is_file() and not video.path.is_symlink():
+        raise DatasetError(f"{printable(video.path)}: missing (the capture's colour video)")
+    check_regular(video.path, "colour video", DatasetError)
     color_cam = _camera_matrix(path / "camera_matrix.csv", video.size())
     numbers = sorted(depths)
-    first = read_depth_mm(depths[numbers[0]], 0)
-    depth_cam = scaled_to(color_cam, first.shape[1], first.shape[0])
+    dw, dh = probe_size(numbers, lambda n: _depth_size(depths[n]), str(path / "depth"))
+    depth_cam = scaled_to(color_cam, dw, dh)
     odo = path / "odometry.csv"
     rows = _rows_by_frame(odo, read_odometry(odo), numbers)
     skipped = [f"{odo}: frame {n:06d} has no depth/{n:06d} (the phone gave no depth), left out"
@@ -181,7 +204,14 @@ def open_stray(path: Path, *, min_confidence: int = 1, max_depth: float = 5.0, c
         poses.append(pose_from_tum(np.array([r["x"], r["y"], r["z"]]), q / np.linalg.norm(q)))
     if not keep:
         raise DatasetError(f"{odo}: none of the {len(numbers)} frames has a valid pose")
+    if not (isinstance(fps, (int, float)) and np.isfinite(fps) and fps > 0):
+        raise DatasetError(f"fps must be a positive number of frames per second, got {printable(fps)}")
     timestamps = [rows[n]["timestamp"] if "timestamp" in rows[n] else n / fps for n in keep]
+    ok, late = usable_stamps(timestamps, [f"{odo}: frame {n:06d}" for n in keep])
+    keep, poses, timestamps = ([x for x, good in zip(v, ok) if good] for v in (keep, poses, timestamps))
+    skipped += late
+    if not keep:
+        raise DatasetError(f"{printable(odo)}: none of the {len(numbers)} frames has a usable timestamp")
     confs = path / "confidence"
 
     def native(i: int):

@@ -19,6 +19,7 @@ evaluations ignore it too); fr3 images are already undistorted.
 
 from __future__ import annotations
 
+import os
 import re
 import warnings
 from pathlib import Path
@@ -40,7 +41,9 @@ TUM_DEPTH_SCALE = 5000.0
 
 
 def detect(path: Path) -> bool:
-    return (path / "rgb.txt").is_file() and (path / "depth.txt").is_file()
+    # present, whatever they are: a list that is not a regular file is refused by name when read, not taken
+    # for another layout
+    return os.path.lexists(path / "rgb.txt") and os.path.lexists(path / "depth.txt")
 
 
 def associate(stamps_a: np.ndarray, stamps_b: np.ndarray, max_dt: float) -> list[tuple[int, int]]:
@@ -101,7 +104,7 @@ def open_tum(path: Path, *, max_dt: float = 0.02, camera: str | None = None,
 
     poses, no_pose = None, 0
     gt_file = path / "groundtruth.txt"
-    if gt_file.is_file():
+    if os.path.lexists(gt_file):  # a link to a device or a folder there is refused by name, not ignored
         gt_t, gt_poses = read_tum_trajectory(gt_file)
         k = nearest(gt_t, rgb_t[[i for i, _ in pairs]], max_dt)
         no_pose = int((k < 0).sum())

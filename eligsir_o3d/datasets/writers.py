@@ -106,14 +106,15 @@ class _Msgs:
 def write_rosbag(seq, out: str | Path, *, ros: int = 1, storage: str = "sqlite3", frames: Sequence[int] | None = None,
                  color: str = "raw", depth: str = "16UC1", poses: str | None = "pose", topics: dict | None = None,
                  depth_camera: Camera | None = None, t0: float = 1.7e9, write_depth: bool = True,
-                 extra_topics: Sequence[str] = ()) -> Path:
+                 extra_topics: Sequence[str] = (), color_encoding: str = "rgb8") -> Path:
     """Write frames of ``seq`` (an RGBDSequence) as a ROS 1 ``.bag`` (``ros=1``) or a ROS 2 bag folder.
 
     color: "raw" (rgb8 Image) or "jpeg" (CompressedImage; the source JPEG bytes when the frame comes from a
     .jpg file). depth: "16UC1" (mm) or "32FC1" (m) or any other encoding string (written as 16UC1 data under
     that name, to test the reader's refusal). poses: "pose" | "odometry" | "tf" | None. depth_camera: the depth
     camera's CameraInfo (default: ``seq.camera`` for both). t0: added to the sequence's timestamps (ROS time).
-    extra_topics: more colour topics carrying the same images (to make topic choice ambiguous).
+    extra_topics: more colour topics carrying the same images (to make topic choice ambiguous). color_encoding:
+    the raw colour images' encoding name (rgb8 data under another name, to test the reader's refusal).
     """
     rb = import_rosbags()
     out = Path(out)
@@ -153,7 +154,7 @@ def write_rosbag(seq, out: str | Path, *, ros: int = 1, storage: str = "sqlite3"
             if color == "jpeg":
                 msg = m.compressed(t_ns, COLOR_FRAME, _jpeg_bytes(item, rgb), "jpeg")
             else:
-                msg = m.image(t_ns, COLOR_FRAME, rgb, "rgb8")
+                msg = m.image(t_ns, COLOR_FRAME, rgb, color_encoding)
             for c in c_rgb:
                 writer.write(c, t_ns, m.serialize(msg, img_type))
             writer.write(c_info, t_ns, m.serialize(m.camera_info(t_ns, COLOR_FRAME, seq.camera),

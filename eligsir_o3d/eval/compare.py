@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
+
+from ..io.inputs import read_json
 
 # (row label, path into metrics.json, format); the first path that exists wins
 ROWS = [
@@ -76,10 +77,10 @@ def compare_results(dirs: list[Path]) -> str:
         f = d / "metrics.json" if d.is_dir() or not d.suffix else d
         if not f.is_file():
             raise FileNotFoundError(f"{d}: no metrics.json (is it a results folder of `eligsir map`?)")
-        try:
-            m = json.loads(f.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as e:
-            raise ValueError(f"{f}: not a valid metrics.json ({type(e).__name__}: {str(e).splitlines()[0]})") from None
+        try:  # a regular file, size-capped, nested a bounded depth
+            m = read_json(f, "metrics.json")
+        except ValueError as e:
+            raise ValueError(f"{f}: not a valid metrics.json ({str(e).split(': ', 1)[-1]})") from None
         if not isinstance(m, dict):
             raise ValueError(f"{f}: not a valid metrics.json (a JSON {type(m).__name__}, not an object)")
         runs.append(m)

@@ -126,10 +126,13 @@ def plot_deltas(result: dict, path: Path, label_a: str = "full", label_b: str = 
     fig.suptitle(f"Per-cell final PSNR over {result['n_common']} cells evaluable in both runs "
                  f"({result['cell_size']:g} m cells, top-down; a pixel is the mean of its column of cells)", fontsize=11)
     fig.tight_layout()
+    from ..io.atomic import atomic_write
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    try:
+        atomic_write(path, lambda f: fig.savefig(f, dpi=120, format="png"))
+    finally:
+        plt.close(fig)
     return path
 
 
@@ -143,7 +146,9 @@ def _read_run(folder: Path) -> tuple[dict, dict]:
     cells = read_cells(folder)
     if cells is None:
         raise FileNotFoundError(f"{folder}: no cells.json (the run wrote no regional evaluation)")
-    return json.loads(f.read_text()), cells
+    from ..io.inputs import read_json
+
+    return read_json(f, "metrics.json"), cells
 
 
 def compare_spatial(dir_a, dir_b, out_dir=None, stem: str = "spatial_delta") -> dict:
@@ -157,10 +162,17 @@ def compare_spatial(dir_a, dir_b, out_dir=None, stem: str = "spatial_delta") -> 
         if get(ma) != get(mb):
             raise ValueError(f"{dir_a} and {dir_b} are not runs of the same sequence and split: "
                              f"{key} {ma.get(key)!r} vs {mb.get(key)!r}")
+    from ..io.atomic import atomic_write_text, write_failed
+    from ..io.outputs import check_output_folder
+
     result = {"a": str(dir_a), "b": str(dir_b), **cell_deltas(ca, cb)}
     out = Path(out_dir) if out_dir is not None else Path(dir_a)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / f"{stem}.json").write_text(json.dumps(result, indent=1))
+    check_output_folder(out, "--spatial-out")  # a file there: WriteFailed, exit 3
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise write_failed(out, e) from None
+    atomic_write_text(out / f"{stem}.json", json.dumps(result, indent=1))
     result["png"] = str(plot_deltas(result, out / f"{stem}.png", Path(dir_a).name, Path(dir_b).name))
     return result
 

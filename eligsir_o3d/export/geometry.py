@@ -172,6 +172,8 @@ def export_from_ply(map_ply: str | Path, mesh_path: str | Path | None = None, cl
                               {"the map": map_ply, "--poses": poses if isinstance(poses, (str, Path)) else None,
                                "trajectory.txt": map_ply.parent / "trajectory.txt",
                                "config.json": map_ply.parent / "config.json"})
+    check_geometry_path(mesh_path, "--mesh", MESH_SUFFIXES)
+    check_geometry_path(cloud_path, "--point-cloud", CLOUD_SUFFIXES)
     if views not in ("auto", "trajectory", "sphere"):
         raise ValueError(f"views must be 'auto', 'trajectory' or 'sphere', got {views!r}")
     gmap = load_ply(map_ply, device)
@@ -220,10 +222,31 @@ def export_from_ply(map_ply: str | Path, mesh_path: str | Path | None = None, cl
 
 def _write(writer, path: str | Path, geometry) -> None:
     """Write with Open3D through a temporary file and an atomic rename (Open3D picks the format by suffix)."""
+    from .io.atomic import WriteFailed, commit_file, temp_for, write_failed
+
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
-    if not writer(str(tmp), geometry):
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = temp_for(path, path.suffix or ".ply")  # a device node has no suffix: PLY into it
+    except OSError as e:
+        raise write_failed(path, e) from None
+    try:
+        if not writer(str(tmp), geometry):
+            raise WriteFailed(path, "Open3D could not write it (folder not writable or disk full?)")
+        commit_file(tmp, path)
+    finally:
         tmp.unlink(missing_ok=True)
-        raise OSError(f"could not write {path} (Open3D chooses the format from the suffix: .ply, .pcd, .obj, ...)")
-    tmp.replace(path)
+
+
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off", ".gltf", ".glb")  # what Open3D writes a triangle mesh as
+CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")  # and a point cloud
+
+
+def check_geometry_path(path: str | Path | None, option: str, suffixes: tuple[str, ...]) -> None:
+    """Refuse (ValueError) a file path whose suffix Open3D cannot write: it picks the format by the suffix (a
+    device or FIFO gets PLY)."""
+    from .io.atomic import output_kind
+
+    if path is not None and Path(path).suffix.lower() not in suffixes and output_kind(path) in ("new", "file"):
+        raise ValueError(f"{option} {path}: the file name must end in {', '.join(suffixes)} (the format is chosen "
+                         f"by it)")

@@ -84,6 +84,8 @@ def write_for_viewers(map_ply: str | Path, out_ply: str | Path, camera: Camera |
 
     map_ply = Path(map_ply)
     refuse_overwriting_inputs({"--for-viewers": out_ply}, {"the map": map_ply})
+    if not map_ply.is_file():
+        raise ValueError(f"{map_ply}: no such map")
     gmap = load_ply(map_ply)
     camera = camera or camera_next_to(map_ply)
     if camera is None:

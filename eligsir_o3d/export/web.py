@@ -120,20 +120,38 @@ def _reordered(pcd: o3d.t.geometry.PointCloud, order: np.ndarray) -> o3d.t.geome
     return out
 
 
-def _write(path: Path, pcd) -> Path:
-    from ..io.atomic import atomic_write  # written beside, then renamed: a reader never sees half a file
+def check_web_path(path: str | Path, fmt: str) -> None:
+    """Refuse (ValueError) an output path for format ``fmt`` ("spz" or "splat") that ends in another map
+    format's suffix: the file would be read as the wrong format."""
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if suffix in WEB_FORMATS and suffix != fmt:
+        raise ValueError(f"--{fmt} {path}: the name ends in .{suffix} but the file would be {fmt.upper()}; give a "
+                         f".{fmt} path (or use --{suffix})")
+
+
+def _write(path: Path, pcd, fmt: str) -> Path:
+    """Write ``pcd`` as ``fmt`` (the format, whatever ``path``'s suffix) through :func:`.io.atomic.temp_for` and
+    :func:`.io.atomic.commit_file`: a reader never sees half a file, a device is never replaced."""
+    from ..io.atomic import WriteFailed, commit_file, temp_for, write_failed
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = temp_for(path, f".{fmt}")
+    except OSError as e:
+        raise write_failed(path, e) from None
     try:
         if not o3d.t.io.write_point_cloud(str(tmp), pcd):
-            raise OSError(f"{path}: Open3D could not write the {path.suffix} file")
-        data = tmp.read_bytes()
-        atomic_write(path, lambda f: f.write(data))
+            raise WriteFailed(path, f"Open3D could not write the {fmt.upper()} file (folder not writable or "
+                              f"disk full?)")
+        return commit_file(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
-    return path
+
+
+def _size(path: Path) -> int | None:
+    """Bytes of a written file (None for a device or FIFO it was written into)."""
+    return path.stat().st_size if path.is_file() else None
 
 
 def write_web(gmap: GaussianMap, spz: str | Path | None = None, splat: str | Path | None = None,
@@ -145,6 +163,9 @@ def write_web(gmap: GaussianMap, spz: str | Path | None = None, splat: str | Pat
 
     if spz is None and splat is None:
         raise ValueError("nothing to write: give an .spz and/or a .splat path")
+    for target, fmt in ((spz, "spz"), (splat, "splat")):
+        if target is not None:
+            check_web_path(target, fmt)
     shown, low_pass = for_viewers(gmap, camera, poses)
     cloud = splat_cloud(shown)
     summary = {"gaussians": len(shown)}
@@ -154,8 +175,8 @@ def write_web(gmap: GaussianMap, spz: str | Path | None = None, splat: str | Pat
             raise ValueError(f"{spz}: a Gaussian lies {reach:.0f} m from the origin; SPZ positions reach "
                              f"{SPZ_REACH_M:.0f} m (recentre the map before exporting)")
         rub = rdf_to_rub(cloud)
-        summary["spz_bytes"] = _write(Path(spz), _reordered(rub, spz_order(rub))).stat().st_size
+        summary["spz_bytes"] = _size(_write(Path(spz), _reordered(rub, spz_order(rub)), "spz"))
     if splat is not None:
-        summary["splat_bytes"] = _write(Path(splat), cloud).stat().st_size
+        summary["splat_bytes"] = _size(_write(Path(splat), cloud, "splat"))
     summary["baked_low_pass_px2"] = low_pass
     return summary

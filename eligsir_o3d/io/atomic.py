@@ -5,6 +5,12 @@ temporary file in the same folder, flushed and fsynced, then renamed over the pr
 atomic on one filesystem): a write that fails half-way - ``ENOSPC``, ``EIO``, a quota, a killed process - leaves
 the previous file intact and loadable, and the temporary file is removed.
 
+Only a regular file (or a new path) is replaced. Any other target is never replaced (:func:`output_kind`): a
+character device (``/dev/null``, ``/dev/full``) or a FIFO with a reader is written directly (``/dev/full`` then
+fails with ``ENOSPC``, the node untouched); a directory, a FIFO without a reader, a block device or a socket is
+refused. Writers that need a temporary file of their own (Open3D, video encoders) take it from :func:`temp_for` and
+finish with :func:`commit_file`, which applies the same rule; their errors name the target, never the temporary.
+
 A failed write raises :class:`WriteFailed`, an ``OSError`` whose one-line message names the file and the operating
 system's reason (``cannot write runs/x/map.ply: [Errno 28] No space left on device``), also when the writer was a
 library that wrapped the OSError in its own exception (``torch.save`` raises a RuntimeError whose context is the
@@ -18,6 +24,9 @@ from __future__ import annotations
 
 import errno as _errno
 import os
+import shutil
+import stat
+import tempfile
 from pathlib import Path
 from typing import BinaryIO, Callable
 
@@ -76,12 +85,94 @@ def _fsync_dir(folder: Path) -> None:
         pass
 
 
+def output_kind(path: str | Path) -> str:
+    """What ``path`` is as an output target (links followed): "new", "file", "device" (a character device),
+    "fifo", "directory" or "other" (a block device, a socket)."""
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "new"
+    except OSError as e:
+        raise WriteFailed(path, f"[Errno {e.errno}] {e.strerror}", e.errno) from None
+    if stat.S_ISREG(mode):
+        return "file"
+    if stat.S_ISCHR(mode):
+        return "device"
+    if stat.S_ISFIFO(mode):
+        return "fifo"
+    return "directory" if stat.S_ISDIR(mode) else "other"
+
+
+def _open_direct(path: Path, kind: str) -> BinaryIO:
+    """``path`` (a character device or a FIFO) opened for writing, never created or replaced."""
+    if kind not in ("device", "fifo"):
+        what = {"directory": "is a directory", "other": "is not a regular file (a block device or a socket)"}[kind]
+        raise WriteFailed(path, f"{what}; give a file path", _errno.EISDIR if kind == "directory" else None)
+    try:
+        fd = os.open(path, os.O_WRONLY | (os.O_NONBLOCK if kind == "fifo" else 0))
+    except OSError as e:
+        if e.errno == _errno.ENXIO:
+            raise WriteFailed(path, "a FIFO with no reader", e.errno) from None
+        raise write_failed(path, e) from None
+    if kind == "fifo":
+        os.set_blocking(fd, True)
+    return os.fdopen(fd, "wb")
+
+
+def temp_for(path: str | Path, suffix: str | None = None) -> Path:
+    """A temporary path for a writer that must name its output file: beside ``path`` (so the rename is atomic)
+    when ``path`` is a regular file or new, else in the system's temporary folder. ``suffix``: the temporary's
+    (the format's) suffix, default ``path``'s."""
+    path = Path(path)
+    suffix = path.suffix if suffix is None else suffix
+    if output_kind(path) in ("new", "file"):
+        return path.with_name(f".{path.name}.{os.getpid()}.tmp{suffix}")
+    fd, name = tempfile.mkstemp(prefix="eligsir-", suffix=suffix)
+    os.close(fd)
+    return Path(name)
+
+
+def commit_file(tmp: str | Path, path: str | Path) -> Path:
+    """Put the finished temporary file ``tmp`` (from :func:`temp_for`) at ``path``: renamed over a regular file
+    or a new path; copied into a character device or a FIFO with a reader; refused for anything else. ``tmp`` is
+    removed in every case; a failure is :class:`WriteFailed` naming ``path``."""
+    tmp, path = Path(tmp), Path(path)
+    try:
+        kind = output_kind(path)
+        if kind in ("new", "file"):
+            with open(tmp, "rb") as f:
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+            _fsync_dir(path.parent)
+        else:
+            with _open_direct(path, kind) as out, open(tmp, "rb") as f:
+                shutil.copyfileobj(f, out)
+                out.flush()
+    except OSError as e:
+        raise write_failed(path, e) from None
+    finally:
+        try:
+            tmp.unlink(missing_ok=True)
+        except OSError:
+            pass
+    return path
+
+
 def atomic_write(path: str | Path, write: Callable[[BinaryIO], None]) -> Path:
     """Write ``path`` through ``write(f)`` (``f`` an open binary file) atomically: temporary file in the same
     folder, flush, fsync, ``os.replace``. On any failure the temporary file is removed, ``path`` keeps its previous
     content, and OS errors (also wrapped in a library's RuntimeError) are raised as :class:`WriteFailed`
     (KeyboardInterrupt and other exceptions pass unchanged)."""
     path = Path(path)
+    kind = output_kind(path)
+    if kind not in ("new", "file"):  # a device or FIFO is written, never replaced; anything else refused
+        try:
+            with _open_direct(path, kind) as f:
+                write(f)
+                f.flush()
+        except OSError as e:
+            raise write_failed(path, e) from None
+        return path
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -19,6 +19,7 @@ Refusals are :class:`FolderInUse` (a ``ValueError``: one line, exit 2).
 from __future__ import annotations
 
 import logging
+import re
 from pathlib import Path
 
 log = logging.getLogger("eligsir_o3d")
@@ -69,11 +70,32 @@ def earlier_results(folder: Path) -> dict:
     paths = [folder / name for name in RESULT_FILES]
     for name in RESULT_DIRS:
         d = folder / name
-        if d.is_dir() and not d.is_symlink():  # only our pictures; anything else stays
-            paths += [f for f in d.iterdir() if f.suffix.lower() in (".png", ".jpg", ".json")]
+        if d.is_dir() and not d.is_symlink():  # only the pictures eligsir wrote; a user's own files stay
+            paths += [f for f in d.iterdir() if f.name in _pictures_written(folder, name)]
         paths.append(d)
     return {p: p.lstat().st_mtime_ns for p in paths if p.is_symlink() or p.is_file()
             or (p.name in RESULT_DIRS and p.is_dir())}
+
+
+def _pictures_written(folder: Path, name: str) -> set[str]:
+    """The names in ``folder/name`` that the earlier run lists as its pictures (metrics.json's ``pictures``), each
+    of the form eligsir writes (``NNNNNN.png``); without a list (an older or unreadable metrics.json), every name
+    of that form."""
+    from ..io.inputs import read_json
+
+    form = re.compile(r"^\d{6}\.png$")
+    try:
+        metrics = read_json(folder / "metrics.json", "metrics")
+    except ValueError:
+        metrics = None
+    if isinstance(metrics, dict) and "pictures" in metrics:
+        pictures = metrics.get("pictures") or {}
+        listed = pictures.get(name) if isinstance(pictures, dict) else None
+        names = {Path(p).name for p in listed or () if isinstance(p, str) and Path(p).parent.name == name}
+    else:
+        d = folder / name
+        names = {f.name for f in d.iterdir()} if d.is_dir() else set()
+    return {n for n in names if form.match(n)}
 
 
 def clear_stale(earlier: dict) -> list[str]:

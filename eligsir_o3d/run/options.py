@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 
+from .option_table import check_option, check_options, default
+
 COST_MODELS = ("calibrate", "shipped")  # or the path of a JSON file of terms
 
 COST_MODEL_RULE = ("Cost model (what --clock cost charges an update): --cost-model calibrate fits this machine, "
@@ -26,10 +28,10 @@ class RunOptions:
 
     max_frames: int | None = None
     sequence_options: dict | None = None  # passed to open_sequence (e.g. {"n_frames": 240} for the synthetic room)
-    holdout_every: int = 8  # frames i with i % holdout_every == holdout_every // 2 are held out
+    holdout_every: int = default("holdout_every")  # frames i with i % holdout_every == holdout_every // 2 held out
     holdout_list: str | None = None  # a text file of frame indices to hold out instead
     pose: str = "gt"  # gt | odometry | kiss-icp | colmap | path to a TUM trajectory
-    eval_every: int = 100  # held-out checkpoint every N optimisation updates (0 = only at the end)
+    eval_every: int = default("eval_every")  # held-out checkpoint every N optimisation updates (0 = only at the end)
     # with checkpoints on (eval_every > 0), also one each time the stream has released this share of its frames, so
     # a variant with few, expensive updates still gets a curve over the whole stream
     eval_every_progress: float = 0.1
@@ -37,7 +39,7 @@ class RunOptions:
     eval_ssim_at_checkpoints: bool = True
     refine: int = 0  # +N post-mapping updates after the drain (map state "+N PM")
     offline_reference: bool = False  # all source frames available at once, long full-resolution schedule
-    checkpoint_every: int = 0  # frames between checkpoints (0 = none)
+    checkpoint_every: int = default("checkpoint_every")  # frames between checkpoints (0 = none)
     resume: bool = False
     overwrite: bool = False  # replace the results of another run in the folder (eligsir map --overwrite; folder_guard)
     force_unlock: bool = False  # take over another host's lock on the results folder (eligsir map --force-unlock)
@@ -71,16 +73,16 @@ class MapOptions:
     offline_reference: bool = False
     offline_updates: int = 0
     # evaluation
-    holdout_every: int = 8
+    holdout_every: int = default("holdout_every")
     holdout_list: str | None = None
-    eval_every: int = 100
+    eval_every: int = default("eval_every")
     # mapper
     device: str | None = None
     renderer: str | None = None
     ablate: tuple = ()
     seed: int | None = None
     # output
-    checkpoint_every: int = 0
+    checkpoint_every: int = default("checkpoint_every")
     resume: bool = False
     force_unlock: bool = False
     progress: bool = True
@@ -105,6 +107,8 @@ def to_config(o: MapOptions):
     from ..budget import CostModel
     from ..config import ABLATION_RENAMED, Config, apply_override
 
+    for name in ("speed", "updates_per_frame", "seed", "depth_max", "offline_updates", "refine"):
+        setattr(o, name, check_option(name, getattr(o, name)))  # one line naming the option, before any work
     cfg = Config.load(o.config) if o.config else Config()
     for item in o.overrides:
         apply_override(cfg, item)
@@ -138,6 +142,7 @@ def to_run_options(o: MapOptions) -> RunOptions:
     """The :class:`RunOptions` of a run (how the sequence is read, held out, evaluated and written)."""
     names = {f.name for f in fields(RunOptions)} & {f.name for f in fields(MapOptions)}
     opts = RunOptions(**{n: getattr(o, n) for n in sorted(names)})
+    check_options(opts)
     opts.holdout_list = str(o.holdout_list) if o.holdout_list else None
     return opts
 

@@ -54,6 +54,7 @@ class Outputs:
 
     def __init__(self):
         self.failures: list[WriteFailed] = []
+        self.skipped: list[str] = []  # optional outputs left out, one line each (metrics.json: outputs_skipped)
 
     def stage(self, path: str | Path, write: Callable, *args, **kwargs):
         """``write(*args, **kwargs)``; on an OSError: recorded (named ``path`` unless the error names its own
@@ -64,6 +65,18 @@ class Outputs:
             err = write_failed(path, e)
             log.info("%s; writing the other results files", err)  # the one error line comes from finish()
             self.failures.append(err)
+            return None
+
+    def optional(self, path: str | Path, write: Callable, *args, **kwargs):
+        """An output the user asked for besides the results (map.spz, map.splat): as :meth:`stage`, and a map
+        this format cannot hold (a ValueError, e.g. beyond SPZ's reach) costs that file and a warning only
+        (listed in :attr:`skipped`), never the run's other results."""
+        try:
+            return self.stage(path, write, *args, **kwargs)
+        except ValueError as e:
+            msg = f"{Path(path).name} not written: {str(e).splitlines()[0] if str(e) else type(e).__name__}"
+            log.warning("%s", msg)
+            self.skipped.append(msg)
             return None
 
     def messages(self) -> list[str]:

@@ -23,6 +23,7 @@ from .cost_source import CALIBRATION_FRAMES, run_cost_model  # noqa: F401 (CALIB
 from .frame_faults import BAD_FRAME_ERRORS, frame_fault
 from .lock import RunLock
 from .options import RunOptions
+from .option_table import check_options, check_speed_for
 from .outputs import Outputs, PeriodicCheckpoints
 from .poses import pose_source_name, prepare_pose_source, trajectory_accuracy_of
 from .results import read_run  # noqa: F401 (its old home: run.json is read where it is written)
@@ -38,7 +39,14 @@ log = logging.getLogger("eligsir_o3d")
 def heldout_indices(n: int, every: int, listfile: str | None = None) -> list[int]:
     """The fixed evaluation split: every ``every``-th frame (offset every // 2), or the indices in ``listfile``."""
     if listfile:
-        idx = sorted({int(tok) for tok in Path(listfile).read_text().split()})
+        from ..io.inputs import printable, read_text
+
+        toks = read_text(listfile, "held-out list").split()  # a regular file, size-capped
+        bad_tok = next((t for t in toks if not t.isdigit() or len(t) > 12), None)
+        if bad_tok is not None:
+            raise ValueError(f"{printable(listfile)}: {printable(bad_tok)[:40]!r} is not a frame index (one "
+                             f"non-negative integer per entry)")
+        idx = sorted({int(tok) for tok in toks})
         bad = [i for i in idx if not 0 <= i < n]
         if bad:
             raise ValueError(f"{listfile}: held-out indices {bad[:5]} outside 0..{n - 1}")
@@ -90,6 +98,7 @@ class MappingPipeline:
     def __init__(self, path: str, out_dir: str | Path, config: Config | None = None, opts: RunOptions | None = None):
         self.path, self.out = str(path), Path(out_dir)
         self.opts = opts or RunOptions()
+        check_options(self.opts)  # the run-options table: a value no run can use is one line naming the option
         self.config = (config or Config()).resolve()
         self.trajectory: dict[int, tuple[float, np.ndarray]] = {}  # source index -> (timestamp, T_world_cam)
         self.skipped: list[str] = []
@@ -131,6 +140,9 @@ class MappingPipeline:
         self.n = len(seq) if self.opts.max_frames is None else min(len(seq), int(self.opts.max_frames))
         if self.n == 0:
             raise ValueError(f"{self.path}: the sequence has no frames")
+        if self.config.clock.mode in ("cost", "realtime") and not self.opts.offline_reference:
+            span = float(seq.timestamps[self.n - 1] - seq.timestamps[0]) + seq.frame_period_s
+            check_speed_for(self.config.clock.speed, span, self.path)  # the floor: a run that ends
         self.held = heldout_indices(self.n, self.opts.holdout_every, self.opts.holdout_list)
         held_set = set(self.held)
         self.source = [i for i in range(self.n) if i not in held_set]

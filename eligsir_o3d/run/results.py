@@ -164,8 +164,9 @@ def write_results(r: RunResult, metrics: dict) -> None:
     if web:  # map.spz / map.splat beside map.ply, for web players (fixed 0.3 px^2): the map's low-pass baked in
         # once, at the depths the mapped views saw each Gaussian
         views = [T for _, (_, T) in items]
-        outputs.stage(out / f"map.{web[0]}", write_web, rec.gmap, camera=rec.camera, poses=views,
-                      **{fmt: out / f"map.{fmt}" for fmt in web})
+        for fmt in web:  # each on its own: a map SPZ cannot hold still gets its .splat
+            outputs.optional(out / f"map.{fmt}", write_web, rec.gmap, camera=rec.camera, poses=views,
+                             **{fmt: out / f"map.{fmt}"})
     outputs.stage(out / "trajectory.txt", write_tum_trajectory, out / "trajectory.txt",
                   [ts for _, (ts, _) in items], [T for _, (_, T) in items])
     outputs.stage(out / "config.json", rec.config.save, out / "config.json")
@@ -184,6 +185,7 @@ def write_results(r: RunResult, metrics: dict) -> None:
     outputs.stage(out / CELLS_FILE, write_side_files, out, r.final.get("cells"), r.fidelity_trace, r.views_trace)
     metrics["checkpoint_failures"] = r.checkpoint_failures
     metrics["write_failures"] = outputs.messages()  # what failed before metrics.json
+    metrics["outputs_skipped"] = list(outputs.skipped)  # optional map formats this map cannot be written as
     outputs.stage(out / "metrics.json", atomic_write_text, out / "metrics.json",
                   json.dumps(jsonable(metrics), indent=1))
     if r.opts.plots:
@@ -220,11 +222,13 @@ def read_run(folder: str | Path):
     for f in (run_file, cfg_file):
         if not f.is_file():
             raise ValueError(f"{folder}: no {f.name}: not a results folder written by this version of eligsir map")
+    from ..io.inputs import read_json
+
     try:
-        run = json.loads(run_file.read_text())
+        run = read_json(run_file, "run record")
         options = dict(run["options"])
         sequence = str(run["sequence"])
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
+    except (ValueError, KeyError, TypeError) as e:
         raise ValueError(f"{run_file}: not a valid run record ({e})") from None
     known = {f.name for f in dataclasses.fields(RunOptions)}
     unknown = sorted(set(options) - known)
@@ -235,9 +239,13 @@ def read_run(folder: str | Path):
 
 def _side_file(folder, key: str, default: str) -> Path:
     folder = Path(folder)
+    from ..io.inputs import read_json
+
     try:
-        name = (json.loads((folder / "metrics.json").read_text()).get("files") or {}).get(key, default)
-    except (OSError, ValueError):
+        name = (read_json(folder / "metrics.json", "metrics").get("files") or {}).get(key, default)
+    except (ValueError, AttributeError):
+        name = default
+    if not isinstance(name, str) or Path(name).name != name:  # a name, never a path out of the folder
         name = default
     return folder / name
 
@@ -247,8 +255,10 @@ def read_cells(folder) -> dict | None:
     path = _side_file(folder, "cells", CELLS_FILE)
     if not path.is_file():
         return None
+    from ..io.inputs import read_json
+
     try:
-        return json.loads(path.read_text())
+        return read_json(path, "cell table")
     except ValueError as e:
         raise ValueError(f"{path}: not a readable cell table ({e})") from None
 

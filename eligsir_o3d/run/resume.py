@@ -17,7 +17,8 @@ Compared: every config key, except the ones that say where or how a run executes
 - ``clock.on_bad_frame``: what to do with an unreadable frame from now on; the new value is applied.
 - ``clock.cost`` / ``clock.cost_source`` when the new command asks to calibrate (``eligsir map``'s default): the
   run keeps the cost model fitted when it started, so its budget does not change half-way; an explicit model
-  (``--cost-model shipped|FILE``) is compared.
+  (``--cost-model shipped|FILE``) is compared. Likewise ``clock.cost_feedback``, which the calibration sets when
+  the user left it at 0: only a value the user chose is compared.
 
 Run options that are output only (``--checkpoint-every``, ``--eval-every``, ``--no-pictures``, plots, ``--quiet``)
 are not recorded and may change; ``--refine`` acts after the stream, so it may change too.
@@ -66,6 +67,8 @@ def config_differences(saved: dict, now: dict) -> list[tuple[str, object, object
         skip.add("renderer")
     if b.get("clock.cost_source") == "calibrate":
         skip |= {k for k in set(a) | set(b) if k == "clock.cost_source" or k.startswith("clock.cost.")}
+        if b.get("clock.cost_feedback") == 0:  # not chosen: the calibration derives it (cost_source.CALIBRATED_FEEDBACK)
+            skip.add("clock.cost_feedback")
     return [(k, a.get(k, "(absent)"), b.get(k, "(absent)")) for k in sorted(set(a) | set(b))
             if k not in skip and a.get(k) != b.get(k)]
 

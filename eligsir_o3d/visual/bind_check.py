@@ -15,7 +15,21 @@ import socket
 
 NETWORK_WARNING = ("warning: --host {host} serves the map to every network this machine is on (anyone who can "
                    "reach it can look at the map); use --host 127.0.0.1 to keep it on this machine")
-WILDCARD = ("0.0.0.0", "", "::")
+WILDCARD = ("0.0.0.0", "", "::")  # the usual spellings; :func:`is_wildcard` also knows "0", "::0", "0.0", ...
+
+
+def is_wildcard(host: str) -> bool:
+    """Whether ``host`` means every interface (an unspecified address however it is spelled: ``0``, ``::0``,
+    ``0x0``, ``0000::``), so that the network warning and the URLs never depend on the spelling."""
+    import ipaddress
+
+    if host in WILDCARD:
+        return True
+    try:
+        infos = socket.getaddrinfo(host, None, flags=socket.AI_NUMERICHOST)
+    except (socket.gaierror, UnicodeError, ValueError):
+        return False
+    return any(ipaddress.ip_address(info[4][0].split("%")[0]).is_unspecified for info in infos)
 
 
 def check_bind(host: str, port: int) -> None:
@@ -60,6 +74,6 @@ def _own_addresses() -> list[str]:
 
 def served_urls(host: str, port: int) -> list[str]:
     """The URLs of a viewer on ``host:port``: loopback first, then this machine's addresses for a wildcard."""
-    if host in WILDCARD:
+    if is_wildcard(host):
         return [f"http://127.0.0.1:{port}"] + [f"http://{a}:{port}" for a in _own_addresses()]
     return [f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"]

@@ -78,7 +78,9 @@ class VideoWriter:
             raise ValueError(f"codec must be 'auto', 'h264' or 'mp4v', got {codec!r}")
         self.path = Path(path)
         self.fps = float(fps)
-        self._tmp = self.path.with_name(f".{self.path.stem}.tmp{self.path.suffix or '.mp4'}")
+        from ..io.atomic import temp_for  # beside a file; elsewhere for a device, which is never replaced
+
+        self._tmp = temp_for(self.path, ".mp4")
         self._writer = None
         self.frames = 0
         self.codec = codec if codec != "auto" else ("h264" if _have_ffmpeg() else "mp4v")
@@ -145,7 +147,7 @@ def _commit_video(tmp: Path, path: Path, frames: int) -> None:
 
     import cv2
 
-    from ..io.atomic import WriteFailed, write_failed
+    from ..io.atomic import WriteFailed, commit_file, write_failed
 
     try:
         fd = os.open(tmp, os.O_RDONLY)
@@ -158,7 +160,7 @@ def _commit_video(tmp: Path, path: Path, frames: int) -> None:
         cap.release()
         if readable != frames:
             raise WriteFailed(path, f"{frames} frames written, {readable} readable (disk full?)")
-        os.replace(tmp, path)
+        commit_file(tmp, path)
     except OSError as e:
         tmp.unlink(missing_ok=True)
         raise write_failed(path, e) from None

@@ -72,7 +72,9 @@ class MapViewer:
 
     @property
     def url(self) -> str:
-        host = "127.0.0.1" if self.host in ("0.0.0.0", "") else ("[::1]" if self.host == "::" else self.host)
+        from .bind_check import is_wildcard
+
+        host = "127.0.0.1" if is_wildcard(self.host) else (f"[{self.host}]" if ":" in self.host else self.host)
         return f"http://{host}:{self.port}"
 
     @property

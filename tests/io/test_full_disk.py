@@ -184,7 +184,8 @@ def test_a_flythrough_that_cannot_be_written_whole_keeps_the_old_one(tmp_path, m
     real_fsync = os.fsync
 
     def fsync(fd):
-        if os.readlink(f"/proc/self/fd/{fd}").endswith(".flythrough.tmp.mp4"):
+        name = os.readlink(f"/proc/self/fd/{fd}")
+        if ".flythrough.mp4." in name and name.endswith(".tmp.mp4"):  # the temporary beside the video
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
         return real_fsync(fd)
 

@@ -25,7 +25,7 @@ def test_unusable_set_values_are_refused_naming_the_key(tmp_path, item, said):
 @pytest.mark.parametrize("value", ["nan", "inf", "-1"])
 def test_depth_max_option_is_checked_like_set(tmp_path, value):
     r = CliRunner().invoke(app, ["map", "synthetic", "--out", str(tmp_path / "o"), "--depth-max", value, "-q"])
-    assert r.exit_code == 2 and "depth_max" in r.output and "Traceback" not in r.output, r.output
+    assert r.exit_code == 2 and "--depth-max" in r.output and "Traceback" not in r.output, r.output
     assert not (tmp_path / "o").exists()
 
 
