@@ -28,7 +28,7 @@ from .scheduling.keyframes import KeyframesConfig
 from .scheduling.seeding import SeedingConfig
 from .scheduling.support import SupportConfig
 from .scheduling.supervision import SupervisionConfig
-from .scheduling.views import ViewConfig
+from .scheduling.view_config import ViewConfig
 
 ABLATION_RENAMED = {"scheduling": "views"}
 
@@ -48,8 +48,7 @@ class OptimConfig:
     cull: bool = True
     """An update renders, steps and relocates only the Gaussians that can reach its view; false: the whole map."""
     kernels: str = "auto"
-    """The kernel set that runs an update's stages (eligsir_o3d.kernels): auto | numba | torch | fused; auto = numba
-    for a float32 map on the CPU, fused on CUDA, torch otherwise."""
+    """The update's kernel set (``eligsir_o3d.kernels``): auto, numba, torch or fused (auto: fused on CUDA)."""
     torch_threads: int = 1
     """Torch's threads for the mapper's CPU work on small images (``runtime.threads``); 0 leaves torch's setting."""
 

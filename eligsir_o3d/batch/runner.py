@@ -92,6 +92,19 @@ def map_many(inputs: Iterable, out: str | Path = "runs/batch", *, address: str |
     out = Path(out).resolve()
     out.mkdir(parents=True, exist_ok=True)
 
+    results, todo = _earlier_results(requests, out, echo)
+    if todo:
+        limits = {r["name"]: timeout_for(r, task_timeout) for r in todo}
+        _run_tasks(todo, out, results, address, cpus_per_task, gpus_per_task, max_retries, device, echo, live,
+                   limits)
+    ordered = [results[r["name"]] for r in requests]
+    write_summary(ordered, out)
+    return ordered
+
+
+def _earlier_results(requests: list[dict], out: Path, echo) -> tuple[dict[str, SequenceResult], list[dict]]:
+    """Each request's result as its folder stands (finished earlier, or a folder not of a batch: failed) and the
+    requests still to map."""
     results: dict[str, SequenceResult] = {}
     todo = []
     for req in requests:
@@ -111,14 +124,7 @@ def map_many(inputs: Iterable, out: str | Path = "runs/batch", *, address: str |
                 echo(f"{req['name']}: its options changed since it was mapped; mapping it again from frame 0")
             todo.append(req)
         results[req["name"]] = res
-
-    if todo:
-        limits = {r["name"]: timeout_for(r, task_timeout) for r in todo}
-        _run_tasks(todo, out, results, address, cpus_per_task, gpus_per_task, max_retries, device, echo, live,
-                   limits)
-    ordered = [results[r["name"]] for r in requests]
-    write_summary(ordered, out)
-    return ordered
+    return results, todo
 
 
 def _run_tasks(todo: list[dict], out: Path, results: dict, address, cpus_per_task, gpus_per_task, max_retries,

@@ -1,4 +1,4 @@
-"""Where the mapper's time goes: wall seconds and calls per named stage (issue 18: fixed per-frame work).
+"""Where the mapper's time goes: wall seconds and calls per named stage.
 
 The Reconstructor times its own stages with one :class:`StageTimes` (``rec.timing``): ``admission`` and
 ``growth`` (the per-frame fixed work of every integrated frame), ``update`` (optimisation updates) and ``tracking``

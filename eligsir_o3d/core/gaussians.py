@@ -32,11 +32,17 @@ class LearningRates:
     """Adam step sizes per parameter (metres for means; log/logit/SH units otherwise)."""
 
     means: float = 5e-4
-    scales: float = 1e-2  # 2x 3DGS's: short online schedules (7-Scenes 200 frames: +0.15 dB real time, +0.38 at 0.1x)
+    """Step size of the means, in metres."""
+    scales: float = 1e-2
+    """Step size of the log scales."""
     quats: float = 1e-3
+    """Step size of the rotations' quaternion components."""
     opacities: float = 5e-2
+    """Step size of the opacities' logits."""
     sh0: float = 5e-3
+    """Step size of the base colour (SH degree 0)."""
     shN: float = 5e-3 / 20
+    """Step size of the view-dependent colour (SH degrees >= 1)."""
 
 
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")

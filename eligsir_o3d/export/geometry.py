@@ -222,7 +222,7 @@ def export_from_ply(map_ply: str | Path, mesh_path: str | Path | None = None, cl
 
 def _write(writer, path: str | Path, geometry) -> None:
     """Write with Open3D through a temporary file and an atomic rename (Open3D picks the format by suffix)."""
-    from .io.atomic import WriteFailed, commit_file, temp_for, write_failed
+    from ..io.atomic import WriteFailed, commit_file, temp_for, write_failed
 
     path = Path(path)
     try:
@@ -245,7 +245,7 @@ CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")  # and a p
 def check_geometry_path(path: str | Path | None, option: str, suffixes: tuple[str, ...]) -> None:
     """Refuse (ValueError) a file path whose suffix Open3D cannot write: it picks the format by the suffix (a
     device or FIFO gets PLY)."""
-    from .io.atomic import output_kind
+    from ..io.atomic import output_kind
 
     if path is not None and Path(path).suffix.lower() not in suffixes and output_kind(path) in ("new", "file"):
         raise ValueError(f"{option} {path}: the file name must end in {', '.join(suffixes)} (the format is chosen "

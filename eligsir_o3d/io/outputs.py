@@ -50,7 +50,7 @@ def check_output_folder(path: str | Path, option: str) -> None:
 def check_export_outputs(map_ply: str | Path, poses: str | Path | None, **outputs) -> None:
     """``eligsir export``'s output options (``mesh``, ``point_cloud``, ``spz``, ``splat``, ``for_viewers``: path
     or None) checked before anything is read (see the module docstring)."""
-    from ..export import CLOUD_SUFFIXES, MESH_SUFFIXES, check_geometry_path
+    from ..export.geometry import CLOUD_SUFFIXES, MESH_SUFFIXES, check_geometry_path
     from ..export.web import check_web_path
     from .guards import refuse_overwriting_inputs
 

@@ -27,8 +27,11 @@ class AdamConfig:
     parameter tensor)."""
 
     beta1: float = 0.9
+    """Decay rate of the first moment (the gradient's running mean)."""
     beta2: float = 0.999
+    """Decay rate of the second moment (the squared gradient's running mean)."""
     eps: float = 1e-15
+    """Added to the second moment's square root in the step's denominator."""
 
 
 class MapAdam:

@@ -13,9 +13,12 @@ from ..render import RenderOutput
 
 @dataclass
 class LossConfig:
-    lambda_dssim: float = 0.2  # weight of D-SSIM against L1 in the photometric term (3DGS uses 0.2)
-    lambda_depth: float = 0.5  # weight of the depth L1 (metres) term
-    depth_alpha_min: float = 0.5  # depth supervises only pixels the map already covers (growth handles the rest)
+    lambda_dssim: float = 0.2
+    """Weight of D-SSIM against L1 in the photometric term."""
+    lambda_depth: float = 0.5
+    """Weight of the depth L1 term (metres)."""
+    depth_alpha_min: float = 0.5
+    """Depth supervises only pixels whose rendered opacity reaches this (growth handles the rest)."""
 
 
 @lru_cache(maxsize=32)

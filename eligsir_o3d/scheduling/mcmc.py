@@ -24,14 +24,22 @@ from ..render.projection import quat_to_rotmat
 
 @dataclass
 class MCMCConfig:
-    refine_start: int = 100  # updates before the first relocation/densification (gsplat: 500 of 30k iterations)
-    refine_every: int = 100  # updates between relocation/densification rounds (gsplat: 100)
-    min_opacity: float = 0.005  # dead below this (gsplat: 0.005)
-    growth_rate: float = 0.05  # densification adds this fraction of N per round, up to the cap (gsplat: 0.05)
-    n_max: int = 51  # copies per source are clamped here (gsplat: 51)
-    noise_lr: float = 5e5  # position noise = lr_means * noise_lr * covariance-shaped noise (gsplat: 5e5)
-    opacity_reg: float = 0.01  # loss += opacity_reg * mean(opacity) (gsplat default)
-    scale_reg: float = 0.01  # loss += scale_reg * mean(scale in metres) (gsplat default)
+    refine_start: int = 100
+    """Updates before the first relocation/densification round."""
+    refine_every: int = 100
+    """Updates between relocation/densification rounds."""
+    min_opacity: float = 0.005
+    """A Gaussian below this opacity is dead and relocated onto a live one."""
+    growth_rate: float = 0.05
+    """Each round adds this share of the map's Gaussians, up to the cap."""
+    n_max: int = 51
+    """Copies per source Gaussian are clamped to this (the closed-form relocation's table size)."""
+    noise_lr: float = 5e5
+    """Position noise = the means' learning rate x this x covariance-shaped noise, gated by opacity."""
+    opacity_reg: float = 0.01
+    """Loss += this x the mean opacity (drives unneeded Gaussians towards relocation)."""
+    scale_reg: float = 0.01
+    """Loss += this x the mean scale in metres."""
 
 
 def relocation_params(opacities: torch.Tensor, scales: torch.Tensor, ratios: torch.Tensor,

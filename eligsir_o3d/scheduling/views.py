@@ -22,45 +22,11 @@ from ..core.camera import Camera
 from ..core.frame import Frame
 from ..render import RenderOutput
 from .base import MapContext, ViewPolicy
-from .microcells import MicrocellConfig, Microcells
+from .microcells import Microcells
 from .spacing import ViewSpacing
 from .support import SupportProbe
+from .view_config import ViewConfig
 from .views_trace import ViewsTrace, pearson
-
-
-@dataclass
-class ViewConfig:
-    min_translation_m: float = 0.05  # pose pre-filter: a candidate closer than this AND ...
-    min_rotation_deg: float = 5.0  # ... rotated less than this from some retained view is a near-duplicate
-    # both thresholds shrink as the budget grows (scheduling.spacing): by sqrt(spacing_updates / u) where one source
-    # frame buys u > spacing_updates updates at 1/4 scale (never in real time on the shipped cost model: u ~6-11 on
-    # a room's map, 13.3 on an empty one; --speed 0.1: ~0.4, about 2 cm / 2 deg). 0: the thresholds above at every budget
-    spacing_updates: float = 13.5
-    min_novelty: float = 0.10  # admit when at least this fraction of the frame's depth is not explained by the map
-    max_gap_s: float = 1.0  # admit the next non-redundant view when none was admitted for this long
-    active_size: int = 16  # views in the active supervision set
-    active_share: float = 0.5  # share of updates drawn from the active set (the rest replays retained views)
-    # how the retained (non-active) share picks its view: "stalest" replays the retained view whose last update is
-    # oldest (a round robin: every region is replayed, as with fixed-stride keyframes, and its cells' error stays
-    # measured, so a regression can promote the view again); "priority" draws in proportion to priority
-    retained_replay: str = "stalest"
-    # the bounded drain after the stream (the paper's ME state): "stalest" replays every retained view in turn, so each
-    # region gets its share of the last updates (+0.13 dB mean over 7 runs, docs/evaluation.md); "policy": as above
-    drain_replay: str = "stalest"
-    refresh_every: int = 10  # updates between priority refreshes
-    fresh_updates: int = 15  # a newly admitted view keeps a (linearly decaying) bonus for this many of its updates
-    fresh_bonus: float = 0.2  # priority bonus of a brand-new view (a cell at init_error gives need ~0.12)
-    good_error: float = 0.03  # photometric L1 below which a cell counts as well reconstructed
-    # ... or below this quantile of the measured cells' running errors, whichever is higher (0: the absolute level
-    # alone). Training errors of real scenes cluster well above any absolute level, so need measured against the
-    # map's own median is what tells weak cells from the rest (README, "Map-Guided View Scheduling")
-    good_quantile: float = 0.5
-    regress_gain: float = 2.0  # weight of a cell's rise above its best running error
-    regress_margin: float = 0.01  # rises smaller than this are noise, not regression
-    priority_floor: float = 0.005  # every retained view keeps a chance of replay
-    max_views: int = 400  # retained views in memory; beyond it the lowest-priority inactive view is evicted
-    trace_max: int = 50000  # rows of the decision trace (views_trace.csv) kept; later events are only counted
-    cells: MicrocellConfig = field(default_factory=MicrocellConfig)
 
 
 @dataclass(eq=False)

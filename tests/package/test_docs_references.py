@@ -46,8 +46,9 @@ def module_exists(dotted: str) -> bool:
             if n == len(parts):
                 return True
             name = parts[n]
-            return re.search(rf"\b(def|class)\s+{name}\b|^\s*{name}\s*[:=]|\bimport\b.*\b{name}\b|\b{name}\b.*\bimport\b",
-                             path.read_text(), re.M) is not None
+            defined = (rf"\b(def|class)\s+{name}\b|^\s*{name}\s*[:=]|[\"']{name}[\"']\s*:"  # a lazy export's key too
+                       rf"|\bimport\b.*\b{name}\b|\b{name}\b.*\bimport\b")
+            return re.search(defined, path.read_text(), re.M) is not None
     return False
 
 
@@ -65,7 +66,9 @@ def dangling_names(text: str) -> list[str]:
 
 
 def test_module_and_file_references_exist():
-    found = {str(p.relative_to(ROOT)): hits for p, text in _texts() if (hits := dangling_names(text))}
+    """The lab notebook (docs/lab/) is history: it may name code that has since been removed."""
+    found = {str(p.relative_to(ROOT)): hits for p, text in _texts()
+             if "lab" not in p.relative_to(ROOT).parts[:2] and (hits := dangling_names(text))}
     assert not found, found
 
 
