@@ -79,6 +79,7 @@ class Reconstructor(ReconstructorState):
         self.offline_frames = None if offline_frames is None else int(offline_frames)
         self.views, self.fidelity, self.growth = get_policies(self.config, offline=self.offline_frames is not None,
                                                               n_source=self.offline_frames or 0, camera=self.camera)
+        self.views.bind(self.device, self.kernels)
         self.supervision = SupervisionGrid(self.config.supervision)  # area or point samples at reduced scales
         self.fixed_work = LoadScaledChecks(self.config.fixed_work)  # how much fixed work each frame gets, from the backlog
         self.frame_plan = FULL  # the current frame's plan (read by the policies through ctx.plan)

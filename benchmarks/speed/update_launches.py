@@ -43,7 +43,7 @@ from eligsir_o3d.kernels.triton_launch import in_launch
 ROOT = Path(__file__).resolve().parents[2]
 GSPLAT_FWD = 13  # projection, tile intersection (3), sort (3), offsets, SH, rasterisation, allocations' fills
 GSPLAT_BWD = 9
-DEVICE_PHASES = ("select", "render", "backward", "step", "mcmc", "feedback")
+DEVICE_PHASES = ("select", "render", "backward", "step", "mcmc", "feedback", "feedback plan")
 SYNC_OPS = {"_local_scalar_dense", "nonzero", "unique", "_unique2", "unique_dim", "masked_select", "bincount",
             "item", "is_nonzero", "equal"}
 FREE_OPS = {"empty", "empty_like", "empty_strided", "new_empty", "new_empty_strided", "detach", "alias",
@@ -199,7 +199,8 @@ def build(kernels: str, frames: int = 12, size: tuple[int, int] | None = None):
     for obj, attr, phase in ((rec.kernels, "select", "select"), (rec.renderer, "render", "render"),
                              (rec.kernels, "backward", "backward"), (rec.kernels, "step", "step"),
                              (rec.growth, "post_step", "mcmc"), (rec.views, "feedback", "feedback"),
-                             (rec.views, "select", "choose view"), (rec.supervision, "sample", "sample")):
+                             (rec.views, "select", "choose view"), (rec.supervision, "sample", "sample"),
+                             (rec.views.cells, "plan", "feedback plan")):
         _wrap_phase(counts, obj, attr, phase)
     return rec, counts, mp
 

@@ -103,6 +103,9 @@ class KernelSet(ABC):
     """The three stages of an update for one kind of map (see the module docstring)."""
 
     name = "abstract"
+    # the views' fold of a training render's error into their microcells, fused: the arguments of
+    # eligsir_o3d.scheduling.cell_feedback.fold_torch; None: that function (torch operators on the map's device)
+    fold_cells = None
 
     @abstractmethod
     def select(self, gmap, camera: Camera, T_world_cam, low_pass: float = EPS2D, *, cull: bool = True,

@@ -12,6 +12,8 @@
   accumulations takes the torch loss.
 - step: chain rule of the activations, regulariser, Adam with torch's per-tensor bias correction as host scalars,
   and the position noise, one launch over the capacity (:func:`.triton_step.step_rows`), rows written in place.
+- the views' feedback: the training render's error folded into their microcells on the device in two launches
+  (:func:`.triton_feedback.fold_cells`).
 
 With Triton importable the stages are its kernels (compiled on CUDA, interpreted on the CPU); without it the same
 stages in torch operators (:mod:`.device_reference`), which is also their test oracle.
@@ -67,6 +69,10 @@ class FusedKernels(KernelSet):
     def __init__(self, device: str | torch.device = "cpu", use_triton: bool | None = None):
         self.device = torch.device(device)
         self._select, self._loss, self._step = stages(use_triton)
+        if self._select.__module__.endswith("triton_select"):
+            from .triton_feedback import fold_cells
+
+            self.fold_cells = fold_cells
         self.capacity = MIN_CAPACITY  # rows of the next view: grows with the views, shrinks when 4x too large
 
     def _count_host(self, count: torch.Tensor) -> np.ndarray:

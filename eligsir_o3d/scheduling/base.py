@@ -137,6 +137,9 @@ class ViewPolicy(Policy):
         """The view for the next optimisation update."""
         raise NotImplementedError
 
+    def bind(self, device, kernels) -> None:
+        """Once, from the Reconstructor: the map's device and its kernel set (``eligsir_o3d.kernels``)."""
+
     def feedback(self, frame: Frame, out: RenderOutput, error: torch.Tensor, depth: torch.Tensor,
                  camera: Camera) -> None:
         """After an update: the training render's per-pixel error [h, w] (already computed by the loss)."""

@@ -17,6 +17,7 @@ import torch
 
 from ..core.camera import Camera
 from ..core.voxels import unique_keys
+from .cell_feedback import FeedbackPlan, fold_torch, make_plan
 
 
 
@@ -111,7 +112,7 @@ def grow(t: torch.Tensor, n: int, fill) -> torch.Tensor:
     """``t`` [m, ...] extended to at least n rows with ``fill`` (capacity doubles, amortised O(1))."""
     if t.shape[0] >= n:
         return t
-    extra = torch.full((max(n, 2 * t.shape[0]) - t.shape[0], *t.shape[1:]), fill, dtype=t.dtype)
+    extra = torch.full((max(n, 2 * t.shape[0]) - t.shape[0], *t.shape[1:]), fill, dtype=t.dtype, device=t.device)
     return torch.cat([t, extra], 0)
 
 
@@ -130,18 +131,40 @@ class MicrocellConfig:
 class Microcells:
     """Fixed world-space cells accumulating the photometric error of training renders (paper: "spatial
     supervision focus"). Per cell: running error (EMA), the best running error so far (to detect regression),
-    visits (training renders that measured it) and coverage (retained views that see it)."""
+    visits (training renders that measured it) and coverage (retained views that see it).
+
+    The running error, best error and visits live on ``device`` (the map's: the training renders' errors are
+    folded in there, :mod:`.cell_feedback`); the policy reads them through :meth:`host`. Coverage and the hash stay
+    on the CPU."""
 
     def __init__(self, cfg: MicrocellConfig | None = None):
         self.cfg = cfg or MicrocellConfig()
         self.hash = VoxelHash(self.cfg.cell_size)
+        self.device = torch.device("cpu")
         self.error = torch.zeros(0)
         self.best = torch.zeros(0)
         self.visits = torch.zeros(0, dtype=torch.long)
         self.coverage = torch.zeros(0, dtype=torch.long)
+        self.folds = 0  # error maps folded in so far
+        self._host: tuple[int, tuple] | None = None  # (folds, (error, best, visits)) copied at that count
 
     def __len__(self) -> int:
         return len(self.hash)
+
+    def to(self, device) -> "Microcells":
+        """Keep the running error, best error and visits on ``device``."""
+        self.device = torch.device(device)
+        self.error, self.best, self.visits = (t.to(self.device) for t in (self.error, self.best, self.visits))
+        self._host = None
+        return self
+
+    def host(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(error, best, visits) on the CPU: the tensors themselves on a CPU map, else one copy per fold count."""
+        if self.device.type == "cpu":
+            return self.error, self.best, self.visits
+        if self._host is None or self._host[0] != self.folds or self._host[1][0].shape[0] != self.error.shape[0]:
+            self._host = (self.folds, tuple(t.cpu() for t in (self.error, self.best, self.visits)))
+        return self._host[1]
 
     def _ensure(self) -> None:
         n = len(self.hash)
@@ -166,39 +189,34 @@ class Microcells:
     def add_coverage(self, cells: torch.Tensor, delta: int = 1) -> None:
         self.coverage[cells] += delta
 
-    def accumulate(self, ids: torch.Tensor, errors: torch.Tensor) -> torch.Tensor:
-        """Fold per-sample errors [M] into their cells' running error; returns the cells touched."""
-        keep = ids >= 0
-        ids, errors = ids[keep], errors.detach().cpu().float()[keep]
-        if ids.numel() == 0:
-            return ids
-        cells, inv = torch.unique(ids, return_inverse=True)
-        sums = torch.zeros(cells.numel()).index_add_(0, inv, errors)
-        counts = torch.zeros(cells.numel()).index_add_(0, inv, torch.ones_like(errors))
-        obs = sums / counts
-        fresh = self.visits[cells] == 0
-        a = self.cfg.ema
-        self.error[cells] = torch.where(fresh, obs, (1 - a) * self.error[cells] + a * obs)
-        self.visits[cells] += 1
-        # "best" only once the EMA has settled a little, so one lucky first sample is not the reference
-        settled = self.visits[cells] >= 2
-        self.best[cells] = torch.where(settled, torch.minimum(self.best[cells], self.error[cells]), self.best[cells])
-        return cells
+    def plan(self, depth: torch.Tensor, camera: Camera, T_world_cam) -> FeedbackPlan:
+        """The :class:`~.cell_feedback.FeedbackPlan` of a view's depth samples at ``camera``'s resolution."""
+        pix, ids = self.locate(depth, camera, T_world_cam)
+        return make_plan(pix, ids, camera.height * camera.width, self.device)
+
+    def fold(self, plan: FeedbackPlan, error_map: torch.Tensor, fold_fn=None) -> None:
+        """Fold a training render's error ``error_map`` [P] (flat) into the cells of ``plan``, by ``fold_fn``
+        (a kernel set's fused fold) or :func:`~.cell_feedback.fold_torch`."""
+        (fold_fn or fold_torch)(plan, error_map, self.error, self.best, self.visits, self.cfg.ema)
+        self.folds += 1
 
     def need(self, cells: torch.Tensor, good_error: float, regress_gain: float, regress_margin: float) -> torch.Tensor:
         """How much supervision each cell still needs: error above ``good_error`` plus a bonus for regression
         (running error risen more than ``regress_margin`` above its best)."""
-        err = self.error[cells]
-        regress = (err - self.best[cells] - regress_margin).clamp_min(0)
+        error, best, _ = self.host()
+        err = error[cells]
+        regress = (err - best[cells] - regress_margin).clamp_min(0)
         regress = torch.where(torch.isfinite(regress), regress, torch.zeros_like(regress))
         return (err - good_error).clamp_min(0) + regress_gain * regress
 
     def state_dict(self) -> dict:
         n = len(self)
-        return {"hash": self.hash.state_dict(), "error": self.error[:n].clone(), "best": self.best[:n].clone(),
-                "visits": self.visits[:n].clone(), "coverage": self.coverage[:n].clone()}
+        error, best, visits = self.host()
+        return {"hash": self.hash.state_dict(), "error": error[:n].clone(), "best": best[:n].clone(),
+                "visits": visits[:n].clone(), "coverage": self.coverage[:n].clone()}
 
     def load_state_dict(self, state: dict) -> None:
         self.hash.load_state_dict(state["hash"])
-        self.error, self.best = state["error"].clone(), state["best"].clone()
-        self.visits, self.coverage = state["visits"].clone(), state["coverage"].clone()
+        self.error, self.best = state["error"].to(self.device).clone(), state["best"].to(self.device).clone()
+        self.visits, self.coverage = state["visits"].to(self.device).clone(), state["coverage"].clone()
+        self._host = None

@@ -36,9 +36,9 @@ class _View:
     weights: torch.Tensor  # [C] share of the view's depth samples per cell
     updates: int = 0
     priority: float = 0.0
-    last_error: float = float("nan")
+    last_error: float | torch.Tensor = float("nan")  # a plan's device scalar once folded
     last_update: int = -1  # the policy's update count when this view last supervised one (-1: never)
-    pixel_cells: dict = field(default_factory=dict)  # (h, w) -> (flat pixel idx [M], cell ids [M])
+    plans: dict = field(default_factory=dict)  # (h, w) -> FeedbackPlan of the view's samples at that size
 
 
 class MapGuidedViews(ViewPolicy):
@@ -55,6 +55,7 @@ class MapGuidedViews(ViewPolicy):
             raise ValueError(f"views.drain_replay must be 'stalest' or 'policy', got {self.cfg.drain_replay!r}")
         self.probe = probe or SupportProbe()
         self.cells = cells or Microcells(self.cfg.cells)
+        self.fold_fn = None  # a kernel set's fused fold of the error into the cells (None: the torch rule)
         self.spacing = ViewSpacing(self.cfg.spacing_updates)
         self._views: list[_View] = []
         self._by_frame: dict[int, _View] = {}
@@ -168,9 +169,10 @@ class MapGuidedViews(ViewPolicy):
         level = self.cfg.good_error
         if self.cfg.good_quantile > 0:
             ids = torch.unique(cells)
-            ids = ids[self.cells.visits[ids] > 0]
+            error, _, visits = self.cells.host()
+            ids = ids[visits[ids] > 0]
             if ids.numel():
-                level = max(level, float(torch.quantile(self.cells.error[ids], self.cfg.good_quantile)))
+                level = max(level, float(torch.quantile(error[ids], self.cfg.good_quantile)))
         return level
 
     def _flat_cells(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -184,10 +186,11 @@ class MapGuidedViews(ViewPolicy):
         """Per retained view: footprint-weighted running error of its measured cells [V] (NaN: none measured) and
         the share of its footprint in cells above ``good_error`` [V]."""
         n = len(self._views)
-        measured = (self.cells.visits[cells] > 0).float() * weights
-        err = torch.zeros(n).index_add_(0, owner, measured * self.cells.error[cells])
+        error, _, visits = self.cells.host()
+        measured = (visits[cells] > 0).float() * weights
+        err = torch.zeros(n).index_add_(0, owner, measured * error[cells])
         norm = torch.zeros(n).index_add_(0, owner, measured)
-        weak = torch.zeros(n).index_add_(0, owner, (self.cells.error[cells] > self._good).float() * weights)
+        weak = torch.zeros(n).index_add_(0, owner, (error[cells] > self._good).float() * weights)
         return torch.where(norm > 0, err / norm.clamp_min(1e-12), torch.full_like(err, float("nan"))), weak
 
     def _trace_refresh(self, before: set, prio: torch.Tensor, cells, weights, owner) -> None:
@@ -256,6 +259,11 @@ class MapGuidedViews(ViewPolicy):
         """The view among ``positions`` whose last update is oldest; ties: the higher priority."""
         return min(positions, key=lambda i: (self._views[i].last_update, -self._views[i].priority))
 
+    def bind(self, device, kernels) -> None:
+        """Fold the training renders' errors on ``device`` (the map's), by ``kernels``' fused fold if it has one."""
+        self.cells.to(device)
+        self.fold_fn = getattr(kernels, "fold_cells", None)
+
     def feedback(self, frame: Frame, out: RenderOutput, error: torch.Tensor, depth: torch.Tensor,
                  camera: Camera) -> None:
         """Splat the training render's per-pixel error [h, w] into the microcells its depth samples fall in."""
@@ -263,15 +271,14 @@ class MapGuidedViews(ViewPolicy):
         if view is None:
             return
         key = (camera.height, camera.width)
-        if key not in view.pixel_cells:
-            view.pixel_cells[key] = self.cells.locate(depth, camera, frame.T_world_cam)
-        pix, ids = view.pixel_cells[key]
-        err = error.detach().reshape(-1).cpu()
-        self.cells.accumulate(ids, err[pix])
+        if key not in view.plans:
+            view.plans[key] = self.cells.plan(depth, camera, frame.T_world_cam)
+        plan = view.plans[key]
+        self.cells.fold(plan, error.detach().reshape(-1), self.fold_fn)
         view.updates += 1
         self.updates += 1
         view.last_update = self.updates
-        view.last_error = float(err.mean())
+        view.last_error = plan.last  # read (a host copy) only when saved
         self._since_refresh += 1
 
     @property
@@ -287,7 +294,7 @@ class MapGuidedViews(ViewPolicy):
         views = [{"color": v.frame.color, "depth": v.frame.depth, "camera": v.frame.camera,
                   "T_world_cam": v.frame.T_world_cam, "timestamp": v.frame.timestamp, "index": v.frame.index,
                   "cells": v.cells, "weights": v.weights, "updates": v.updates, "priority": v.priority,
-                  "last_error": v.last_error, "last_update": v.last_update} for v in self._views]
+                  "last_error": float(v.last_error), "last_update": v.last_update} for v in self._views]
         # the active set and priorities of the last refresh decide the next picks: saved, not recomputed
         return {"views": views, "cells": self.cells.state_dict(), "last_admit_ts": self._last_admit_ts,
                 "counts": dict(self.counts), "active": list(self.active), "since_refresh": self._since_refresh,
