@@ -20,6 +20,7 @@ from typer.testing import CliRunner
 from eligsir_o3d.batch import BatchError, SequenceSpec, expand_inputs, read_manifest
 from eligsir_o3d.batch.specs import Defaults, build_request, folder_status, write_state
 from eligsir_o3d.cli.app import app
+from helpers.small_runs import start_local_ray
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 SEVEN = DATA / "7scenes_redkitchen_jpg1000"
@@ -108,9 +109,7 @@ def test_without_ray_the_command_prints_an_install_hint(tmp_path, monkeypatch):
 # ---- on a local Ray ---------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def local_ray():
-    ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, object_store_memory=100 * 2**20, log_to_driver=False,
-             logging_level="WARNING")
+    ray = start_local_ray()
     yield ray
     ray.shutdown()
 

@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 
 from eligsir_o3d.batch.specs import BatchError, SequenceSpec, expand_inputs
 from eligsir_o3d.cli.app import app
+from helpers.small_runs import start_local_ray
 
 SUN3D = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "sun3d_mit76_studyroom_f0935"
 
@@ -44,9 +45,7 @@ def test_batch_refuses_values_as_map_does(tmp_path, args, said):
 
 @pytest.fixture(scope="module")
 def local_ray():
-    ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, include_dashboard=False, object_store_memory=100 * 2**20, log_to_driver=False,
-             logging_level="WARNING")
+    ray = start_local_ray()
     yield ray
     ray.shutdown()
 

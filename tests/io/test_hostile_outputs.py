@@ -8,26 +8,16 @@ import os
 import stat
 
 import pytest
-import torch
 from typer.testing import CliRunner
 
 from eligsir_o3d.cli.app import app
-from eligsir_o3d.core.gaussians import GaussianMap
 from eligsir_o3d.io.atomic import WriteFailed, atomic_write_text, commit_file, output_kind, temp_for
-from eligsir_o3d.io.ply import save_ply
+from helpers.small_runs import write_small_map
 
 
 @pytest.fixture
 def map_ply(tmp_path):
-    g = GaussianMap(0)
-    torch.manual_seed(0)
-    g.add(torch.rand(200, 3) * torch.tensor([5.0, 5.0, 3.0]), torch.rand(200, 3), torch.rand(200, 3) * 0.1 + 0.01,
-          torch.rand(200) * 0.5 + 0.4, torch.randn(200, 4))
-    p = tmp_path / "run" / "map.ply"
-    p.parent.mkdir()
-    save_ply(g, p)
-    (tmp_path / "run" / "trajectory.txt").write_text("0 2.5 2.5 1.5 0 0 0 1\n1 2.6 2.5 1.5 0 0 0 1\n")
-    return p
+    return write_small_map(tmp_path / "run")
 
 
 def _node(tmp_path, name: str, minor: int):

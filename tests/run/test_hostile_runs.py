@@ -12,26 +12,18 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from eligsir_o3d import Config
 from eligsir_o3d.cli.app import app
 from eligsir_o3d.run.option_table import MAX_MODELLED_S, check_option, default
 from eligsir_o3d.run.options import MapOptions, resolve
 from eligsir_o3d.run.pipeline import RunOptions, run_mapping
+from helpers.small_runs import quick_config, quick_options
 
 SEVEN = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "7scenes_redkitchen_jpg1000"
 SMALL = ["--max-frames", "10", "--holdout-every", "5", "--eval-every", "0", "--updates-per-frame", "2",
          "--renderer", "torch", "-q", "--no-pictures"]
 
 
-def _cfg():
-    cfg = Config(renderer="torch")
-    cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 2, 4
-    return cfg
-
-
-def _opts(**kw):
-    return RunOptions(**{**dict(max_frames=10, holdout_every=5, eval_every=0, progress=False, plots=False,
-                                pictures=False), **kw})
+_cfg, _opts = quick_config, quick_options
 
 
 def _one_line(r, code=2):

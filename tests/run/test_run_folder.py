@@ -13,21 +13,13 @@ from pathlib import Path
 import pytest
 
 import eligsir_o3d
-from eligsir_o3d import Config
-from eligsir_o3d.run.pipeline import MappingPipeline, RunOptions, run_mapping
+from eligsir_o3d.run.pipeline import MappingPipeline, run_mapping
 from eligsir_o3d.run.resume import ResumeMismatch, config_differences
 from eligsir_o3d.run.lock import LOCK_FILE, RunLock, RunLocked, pid_alive
+from helpers.small_runs import quick_config, quick_options
 
 
-def _cfg():
-    cfg = Config(renderer="torch")
-    cfg.clock.mode, cfg.clock.updates_per_frame, cfg.clock.drain_updates = "updates", 2, 4
-    return cfg
-
-
-def _opts(**kw):
-    return RunOptions(**{**dict(max_frames=10, holdout_every=5, eval_every=0, progress=False, plots=False,
-                                pictures=False), **kw})
+_cfg, _opts = quick_config, quick_options
 
 
 def _lock(folder, pid, host=None):
