@@ -82,7 +82,7 @@ def main(argv=None) -> int:
         if args.edges:
             for r in lc.log:
                 G = invert_pose(seq.poses[r["with"]]) @ seq.poses[r["frame"]]
-                E = invert_pose(G) @ _edge_of(lc, r)
+                E = invert_pose(G) @ np.asarray(r["transform"])
                 print(f"  {r['frame']:4d}->{r['with']:4d} fit {r['fitness']:.3f} rmse {1000 * r['rmse_m']:.1f} mm "
                       f"shift {100 * r['shift_m']:.1f} cm {r['turn_deg']:.1f} deg  accepted {r['accepted']}  "
                       f"edge error vs gt {100 * np.linalg.norm(E[:3, 3]):.1f} cm "
@@ -90,15 +90,6 @@ def main(argv=None) -> int:
         if args.out is not None:
             write_tum_trajectory(args.out / f"{path.stem}_loops.txt", ts, final)
     return 0
-
-
-def _edge_of(lc: LoopClosure, r: dict) -> np.ndarray:
-    """The edge of a log row (accepted: its transform; rejected: the prior it started from, recomputed)."""
-    pos = {k.index: n for n, k in enumerate(lc.keys)}
-    for e in lc.loop_edges:
-        if (lc.keys[e.source].index, lc.keys[e.target].index) == (r["frame"], r["with"]):
-            return e.transform
-    return invert_pose(lc.corrected[pos[r["with"]]]) @ lc.corrected[pos[r["frame"]]]
 
 
 if __name__ == "__main__":

@@ -13,12 +13,35 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..core.camera import invert_pose, rotation_angle_deg
 from .loops import Keyframe, LoopConfig, LoopResult, candidates, keyframe_cloud, odometry_information, verify
 from .pose_graph import Edge, GraphConfig, odometry_edges, optimise
+
+
+@dataclass
+class LoopClosureConfig:
+    """Loop closure of tracked runs: keyframes, loop detection and verification, the pose graph."""
+
+    enabled: str = "auto"
+    """auto: on for tracked runs (no poses given), off where poses are given; on | off."""
+    detect: LoopConfig = field(default_factory=LoopConfig)
+    """Keyframes, loop candidates and their registration test."""
+    graph: GraphConfig = field(default_factory=GraphConfig)
+    """The pose graph's optimisation."""
+
+
+def loop_closure_for(cfg: LoopClosureConfig, tracked: bool) -> "LoopClosure | None":
+    """The loop-closure policy of a run (None where it is off: poses given, or ``enabled = off``)."""
+    mode = str(cfg.enabled).lower()
+    if mode not in ("auto", "on", "off"):
+        raise ValueError(f"loops.enabled must be auto, on or off, got {cfg.enabled!r}")
+    if mode == "off" or (mode == "auto" and not tracked):
+        return None
+    return LoopClosure(cfg.detect, cfg.graph)
 
 
 class LoopClosure:
@@ -40,10 +63,13 @@ class LoopClosure:
         self.loop_edges: list[Edge] = []  # accepted by verification (the graph may prune them)
         self.pruned: set[tuple[int, int]] = set()
         self.frames: dict[int, tuple[int, np.ndarray]] = {}  # frame index -> (keyframe position, inv(T_k) @ T)
+        self.raw: dict[int, np.ndarray] = {}  # frame index -> the tracker's pose
+        self.summary: dict = {}  # ATE before and after, where the run has ground truth (run.poses.loop_closed)
         self.counts = {"keyframes": 0, "candidates": 0, "verified": 0, "rejected_registration": 0,
                        "rejected_graph": 0, "accepted": 0, "optimisations": 0}
         self.seconds = 0.0
         self.injected: list[tuple[int, np.ndarray]] = []  # test hook: (frame index, wrong T_target_source)
+        self.pending: list[tuple[int, int]] = []  # (keyframe, candidate) pairs waiting for verification
         self._moves: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.log: list[dict] = []  # one row per verified candidate
 
@@ -55,10 +81,13 @@ class LoopClosure:
             T_raw = np.asarray(T_raw, dtype=np.float64)
             if self._is_keyframe(index, T_raw):
                 self._add_keyframe(index, T_raw, depth, camera)
+            if self._verify_pending():
+                self._optimise()
             k = len(self.keys) - 1
             rel = invert_pose(self.keys[k].raw_pose) @ T_raw
             T = self.corrected[k] @ rel
             self.frames[int(index)] = (k, invert_pose(self.corrected[k]) @ T)
+            self.raw[int(index)] = T_raw
             return T
         finally:
             self.seconds += time.perf_counter() - t0
@@ -84,20 +113,23 @@ class LoopClosure:
             self.odo_info.append(odometry_information(self.keys, k, self.cfg))
         self.counts["keyframes"] += 1
         self._drop_old_local_maps(k)
-        if self._close_loops(k):
-            self._optimise()
+        indices = [key.index for key in self.keys]
+        found = candidates(k, indices, self.corrected, self.cfg)
+        self.counts["candidates"] += len(found)
+        self.pending = [(k, j) for j in found]  # a newer keyframe's candidates replace an older one's
 
     def _drop_old_local_maps(self, k: int) -> None:
         """Local maps are rebuilt on demand; keep only the recent ones cached (memory stays per keyframe)."""
         old = k - self.cfg.local - 2
-        if old >= 0 and self.keys[old].local_cloud is not None and old not in {e.target for e in self.loop_edges}:
+        if old >= 0 and self.keys[old].local_cloud is not None:
             self.keys[old].local_cloud = None
 
-    def _close_loops(self, k: int) -> bool:
+    def _verify_pending(self) -> bool:
+        """Verify up to ``per_frame`` waiting candidates (a bounded slice of work per frame); True when one was
+        accepted as a loop edge."""
         found = False
-        indices = [key.index for key in self.keys]
-        for j in candidates(k, indices, self.corrected, self.cfg):
-            self.counts["candidates"] += 1
+        for _ in range(min(self.cfg.per_frame, len(self.pending))):
+            k, j = self.pending.pop(0)
             result = verify(self.keys, self.corrected, k, j, self.cfg)
             result = self._maybe_injected(result)
             self.counts["verified"] += 1
@@ -146,6 +178,10 @@ class LoopClosure:
         entry = self.frames.get(int(index))
         return T if entry is None else self.corrected[entry[0]] @ entry[1]
 
+    def raw_pose_of(self, index: int, T: np.ndarray) -> np.ndarray:
+        """The tracker's own pose of frame ``index`` (``T`` when this policy never saw it)."""
+        return self.raw.get(int(index), T)
+
     def keyframe_pose(self, index: int) -> np.ndarray | None:
         """The corrected pose of the keyframe of frame index ``index`` (None if it is none)."""
         for key, T in zip(self.keys, self.corrected):
@@ -159,7 +195,7 @@ class LoopClosure:
         return {"policy": self.name, "keyframes": c["keyframes"], "loops_found": c["verified"],
                 "loops_accepted": c["accepted"], "loops_rejected": c["rejected_registration"] + c["rejected_graph"],
                 "rejected_by_registration": c["rejected_registration"], "rejected_by_graph": c["rejected_graph"],
-                "optimisations": c["optimisations"], "seconds": self.seconds}
+                "optimisations": c["optimisations"], "seconds": self.seconds, **self.summary}
 
     # ---- state -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -170,9 +206,10 @@ class LoopClosure:
         edges = [{"source": e.source, "target": e.target, "transform": e.transform, "information": e.information}
                  for e in self.loop_edges]
         return {"keys": keys, "corrected": [T.copy() for T in self.corrected], "odo_info": list(self.odo_info),
-                "loop_edges": edges, "pruned": sorted(self.pruned), "counts": dict(self.counts),
+                "loop_edges": edges, "pruned": sorted(self.pruned), "pending": [list(p) for p in self.pending],
+                "counts": dict(self.counts),
                 "seconds": self.seconds, "frames": {int(i): [k, rel.copy()] for i, (k, rel) in self.frames.items()},
-                "log": list(self.log)}
+                "raw": {int(i): T.copy() for i, T in self.raw.items()}, "log": list(self.log)}
 
     def load_state_dict(self, state: dict) -> None:
         """Restore :meth:`state_dict`'s output."""
@@ -188,9 +225,11 @@ class LoopClosure:
         self.loop_edges = [Edge(int(e["source"]), int(e["target"]), np.asarray(e["transform"], dtype=np.float64),
                                 np.asarray(e["information"], dtype=np.float64), True) for e in state["loop_edges"]]
         self.pruned = {tuple(p) for p in state["pruned"]}
+        self.pending = [(int(k), int(j)) for k, j in state.get("pending", [])]
         self.counts.update(state["counts"])
         self.seconds = float(state["seconds"])
         self.frames = {int(i): (int(v[0]), np.asarray(v[1], dtype=np.float64)) for i, v in state["frames"].items()}
+        self.raw = {int(i): np.asarray(T, dtype=np.float64) for i, T in state["raw"].items()}
         self.log = list(state.get("log", []))
         self._moves = {}
 
@@ -198,4 +237,23 @@ class LoopClosure:
 def _row(r: LoopResult, keys: list[Keyframe]) -> dict:
     return {"frame": keys[r.source].index, "with": keys[r.target].index, "fitness": round(r.fitness, 4),
             "rmse_m": round(r.rmse, 5), "shift_m": round(r.shift, 4), "turn_deg": round(r.turn_deg, 3),
-            "accepted": r.accepted}
+            "accepted": r.accepted, "transform": np.round(r.transform, 6).tolist()}
+
+
+def track_corrected(rec, frame, T_raw: np.ndarray) -> np.ndarray:
+    """A Reconstructor's tracked pose ``T_raw`` of ``frame`` through its loop closure ``rec.loops``: the
+    corrected pose; after an optimisation the map follows (anchored Gaussians and retained views move). The time
+    is the ``loops`` stage's and counts as tracking; new Gaussians are anchored to the current keyframe."""
+    from ..core.anchors import move_anchored
+
+    t0 = time.perf_counter()
+    with rec.timing("loops"):
+        T = rec.loops.on_frame(frame.index, T_raw, frame.depth, frame.camera)
+        moves = rec.loops.take_moves()
+        if moves:
+            move_anchored(rec.gmap, moves)
+            for view in rec.views.views:
+                view.T_world_cam = rec.loops.pose_of(view.index, view.T_world_cam)
+        rec.gmap.anchor_view = rec.loops.anchor
+    rec.stats.tracking_s += time.perf_counter() - t0
+    return T

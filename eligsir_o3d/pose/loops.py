@@ -23,24 +23,44 @@ from ..core.camera import Camera, invert_pose, rotation_angle_deg
 class LoopConfig:
     """Loop detection and verification settings (metres, degrees, frames)."""
 
-    keyframe_dist: float = 0.1  # a frame becomes a keyframe once it moved this far from the last one (m)
-    keyframe_angle_deg: float = 10.0  # or turned this far (deg)
-    keyframe_every: int = 30  # or this many frames passed
-    cloud_voxel: float = 0.02  # voxel size of a keyframe's point cloud (m)
-    cloud_stride: int = 4  # pixel stride of the depth samples a keyframe's cloud starts from
-    depth_max: float = 4.0  # depth used for keyframe clouds (m)
-    local: int = 2  # predecessors fused into a keyframe's local map for verification
-    min_gap: int = 150  # frames between a keyframe and a loop candidate, at least
-    radius: float = 0.6  # camera centres of a candidate pair this close at the current estimate (m)
-    max_angle_deg: float = 35.0  # viewing directions this close
-    max_candidates: int = 2  # candidates verified per keyframe (nearest first)
-    icp_scales: tuple[float, ...] = (0.08, 0.04, 0.02)  # ICP correspondence distances, coarse to fine (m)
-    max_dist: float = 0.02  # the fitness and RMSE test's correspondence distance (m)
-    min_fitness: float = 0.6  # share of the source's points within max_dist after registration
-    max_rmse: float = 0.011  # inlier RMSE after registration (m)
-    max_shift: float = 0.3  # the loop edge moves the estimate by at most this (m)
-    max_turn_deg: float = 10.0  # and turns it by at most this (deg)
-    min_points: int = 500  # a keyframe cloud with fewer points takes part in no loop
+    keyframe_dist: float = 0.1
+    """A frame becomes a keyframe once it moved this far from the last one (m)."""
+    keyframe_angle_deg: float = 10.0
+    """A frame becomes a keyframe once it turned this far from the last one (deg)."""
+    keyframe_every: int = 30
+    """A frame becomes a keyframe once this many frames passed since the last one."""
+    cloud_voxel: float = 0.02
+    """Voxel size of a keyframe's point cloud (m)."""
+    cloud_stride: int = 4
+    """Pixel stride of the depth samples a keyframe's cloud starts from."""
+    depth_max: float = 4.0
+    """Depth used for keyframe clouds (m)."""
+    local: int = 2
+    """Predecessors fused into a keyframe's local map for verification."""
+    min_gap: int = 150
+    """Frames between a keyframe and a loop candidate, at least."""
+    radius: float = 0.6
+    """Camera centres of a candidate pair this close at the current estimate (m)."""
+    max_angle_deg: float = 35.0
+    """Viewing directions of a candidate pair this close at the current estimate (deg)."""
+    max_candidates: int = 2
+    """Candidates verified per keyframe (nearest first)."""
+    per_frame: int = 1
+    """Candidates verified per frame at most (the rest wait for the next frames: a bounded slice of work)."""
+    icp_coarse: float = 0.08
+    """The first ICP round's correspondence distance (m); then half of it, then ``max_dist``."""
+    max_dist: float = 0.02
+    """The fitness and RMSE test's correspondence distance (m)."""
+    min_fitness: float = 0.6
+    """Share of the source's points within max_dist after registration."""
+    max_rmse: float = 0.011
+    """Inlier RMSE after registration (m)."""
+    max_shift: float = 0.3
+    """The loop edge moves the estimate by at most this (m)."""
+    max_turn_deg: float = 10.0
+    """The loop edge turns the estimate by at most this (deg)."""
+    min_points: int = 500
+    """A keyframe cloud with fewer points takes part in no loop."""
 
 
 @dataclass
@@ -133,7 +153,7 @@ def verify(keys: list[Keyframe], poses: list[np.ndarray], k: int, j: int, cfg: L
     method = o3d.pipelines.registration.TransformationEstimationPointToPlane()
     crit = o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
                                                               max_iteration=30)
-    for dist in cfg.icp_scales:
+    for dist in (cfg.icp_coarse, cfg.icp_coarse / 2.0, cfg.max_dist):
         T = o3d.pipelines.registration.registration_icp(src, tgt, dist, T, method, crit).transformation
     ev = o3d.pipelines.registration.evaluate_registration(src, tgt, cfg.max_dist, T)
     delta = invert_pose(prior) @ T

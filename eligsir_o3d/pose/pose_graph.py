@@ -22,11 +22,16 @@ REG = o3d.pipelines.registration
 class GraphConfig:
     """Pose-graph optimisation settings (Open3D's ``GlobalOptimizationOption``)."""
 
-    max_correspondence_distance: float = 0.03  # the line process's residual scale (m)
-    edge_prune_threshold: float = 0.25  # loop edges whose line-process weight falls below this are pruned
-    preference_loop_closure: float = 1.0  # weight of loop edges against odometry edges
-    odometry_weight: float = 1.0  # scales the tracker edges' information matrices
-    max_iterations: int = 100  # Levenberg-Marquardt iterations
+    max_correspondence_distance: float = 0.03
+    """The line process's residual scale (m)."""
+    edge_prune_threshold: float = 0.25
+    """Loop edges whose line-process weight falls below this are pruned."""
+    preference_loop_closure: float = 1.0
+    """Weight of loop edges against odometry edges."""
+    odometry_weight: float = 1.0
+    """Scales the tracker edges' information matrices."""
+    max_iterations: int = 100
+    """Levenberg-Marquardt iterations."""
 
 
 @dataclass

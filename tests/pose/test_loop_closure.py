@@ -1,0 +1,155 @@
+"""Loop closure (pose.loops, pose.pose_graph, pose.loop_closure) and the map that follows it (core.anchors).
+
+The synthetic room's one loop (48 frames at 160x120, each one a keyframe), walked once and then 2 frames more
+along its start, is tracked by a fake tracker whose error grows along the path; loop closure must bring the last frame back to its true pose (1 cm / 0.5 deg). A wrong loop
+edge injected on purpose must be pruned by the graph's line process and leave the result as good.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from eligsir_o3d.core.anchors import move_anchored
+from eligsir_o3d.core.camera import invert_pose, rotation_angle_deg
+from eligsir_o3d.core.gaussians import GaussianMap
+from eligsir_o3d.datasets import open_sequence
+from eligsir_o3d.pose.loop_closure import LoopClosure, LoopClosureConfig, loop_closure_for
+from eligsir_o3d.pose.loops import LoopConfig
+from eligsir_o3d.scheduling.mcmc import relocate, sample_add
+
+LOOP, N = 48, 50  # frames of one loop, frames walked
+
+
+def _rot(axis, deg):
+    a = np.radians(deg)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], dtype=np.float64)
+    T = np.eye(4)
+    T[:3, :3] = np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+    return T
+
+
+@pytest.fixture(scope="module")
+def room():
+    seq = open_sequence("synthetic", n_frames=LOOP, width=160, height=120)
+    depths = [seq.frame(i).depth.numpy() for i in range(LOOP)]
+    return seq, [depths[i % LOOP] for i in range(N)], [seq.poses[i % LOOP] for i in range(N)]
+
+
+def drifted(poses):
+    """A tracker's poses: the true relative motions, each with a small rotation and translation error."""
+    E = _rot(np.array([0.0, 1.0, 0.0]), 0.05)
+    E[:3, 3] = [0.0005, 0.0, 0.0]
+    out = [poses[0].copy()]
+    for k in range(1, len(poses)):
+        out.append(out[-1] @ invert_pose(poses[k - 1]) @ poses[k] @ E)
+    return out
+
+
+def _config():
+    return LoopConfig(keyframe_dist=0.0, cloud_stride=2, min_gap=30, radius=0.6, max_candidates=2, per_frame=2,
+                      local=1)
+
+
+def _err(A, B):
+    E = invert_pose(A) @ B
+    return float(np.linalg.norm(E[:3, 3])), rotation_angle_deg(E[:3, :3])
+
+
+def _run(room, lc):
+    seq, depths, poses = room
+    raw = drifted(poses)
+    final = [lc.on_frame(i, raw[i], depths[i], seq.camera) for i in range(N)]
+    return raw, final
+
+
+def test_synthetic_loop_closes(room):
+    poses = room[2]
+    lc = LoopClosure(_config())
+    raw, _ = _run(room, lc)
+    before = _err(poses[-1], raw[-1])
+    after = _err(poses[-1], lc.pose_of(N - 1, raw[-1]))
+    assert before[0] > 0.03 and before[1] > 1.0, before  # the drift is real
+    assert after[0] < 0.01 and after[1] < 0.5, (before, after)
+    c = lc.counters()
+    assert c["loops_accepted"] >= 1 and c["optimisations"] >= 1, c
+
+
+def test_wrong_loop_edge_is_pruned(room):
+    poses = room[2]
+    lc = LoopClosure(_config())
+    wrong = _rot(np.array([0.0, 0.0, 1.0]), 8.0)
+    wrong[:3, 3] = [0.3, -0.2, 0.1]
+    lc.injected.append((LOOP, wrong))  # replaces the first accepted loop edge from that frame on
+    raw, _ = _run(room, lc)
+    assert not lc.injected, "no loop edge was replaced"
+    c = lc.counters()
+    assert c["rejected_by_graph"] >= 1, c
+    after = _err(poses[-1], lc.pose_of(N - 1, raw[-1]))
+    assert after[0] < 0.01 and after[1] < 0.5, after
+
+
+def test_state_round_trip(room):
+    seq, depths, poses = room
+    lc = LoopClosure(_config())
+    raw = drifted(poses)
+    for i in range(LOOP):
+        lc.on_frame(i, raw[i], depths[i], seq.camera)
+    other = LoopClosure(_config())
+    other.load_state_dict(lc.state_dict())
+    for i in range(LOOP, N):
+        a, b = lc.on_frame(i, raw[i], depths[i], seq.camera), other.on_frame(i, raw[i], depths[i], seq.camera)
+        np.testing.assert_allclose(a, b, atol=1e-9)
+    assert lc.counters() == {**other.counters(), "seconds": lc.counters()["seconds"]}
+
+
+def test_on_only_for_trackers():
+    cfg = LoopClosureConfig()
+    assert loop_closure_for(cfg, tracked=False) is None
+    assert isinstance(loop_closure_for(cfg, tracked=True), LoopClosure)
+    assert loop_closure_for(LoopClosureConfig(enabled="off"), tracked=True) is None
+    assert isinstance(loop_closure_for(LoopClosureConfig(enabled="on"), tracked=False), LoopClosure)
+    with pytest.raises(ValueError, match="auto, on or off"):
+        loop_closure_for(LoopClosureConfig(enabled="maybe"), tracked=True)
+
+
+def test_anchors_follow_every_row_change_and_move_rigidly():
+    g = GaussianMap()
+    gen = torch.Generator().manual_seed(0)
+    for anchor in (3, 7, 9):
+        g.anchor_view = anchor
+        g.add(torch.randn(50, 3, generator=gen), torch.rand(50, 3, generator=gen), torch.full((50, 3), 0.05), 0.5,
+              torch.nn.functional.normalize(torch.randn(50, 4, generator=gen), dim=1))
+    # a fingerprint per row that every population change carries with it: the mean's x
+    key = {round(float(x), 5): int(a) for x, a in zip(g.means.detach()[:, 0], g.anchors)}
+    dead = torch.zeros(len(g), dtype=torch.bool)
+    dead[::7] = True
+    relocate(g, dead, gen)
+    sample_add(g, 20, 1000, gen)
+    g.remove(torch.arange(len(g)) % 5 == 0)
+    g.check_aligned()
+    assert len(g.anchors) == len(g)
+    for x, a in zip(g.means.detach()[:, 0], g.anchors):
+        assert key[round(float(x), 5)] == int(a)
+    g.adam.exp_avg["means"].normal_(generator=gen)
+    g.adam.exp_avg["quats"].normal_(generator=gen)
+    before = {n: g.params[n].detach().clone() for n in ("means", "quats")}
+    m_before = g.adam.exp_avg["means"].clone()
+    A, B = np.eye(4), _rot(np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8]), 20.0)
+    B[:3, 3] = [0.1, -0.2, 0.05]
+    moved = move_anchored(g, {7: (A, B)})
+    sel = g.anchors == 7
+    assert moved == int(sel.sum()) > 0
+    R, t = torch.tensor(B[:3, :3], dtype=torch.float32), torch.tensor(B[:3, 3], dtype=torch.float32)
+    torch.testing.assert_close(g.means[sel], before["means"][sel] @ R.T + t, atol=1e-5, rtol=0)
+    torch.testing.assert_close(g.means[~sel], before["means"][~sel])
+    torch.testing.assert_close(g.adam.exp_avg["means"][sel], m_before[sel] @ R.T, atol=1e-5, rtol=0)
+    from eligsir_o3d.render.projection import quat_to_rotmat
+    Rq = quat_to_rotmat(torch.nn.functional.normalize(g.quats[sel].detach(), dim=1))
+    Rq0 = quat_to_rotmat(torch.nn.functional.normalize(before["quats"][sel], dim=1))
+    torch.testing.assert_close(Rq, R @ Rq0, atol=1e-5, rtol=0)
+    state = g.state_dict()
+    h = GaussianMap()
+    h.load_state_dict(state)
+    assert torch.equal(h.anchors, g.anchors)
