@@ -85,7 +85,7 @@ class Reconstructor(ReconstructorState):
         self.frame_plan = FULL  # the current frame's plan (read by the policies through ctx.plan)
         self.ctx = MapContext(self)
         self.pose_source = pose_source
-        self.loops = loop_closure_for(self.config.loops, tracked=getattr(pose_source, "drifts", False))
+        self.loops = loop_closure_for(self.config.loops, getattr(pose_source, "drifts", False), pose_source)
         self.stats = MappingStats()
         self.backlog = 0  # frames waiting to be integrated (set_load, by a clock)
         self.callbacks: list[Callable[["Reconstructor"], None]] = []  # after every update; time excluded

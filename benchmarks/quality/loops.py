@@ -22,7 +22,7 @@ import numpy as np
 
 from eligsir_o3d.core.camera import invert_pose, rotation_angle_deg
 from eligsir_o3d.datasets import open_sequence
-from eligsir_o3d.pose import read_tum_trajectory, trajectory_accuracy, write_tum_trajectory
+from eligsir_o3d.pose import plot_trajectories, read_tum_trajectory, trajectory_accuracy, write_tum_trajectory
 from eligsir_o3d.pose.accuracy import associate_stamps
 from eligsir_o3d.pose.loop_closure import LoopClosure
 from eligsir_o3d.pose.loops import LoopConfig
@@ -89,6 +89,10 @@ def main(argv=None) -> int:
                       f"{rotation_angle_deg(E[:3, :3]):.2f} deg")
         if args.out is not None:
             write_tum_trajectory(args.out / f"{path.stem}_loops.txt", ts, final)
+            plot_trajectories(args.out / f"{path.stem}_loops.png",
+                              {"gt": gt, "tracker": (ts, poses[:len(used)]), "loop-closed": (ts, final)},
+                              reference="gt", title=f"{path.stem}: ATE {row['ate_before_cm']:.2f} -> "
+                                                    f"{row['ate_after_cm']:.2f} cm (top view, aligned to gt)")
     return 0
 
 

@@ -34,14 +34,19 @@ class LoopClosureConfig:
     """The pose graph's optimisation."""
 
 
-def loop_closure_for(cfg: LoopClosureConfig, tracked: bool) -> "LoopClosure | None":
-    """The loop-closure policy of a run (None where it is off: poses given, or ``enabled = off``)."""
+def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None) -> "LoopClosure | None":
+    """The loop-closure policy of a run (None where it is off: poses given, or ``enabled = off``); ``source``:
+    the pose source, or its name (one of ``detect.loose_sources`` gets the looser fitness test)."""
+    source = getattr(source, "name", source) or ""
     mode = str(cfg.enabled).lower()
     if mode not in ("auto", "on", "off"):
         raise ValueError(f"loops.enabled must be auto, on or off, got {cfg.enabled!r}")
     if mode == "off" or (mode == "auto" and not tracked):
         return None
-    return LoopClosure(cfg.detect, cfg.graph)
+    detect = cfg.detect
+    if source and source in [s.strip() for s in detect.loose_sources.split(",")]:
+        detect = dataclasses.replace(detect, min_fitness=detect.min_fitness_loose)
+    return LoopClosure(detect, cfg.graph)
 
 
 class LoopClosure:
