@@ -24,7 +24,7 @@ from eligsir_o3d.core.camera import invert_pose, rotation_angle_deg
 from eligsir_o3d.datasets import open_sequence
 from eligsir_o3d.pose import plot_trajectories, read_tum_trajectory, trajectory_accuracy, write_tum_trajectory
 from eligsir_o3d.pose.accuracy import associate_stamps
-from eligsir_o3d.pose.loop_closure import LoopClosure
+from eligsir_o3d.pose.loop_closure import LoopClosure, LoopClosureConfig, loop_closure_for
 from eligsir_o3d.pose.loops import LoopConfig
 from eligsir_o3d.pose.pose_graph import GraphConfig
 
@@ -62,20 +62,23 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], help="LoopConfig/GraphConfig field=value")
     ap.add_argument("--out", type=Path, default=None, help="write the corrected trajectories (TUM) here")
     ap.add_argument("--edges", action="store_true", help="print every verified candidate")
+    ap.add_argument("--source", default=None, help="the tracker's name (default: the file name after its first _)")
     args = ap.parse_args(argv)
     seq = open_sequence(args.data)
     gt = {float(t): T for t, T in zip(seq.timestamps, seq.poses)}
     cache: dict = {}
     for path in args.trajectories:
         stamps, poses = read_tum_trajectory(path)
-        lc = LoopClosure(*_configs(args.set))
+        source = args.source or path.stem.split("_", 1)[-1]  # runs/poses/kitchen_kiss-icp.txt: kiss-icp
+        detect, graph = _configs(args.set)
+        lc = loop_closure_for(LoopClosureConfig(enabled="on", detect=detect, graph=graph), True, source)
         used = replay(seq, np.asarray(stamps), poses, lc, cache)
         final = [lc.pose_of(i, T) for i, _, T in used]
         ts = [t for _, t, _ in used]
         before = trajectory_accuracy((ts, [poses[k] for k in range(len(used))]), gt)
         online = trajectory_accuracy((ts, [T for _, _, T in used]), gt)
         after = trajectory_accuracy((ts, final), gt)
-        row = {"trajectory": path.name, "frames": len(used), "ate_before_cm": 100 * before["ate_rmse_m"],
+        row = {"trajectory": path.name, "min_fitness": lc.cfg.min_fitness, "frames": len(used), "ate_before_cm": 100 * before["ate_rmse_m"],
                "ate_online_cm": 100 * online["ate_rmse_m"], "ate_after_cm": 100 * after["ate_rmse_m"],
                **lc.counters()}
         print(json.dumps({k: round(v, 3) if isinstance(v, float) else v for k, v in row.items()}), flush=True)
