@@ -21,6 +21,7 @@ from .core.frame import DEPTH_MAX
 from .core.gaussians import LearningRates
 from .optim.adam import AdamConfig
 from .optim.losses import LossConfig
+from .pose.loop_closure import LoopClosureConfig
 from .scheduling.fidelity import FidelityConfig
 from .scheduling.growth import GrowthConfig
 from .scheduling.fixed_work import FixedWorkConfig
@@ -97,6 +98,8 @@ class Config:
     """The budget: clock mode, per-frame, drain and offline budgets, the cost model."""
     fixed_work: FixedWorkConfig = field(default_factory=FixedWorkConfig)
     """Per-frame fixed work that thins out as the backlog grows."""
+    loops: LoopClosureConfig = field(default_factory=LoopClosureConfig)
+    """Loop closure of tracked runs (a pose graph over keyframes; the map follows the corrected poses)."""
 
     def resolve(self, **changes) -> "Config":
         """A copy with ``changes`` (top-level fields) applied and every derived value computed, in this one

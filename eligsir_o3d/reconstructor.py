@@ -25,6 +25,7 @@ from .core.gaussians import EPS2D, GaussianMap
 from .kernels import get_kernels
 from .runtime.threads import TORCH_MIN_PIXELS, TORCH_MIN_ROWS, torch_threads
 from .optim.losses import supervision_loss
+from .pose.loop_closure import loop_closure_for, track_corrected
 from .reconstructor_state import ReconstructorState
 from .render import RenderOutput, get_renderer
 from .scheduling import MapContext, get_policies
@@ -85,6 +86,7 @@ class Reconstructor(ReconstructorState):
         self.frame_plan = FULL  # the current frame's plan (read by the policies through ctx.plan)
         self.ctx = MapContext(self)
         self.pose_source = pose_source
+        self.loops = loop_closure_for(self.config.loops, getattr(pose_source, "drifts", False), pose_source)
         self.stats = MappingStats()
         self.backlog = 0  # frames waiting to be integrated (set_load, by a clock)
         self.callbacks: list[Callable[["Reconstructor"], None]] = []  # after every update; time excluded
@@ -323,7 +325,7 @@ class Reconstructor(ReconstructorState):
             self.timing.add("tracking", time.perf_counter() - t0)
         T = self._checked(T, frame.index)
         self.stats.frames_tracked += 1
-        return T
+        return T if self.loops is None else track_corrected(self, frame, T)  # loop closure: pose.loop_closure
 
     # ---- geometry export -------------------------------------------------------------------------------
     def extract_point_cloud(self, min_opacity: float = 0.1, **kw) -> o3d.geometry.PointCloud:
@@ -345,5 +347,5 @@ class Reconstructor(ReconstructorState):
                                          self.camera.scaled(scale), voxel_size=voxel_size, depth_max=depth_max, **kw)
 
     def __repr__(self) -> str:
-        return (f"Reconstructor({self.camera.width}x{self.camera.height}, device={self.device}, "
-                f"renderer={self.config.renderer}, gaussians={len(self.gmap)}, updates={self.stats.updates})")
+        return (f"Reconstructor({self.camera.width}x{self.camera.height}, device={self.device}, renderer="
+                f"{self.config.renderer}, gaussians={len(self.gmap)}, updates={self.stats.updates})")

@@ -98,6 +98,7 @@ class ReconstructorState:
             "fixed_work": self.fixed_work.state_dict(),
             "supervision": self.supervision.state_dict(),
             "offline_frames": self.offline_frames,  # the offline reference's policies (None: online)
+            "loops": None if self.loops is None else self.loops.state_dict(),  # loop closure (pose.loop_closure)
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -142,6 +143,9 @@ class ReconstructorState:
         torch.set_rng_state(state["torch_rng"])
         if state.get("cuda_rng") is not None and self.device.type == "cuda":
             torch.cuda.set_rng_state_all(state["cuda_rng"])
+        if self.loops is not None and state.get("loops") is not None:
+            self.loops.load_state_dict(state["loops"])
+            self.gmap.anchor_view = self.loops.anchor
         if state.get("pose_source") is not None and hasattr(self.pose_source, "load_state_dict"):
             self.pose_source.load_state_dict(state["pose_source"])
 

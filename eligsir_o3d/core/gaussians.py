@@ -79,6 +79,7 @@ class GaussianMap:
         self.supervision_focal: float | None = None  # the finest focal length [px] an update supervised it at
         self.rows_epoch = 0  # changes whenever row ids change meaning (removal, reload)
         self.row_index = None  # a spatial index over the rows (render.cell_index), told of every change
+        self.anchor_view = -1  # the anchor (a keyframe's frame index, core.anchors) of rows added from now on
 
     # ---- capacity ----------------------------------------------------------------------------------------
     @property
@@ -95,6 +96,7 @@ class GaussianMap:
         self._n = params["means"].shape[0]
         self._buffers = {n: (params[n].detach().clone(), torch.zeros_like(params[n]), torch.zeros_like(params[n]))
                          for n in PARAM_NAMES}
+        self._anchor_buf = torch.full((self._n,), -1, dtype=torch.int64, device=self.device)
         self._view()
 
     def _view(self) -> None:
@@ -120,11 +122,18 @@ class GaussianMap:
                 new[:n] = old[:n]
                 grown.append(new)
             self._buffers[name] = tuple(grown)
+        anchors = torch.full((cap,), -1, dtype=torch.int64, device=self.device)
+        anchors[:n] = self._anchor_buf[:n]
+        self._anchor_buf = anchors
         self._view()
 
     # ---- activated views -------------------------------------------------------------------------------
     def __len__(self) -> int:
         return self._n
+
+    @property
+    def anchors(self) -> torch.Tensor:  # [N] int64: the keyframe each row moves with (-1: none; core.anchors)
+        return self._anchor_buf[: self._n]
 
     @property
     def means(self) -> torch.Tensor:  # [N, 3] metres
@@ -182,6 +191,7 @@ class GaussianMap:
         torch.logit(opac, out=rows["opacities"])
         rows["sh0"][:, 0].copy_(rgb_to_sh0(rgbs.to(dev, torch.float32)))
         rows["shN"].zero_()
+        self._anchor_buf[n0:n1] = self.anchor_view
         self._n = n1
         self._view()
         return torch.arange(n0, n1, device=dev)
@@ -197,13 +207,19 @@ class GaussianMap:
                 buf[:k] = torch.index_select(buf[:n], 0, keep)
             m[k:n] = 0  # the moment rows past N stay zero
             v[k:n] = 0
+        self._anchor_buf[:k] = torch.index_select(self._anchor_buf[:n], 0, keep)
         self._n = k
         self._view()
         self.rows_epoch += 1
 
-    def assign(self, idx: torch.Tensor, values: dict[str, torch.Tensor], reset_state: bool = True) -> None:
-        """Overwrite raw parameters at ``idx`` (MCMC relocation/replacement), zeroing their Adam moments."""
+    def assign(self, idx: torch.Tensor, values: dict[str, torch.Tensor], reset_state: bool = True,
+               anchors: torch.Tensor | int | None = None) -> None:
+        """Overwrite raw parameters at ``idx`` (MCMC relocation/replacement), zeroing their Adam moments;
+        ``anchors``: the rows' new anchors (the copied rows' for a relocation, ``anchor_view`` for new content;
+        None keeps them)."""
         with torch.no_grad():
+            if anchors is not None:
+                self._anchor_buf[:self._n][idx] = torch.as_tensor(anchors, dtype=torch.int64, device=self.device)
             for name, v in values.items():
                 self.params[name][idx] = v.to(self.params[name].dtype)
                 if reset_state:
@@ -266,6 +282,7 @@ class GaussianMap:
             # (a state taken, then mapped on, would change under its holder)
             "params": {n: p.detach().cpu().clone() for n, p in self.params.items()},
             "adam": self.adam.state_dict(),
+            "anchors": self.anchors.cpu().clone(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -279,6 +296,8 @@ class GaussianMap:
         self._set_rows({n: state["params"][n].to(self.device) for n in PARAM_NAMES})
         if "adam" in state:
             self.adam.load_state_dict(state["adam"])
+        if state.get("anchors") is not None:  # absent in maps written before anchors (and in PLYs): none
+            self._anchor_buf.copy_(torch.as_tensor(state["anchors"], dtype=torch.int64))
 
     def render_args(self) -> tuple:
         """(means, quats, scales, opacities, colors) in activated units, as every renderer takes them.

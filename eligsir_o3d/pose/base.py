@@ -36,6 +36,7 @@ class PoseSource(ABC):
 
     name: str = "pose source"
     causal: bool = True  # False: the source uses the whole recorded sequence before mapping starts
+    drifts: bool = False  # True: a tracker whose error grows along the run (loop closure is on by default)
 
     def __init__(self, sequence: Any = None) -> None:
         self.sequence = sequence

@@ -27,6 +27,7 @@ class KissICPSource(PoseSource):
     """Frame-to-map ICP (kiss-icp) on depth points; needs ``pip install kiss-icp`` (extra ``pose``)."""
 
     name = "kiss-icp"
+    drifts = True
 
     def __init__(self, *, voxel_size: float = 0.05, max_points_per_voxel: int = 5, stride: int = 4,
                  min_range: float = 0.1, max_range: float = 5.0, initial_threshold: float = 0.1,

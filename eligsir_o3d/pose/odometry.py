@@ -88,6 +88,7 @@ class OdometrySource(PoseSource):
     """
 
     name = "odometry"
+    drifts = True
 
     def __init__(self, *, mode: str = "model", method: str | None = None, scale: float = 0.5,
                  iterations: tuple[int, ...] = (20, 10, 5), depth_min: float = 0.1, depth_max: float = 4.0,

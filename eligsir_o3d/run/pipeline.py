@@ -25,7 +25,7 @@ from .lock import RunLock
 from .options import RunOptions
 from .option_table import check_options, check_speed_for
 from .outputs import Outputs, PeriodicCheckpoints
-from .poses import pose_source_name, prepare_pose_source, trajectory_accuracy_of
+from .poses import loop_closed, pose_source_name, prepare_pose_source, trajectory_accuracy_of
 from .results import read_run  # noqa: F401 (its old home: run.json is read where it is written)
 from .resume import apply_new_settings, check_resume, run_record
 
@@ -308,6 +308,7 @@ class MappingPipeline:
     def evaluate(self) -> None:
         self.released = len(self.source)  # the stream has ended: every source frame was released
         self._checkpoint(self.rec)  # the curve ends at the evaluated map state (p = 1)
+        self.trajectory = loop_closed(self.seq, self.trajectory, self.rec.loops)  # the final loop-closed poses
         self.accuracy = trajectory_accuracy_of(self.seq, self.trajectory, self.out, self.opts, self.outputs) \
             if self.pose_source is not None else {}
         if self.accuracy or self.heldout_tracking is not None:  # held-out poses into the tracked map's frame

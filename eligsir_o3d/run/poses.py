@@ -47,3 +47,20 @@ def trajectory_accuracy_of(seq, trajectory: dict, out: Path, opts: RunOptions, o
         outputs.stage(out / "trajectory_topview.png", plot_trajectories, out / "trajectory_topview.png",
                       {"gt": gt, opts.pose: est}, reference="gt", title=f"ATE {acc['ate_rmse_m'] * 100:.2f} cm")
     return acc
+
+
+def loop_closed(seq, trajectory: dict, loops) -> dict:
+    """The run's trajectory (``{index: (timestamp, T)}`` as integrated) at the loop closure's final poses; with
+    ground truth, ``loops.summary`` gets the ATE of the tracker's own poses, of the poses as integrated (corrected
+    online) and of the final ones. Without loop closure, the trajectory as it is."""
+    if loops is None:
+        return trajectory
+    closed = {i: (ts, loops.pose_of(i, T)) for i, (ts, T) in trajectory.items()}
+    if seq.poses is not None and len(trajectory) >= 3:
+        from ..pose import trajectory_accuracy
+
+        gt = {float(seq.timestamps[i]): seq.poses[i] for i in trajectory}
+        ate = lambda traj: trajectory_accuracy({ts: T for ts, T in traj}, gt)["ate_rmse_m"]  # noqa: E731
+        loops.summary = {"ate_tracker_m": ate((ts, loops.raw_pose_of(i, T)) for i, (ts, T) in trajectory.items()),
+                         "ate_online_m": ate(trajectory.values()), "ate_after_m": ate(closed.values())}
+    return closed

@@ -111,6 +111,8 @@ def collect_metrics(r: RunResult) -> dict:
         "tracking_time_s": rec.stats.tracking_s,
         "ate_rmse_m": acc.get("ate_rmse_m"),
         "rpe_trans_m": acc.get("rpe_trans_m"),
+        # loops found, accepted and rejected, and (with ground truth) the ATE of the tracker's poses and after
+        "loop_closure": None if getattr(rec, "loops", None) is None else rec.loops.counters(),
         "wall_time_s": r.wall_s,
         # modelled seconds of the same work as mapping_time_s: the stream and the bounded drain
         "modelled_time_s": None if realtime else report.elapsed_s + report.drain_s,

@@ -216,7 +216,7 @@ class TargetedGrowth(GrowthPolicy):
             k = idx.numel()
             tmp = _raw_params(ctx.gmap, means[n_add:n_add + k], rgbs[n_add:n_add + k], scales[n_add:n_add + k],
                               self.cfg.init_opacity)
-            ctx.gmap.assign(idx, tmp)
+            ctx.gmap.assign(idx, tmp, anchors=ctx.gmap.anchor_view)
             self.counts["replaced"] += k
             m = n_add + k
         self.counts[what] += m

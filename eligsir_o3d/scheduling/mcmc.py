@@ -94,7 +94,8 @@ def relocate(gmap: GaussianMap, dead: torch.Tensor, generator: torch.Generator |
         return 0
     sources = alive_idx[_sample(gmap.opacities.detach()[alive_idx], dead_idx.numel(), generator)]
     _split(gmap, sources, min_opacity, n_max)
-    gmap.assign(dead_idx, {name: p.detach()[sources] for name, p in gmap.params.items()})
+    gmap.assign(dead_idx, {name: p.detach()[sources] for name, p in gmap.params.items()},
+                anchors=gmap.anchors[sources])
     return int(dead_idx.numel())
 
 
@@ -113,7 +114,7 @@ def sample_add(gmap: GaussianMap, n: int, cap: int, generator: torch.Generator |
     raw = {name: p.detach()[sources].clone() for name, p in gmap.params.items()}
     idx = gmap.add(raw["means"], sh0_to_rgb(raw["sh0"][:, 0]), torch.exp(raw["scales"]),
                    torch.sigmoid(raw["opacities"]), raw["quats"])
-    gmap.assign(idx, raw)  # exact raw copies (including higher SH bands)
+    gmap.assign(idx, raw, anchors=gmap.anchors[sources])  # exact raw copies (including higher SH bands)
     return n
 
 

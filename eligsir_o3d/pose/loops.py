@@ -1,0 +1,178 @@
+"""Loop detection between keyframes of a tracked run: candidates near in space, verified by registration.
+
+A keyframe keeps a small point cloud of its depth (camera axes, voxel-downsampled, with normals). A loop
+candidate for a new keyframe is an earlier keyframe far back in time (``min_gap`` frames) whose camera, at the
+current corrected estimate, is near (``radius`` m) and looks the same way (``max_angle_deg``). A candidate is
+verified by registering two small local maps (each keyframe fused with its ``local`` predecessors) with
+multi-scale point-to-plane ICP started at the current estimate (the pose prior), then tested: the fitness (the
+share of points with a neighbour within ``max_dist``), the inlier RMSE, and how far the correction moves away
+from the estimate (a loop edge that wants to move the camera by more than the drift can have built is wrong).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+
+from ..core.camera import Camera, invert_pose, rotation_angle_deg
+
+
+@dataclass
+class LoopConfig:
+    """Loop detection and verification settings (metres, degrees, frames)."""
+
+    keyframe_dist: float = 0.1
+    """A frame becomes a keyframe once it moved this far from the last one (m)."""
+    keyframe_angle_deg: float = 10.0
+    """A frame becomes a keyframe once it turned this far from the last one (deg)."""
+    keyframe_every: int = 30
+    """A frame becomes a keyframe once this many frames passed since the last one."""
+    cloud_voxel: float = 0.02
+    """Voxel size of a keyframe's point cloud (m)."""
+    cloud_stride: int = 4
+    """Pixel stride of the depth samples a keyframe's cloud starts from."""
+    depth_max: float = 4.0
+    """Depth used for keyframe clouds (m)."""
+    local: int = 2
+    """Predecessors fused into a keyframe's local map for verification."""
+    min_gap: int = 150
+    """Frames between a keyframe and a loop candidate, at least."""
+    radius: float = 0.6
+    """Camera centres of a candidate pair this close at the current estimate (m)."""
+    max_angle_deg: float = 35.0
+    """Viewing directions of a candidate pair this close at the current estimate (deg)."""
+    max_candidates: int = 2
+    """Candidates verified per keyframe (nearest first)."""
+    per_frame: int = 1
+    """Candidates verified per frame at most (the rest wait for the next frames: a bounded slice of work)."""
+    icp_coarse: float = 0.08
+    """The first ICP round's correspondence distance (m); then half of it, then ``max_dist``."""
+    max_dist: float = 0.02
+    """The fitness and RMSE test's correspondence distance (m)."""
+    min_fitness: float = 0.6
+    """Share of the source's points within max_dist after registration, at least."""
+    loose_sources: str = "kiss-icp"
+    """Pose sources (comma-separated names) whose loops pass at ``min_fitness_loose`` instead (larger drift)."""
+    min_fitness_loose: float = 0.45
+    """The fitness test for the ``loose_sources``."""
+    max_rmse: float = 0.013
+    """Inlier RMSE after registration (m)."""
+    max_shift: float = 0.3
+    """The loop edge moves the estimate by at most this (m)."""
+    max_turn_deg: float = 10.0
+    """The loop edge turns the estimate by at most this (deg)."""
+    min_points: int = 500
+    """A keyframe cloud with fewer points takes part in no loop."""
+
+
+@dataclass
+class Keyframe:
+    """One node of the pose graph: the frame index, its tracker pose, its cloud (camera axes)."""
+
+    index: int
+    raw_pose: np.ndarray  # T_world_cam as the tracker gave it
+    cloud: o3d.geometry.PointCloud
+    local_cloud: o3d.geometry.PointCloud | None = field(default=None, repr=False)
+
+
+@dataclass
+class LoopResult:
+    """A verified (or failed) registration of keyframe ``source`` onto keyframe ``target``."""
+
+    source: int  # keyframe ids (positions in the keyframe list)
+    target: int
+    transform: np.ndarray  # T_target_source: source camera points into the target camera
+    fitness: float
+    rmse: float
+    shift: float  # how far the result moves the source from the prior estimate (m, deg)
+    turn_deg: float
+    accepted: bool
+    information: np.ndarray | None = None
+
+
+def keyframe_cloud(depth: np.ndarray, camera: Camera, cfg: LoopConfig) -> o3d.geometry.PointCloud:
+    """A keyframe's point cloud from its depth [H, W] (metres, 0 = none), camera axes, with normals."""
+    s = cfg.cloud_stride
+    d = np.asarray(depth, dtype=np.float64)[::s, ::s]
+    v, u = np.nonzero((d > 0.1) & (d < cfg.depth_max))
+    z = d[v, u]
+    x = (u * s - camera.cx) * z / camera.fx
+    y = (v * s - camera.cy) * z / camera.fy
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.stack([x, y, z], 1)))
+    pcd = pcd.voxel_down_sample(cfg.cloud_voxel)
+    with_normals(pcd, cfg.cloud_voxel)
+    return pcd
+
+
+def with_normals(pcd: o3d.geometry.PointCloud, voxel: float) -> o3d.geometry.PointCloud:
+    """Estimate normals (oriented toward the camera at the origin) in place; returns ``pcd``."""
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4.0 * voxel, max_nn=30))
+    pcd.orient_normals_towards_camera_location(np.zeros(3))
+    return pcd
+
+
+def local_map(keys: list[Keyframe], k: int, cfg: LoopConfig) -> o3d.geometry.PointCloud:
+    """Keyframe ``k``'s cloud fused with its ``cfg.local`` predecessors', in keyframe ``k``'s camera axes (the
+    tracker's relative poses place them; drift over a few keyframes is small). Cached on the keyframe."""
+    key = keys[k]
+    if key.local_cloud is not None:
+        return key.local_cloud
+    fused = o3d.geometry.PointCloud(key.cloud)
+    inv_k = invert_pose(key.raw_pose)
+    for j in range(max(0, k - cfg.local), k):
+        fused += o3d.geometry.PointCloud(keys[j].cloud).transform(inv_k @ keys[j].raw_pose)
+    fused = fused.voxel_down_sample(cfg.cloud_voxel)
+    if not fused.has_normals() or len(fused.normals) != len(fused.points):
+        with_normals(fused, cfg.cloud_voxel)
+    key.local_cloud = fused
+    return fused
+
+
+def candidates(k: int, indices: list[int], poses: list[np.ndarray], cfg: LoopConfig) -> list[int]:
+    """Keyframes that may close a loop with keyframe ``k``: at least ``min_gap`` frames earlier, camera within
+    ``radius`` and viewing direction within ``max_angle_deg`` at the current estimates ``poses``; nearest first."""
+    T = poses[k]
+    found = []
+    for j in range(k):
+        if indices[k] - indices[j] < cfg.min_gap:
+            break
+        d = float(np.linalg.norm(poses[j][:3, 3] - T[:3, 3]))
+        c = float(np.clip(poses[j][:3, 2] @ T[:3, 2], -1.0, 1.0))
+        if d <= cfg.radius and np.degrees(np.arccos(c)) <= cfg.max_angle_deg:
+            found.append((d, j))
+    return [j for _, j in sorted(found)[: cfg.max_candidates]]
+
+
+def verify(keys: list[Keyframe], poses: list[np.ndarray], k: int, j: int, cfg: LoopConfig) -> LoopResult:
+    """Register keyframe ``k``'s local map onto keyframe ``j``'s, from the estimate ``inv(poses[j]) @ poses[k]``,
+    and test it (fitness, inlier RMSE, shift from the estimate). The accepted result carries the edge's
+    information matrix."""
+    src, tgt = local_map(keys, k, cfg), local_map(keys, j, cfg)
+    prior = invert_pose(poses[j]) @ poses[k]
+    if min(len(src.points), len(tgt.points)) < cfg.min_points:
+        return LoopResult(k, j, prior, 0.0, float("inf"), 0.0, 0.0, False)
+    T = prior
+    method = o3d.pipelines.registration.TransformationEstimationPointToPlane()
+    crit = o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
+                                                              max_iteration=30)
+    for dist in (cfg.icp_coarse, cfg.icp_coarse / 2.0, cfg.max_dist):
+        T = o3d.pipelines.registration.registration_icp(src, tgt, dist, T, method, crit).transformation
+    ev = o3d.pipelines.registration.evaluate_registration(src, tgt, cfg.max_dist, T)
+    delta = invert_pose(prior) @ T
+    shift, turn = float(np.linalg.norm(delta[:3, 3])), rotation_angle_deg(delta[:3, :3])
+    ok = (ev.fitness >= cfg.min_fitness and ev.inlier_rmse <= cfg.max_rmse and shift <= cfg.max_shift
+          and turn <= cfg.max_turn_deg)
+    info = None
+    if ok:
+        info = o3d.pipelines.registration.get_information_matrix_from_point_clouds(src, tgt, cfg.max_dist, T)
+    return LoopResult(k, j, np.asarray(T), float(ev.fitness), float(ev.inlier_rmse), shift, turn, bool(ok), info)
+
+
+def odometry_information(keys: list[Keyframe], k: int, cfg: LoopConfig) -> np.ndarray:
+    """The information matrix of the tracker's edge from keyframe ``k - 1`` to ``k`` (their clouds' overlap at
+    the tracker's relative pose)."""
+    T = invert_pose(keys[k - 1].raw_pose) @ keys[k].raw_pose
+    return o3d.pipelines.registration.get_information_matrix_from_point_clouds(
+        keys[k].cloud, keys[k - 1].cloud, cfg.max_dist, T)
