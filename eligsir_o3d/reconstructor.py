@@ -288,8 +288,7 @@ class Reconstructor(ReconstructorState):
             if pose is not None:
                 frame.T_world_cam = self._checked(pose, frame.index)
         else:
-            # without a pose, the frame is decoded and validated at the identity, then tracked (below)
-            given = np.eye(4) if pose is None else pose
+            given = np.eye(4) if pose is None else pose  # no pose: decoded at the identity, then tracked
             frame = Frame.from_rgbd(rgbd, self.camera, given, depth_scale=self.config.depth_scale,
                                     depth_max=self.config.depth_max, timestamp=ts, index=index)
             if pose is None:
