@@ -259,6 +259,7 @@ def track_corrected(rec, frame, T_raw: np.ndarray) -> np.ndarray:
             move_anchored(rec.gmap, moves)
             for view in rec.views.views:
                 view.T_world_cam = rec.loops.pose_of(view.index, view.T_world_cam)
+            rec.views.poses_moved()
         rec.gmap.anchor_view = rec.loops.anchor
     rec.stats.tracking_s += time.perf_counter() - t0
     return T

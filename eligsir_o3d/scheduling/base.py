@@ -140,6 +140,9 @@ class ViewPolicy(Policy):
     def bind(self, device, kernels) -> None:
         """Once, from the Reconstructor: the map's device and its kernel set (``eligsir_o3d.kernels``)."""
 
+    def poses_moved(self) -> None:
+        """After loop closure moved the retained views' poses: drop what was derived from the old ones."""
+
     def feedback(self, frame: Frame, out: RenderOutput, error: torch.Tensor, depth: torch.Tensor,
                  camera: Camera) -> None:
         """After an update: the training render's per-pixel error [h, w] (already computed by the loss)."""

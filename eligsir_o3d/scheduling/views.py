@@ -264,6 +264,10 @@ class MapGuidedViews(ViewPolicy):
         self.cells.to(device)
         self.fold_fn = getattr(kernels, "fold_cells", None)
 
+    def poses_moved(self) -> None:
+        for v in self._views:  # the pixels' cells follow the view's pose: located again at the next feedback
+            v.plans.clear()
+
     def feedback(self, frame: Frame, out: RenderOutput, error: torch.Tensor, depth: torch.Tensor,
                  camera: Camera) -> None:
         """Splat the training render's per-pixel error [h, w] into the microcells its depth samples fall in."""
