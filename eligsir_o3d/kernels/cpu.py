@@ -17,8 +17,22 @@ import torch
 
 from ..core.camera import Camera
 from ..core.gaussians import EPS2D
+from ..optim.losses import fused_applies, fused_loss_cpu, torch_loss
 from ..render.culling import gather_rows as gather_raw
+from ..render.culling import map_in_view
 from .base import KernelSet, RowView, StepTerms, adam_factors
+
+_compiled = []  # [cpu_kernels, runtime.jit] once loaded: numba is imported on the first update, not with the module
+
+
+def compiled():
+    """(:mod:`.cpu_kernels`, :mod:`..runtime.jit`), imported on first use."""
+    if not _compiled:
+        from ..runtime import jit
+        from . import cpu_kernels
+
+        _compiled.extend((cpu_kernels, jit))
+    return _compiled
 
 
 def regulariser(view: RowView, terms: StepTerms) -> torch.Tensor | None:
@@ -38,14 +52,10 @@ class NumbaKernels(KernelSet):
 
     def select(self, gmap, camera: Camera, T_world_cam, low_pass: float = EPS2D, *, cull: bool = True,
                grad: bool = True, capacity: int = 0) -> RowView:
-        from ..render.culling import map_in_view
-
         idx = map_in_view(gmap, camera, T_world_cam, low_pass) if cull else torch.arange(len(gmap))
         return RowView(gmap, idx, gather_activated_rows(gmap, idx, grad), activated=True)
 
     def backward(self, out, color, depth, loss_cfg, view: RowView, terms: StepTerms) -> torch.Tensor:
-        from ..optim.losses import fused_applies, fused_loss_cpu, torch_loss
-
         if not fused_applies(out, color):
             loss, error = torch_loss(out, color, depth, loss_cfg)
             if loss.requires_grad:
@@ -71,27 +81,38 @@ class NumbaKernels(KernelSet):
 def gather_activated_rows(gmap, idx: torch.Tensor, grad: bool) -> dict:
     """The rows ``idx`` of a float32 CPU map, activated as :meth:`RowView.render_args` activates raw leaves, as
     new leaf tensors (requiring grad with ``grad``) by name: means, quats, scales, opacities, colors."""
-    from ..runtime.jit import rows_threads
-    from .cpu_kernels import gather_activated
-
-    p, m, deg0 = gmap.params, idx.numel(), gmap.sh_degree == 0
-    n = len(gmap)
-    k = p["shN"].shape[1]
+    k_, jit = compiled()
+    m, deg0, k = idx.numel(), gmap.sh_degree == 0, (gmap.sh_degree + 1) ** 2 - 1
     out = {"means": torch.empty(m, 3), "quats": torch.empty(m, 4), "scales": torch.empty(m, 3),
            "opacities": torch.empty(m), "colors": torch.empty(m, 3) if deg0 else torch.empty(m, 1 + k, 3)}
-    f = lambda t: t.detach().numpy()  # noqa: E731
-    with rows_threads(m):
-        gather_activated(f(p["means"]), f(p["quats"]), f(p["scales"]), f(p["opacities"]), f(p["sh0"]).reshape(n, 3),
-                         f(p["shN"]).reshape(n, 3 * k), idx.numpy(), deg0, *(out[k].numpy() for k in ("means", "quats", "scales",
-                                                                                     "opacities")),
+    with jit.rows_threads(m):
+        k_.gather_activated(host_params(gmap), idx.numpy(), deg0, out["means"].numpy(), out["quats"].numpy(),
+                         out["scales"].numpy(), out["opacities"].numpy(),
                          out["colors"].view(m, 3 if deg0 else 3 + 3 * k).numpy())
-    for t in out.values():
-        t.requires_grad_(grad)
+    if grad:
+        for t in out.values():
+            t.requires_grad_(True)
     return out
 
 
 _STEPPED = ("means", "quats", "scales", "opacities", "sh0", "shN")  # :func:`.cpu_kernels.step_view`'s order
-_EMPTY = {1: np.zeros(0, np.float32), 2: np.zeros((0, 0), np.float32)}
+
+
+def host_params(gmap, which: int = 0) -> tuple:
+    """The map's flat host arrays (:meth:`GaussianMap.host_buffers`) in the kernels' order: ``which`` 0 the
+    parameters, 1 exp_avg, 2 exp_avg_sq."""
+    bufs = gmap.host_buffers()
+    return tuple(bufs[n][which] for n in _STEPPED)
+
+
+_EMPTY = {1: np.zeros(0, np.float32), 2: np.zeros((0, 0), np.float32)}  # a gradient not given
+
+
+def _host(grad: torch.Tensor | None, ndim: int, rows: int) -> np.ndarray:
+    """A leaf's gradient as the kernel reads it ([M] or [M, width], any strides), or an empty stand-in."""
+    if grad is None:
+        return _EMPTY[ndim]
+    return (grad if ndim == 1 or grad.ndim == 2 else grad.reshape(rows, -1)).numpy()
 
 
 def step_activated(gmap, view: RowView, terms: StepTerms) -> None:
@@ -99,18 +120,13 @@ def step_activated(gmap, view: RowView, terms: StepTerms) -> None:
     regulariser (``terms``' weights over the map's mean), Adam (one step counted for each parameter with a
     gradient and rows) and, where ``terms.noise_scaler`` > 0, the position noise (one normal triple per row drawn
     from ``terms.generator``)."""
-    from ..runtime.jit import rows_threads
-    from .cpu_kernels import HYPER, step_view
-
-    idx, lv, p = view.idx, view.leaves, gmap.params
-    m = idx.numel()
-    gc = lv["colors"].grad
-    grads = {"means": lv["means"].grad, "quats": lv["quats"].grad, "scales": lv["scales"].grad,
-             "opacities": lv["opacities"].grad, "sh0": gc, "shN": gc}
+    k_, jit = compiled()
+    idx, lv, m = view.idx, view.leaves, view.idx.numel()
+    grads = [lv[n].grad for n in ("means", "quats", "scales", "opacities", "colors")]
     has = np.zeros(6, np.bool_)
-    hyper = np.zeros((6, HYPER), np.float64)
-    for t, name in enumerate(_STEPPED):
-        if grads[name] is not None and p[name].numel() > 0:
+    hyper = np.zeros((6, k_.HYPER), np.float64)
+    for t, (name, g) in enumerate(zip(_STEPPED, grads + grads[-1:])):
+        if g is not None and len(gmap) > 0 and (name != "shN" or gmap.sh_degree > 0):
             has[t] = True
             hyper[t] = adam_factors(gmap, name)
     gmap.touched(idx)
@@ -118,16 +134,9 @@ def step_activated(gmap, view: RowView, terms: StepTerms) -> None:
     z = torch.randn(m, 3, generator=terms.generator).numpy() if noise and m else _EMPTY[2]
     if m == 0 or not (has.any() or noise):
         return
-    g = {n: _EMPTY[2 if n != "opacities" else 1] if t is None else t.numpy()
-         for n, t in (("means", grads["means"]), ("quats", grads["quats"]), ("scales", grads["scales"]),
-                      ("opacities", grads["opacities"]))}
-    colors = _EMPTY[2] if gc is None else gc.reshape(m, -1).numpy()
     n_map = max(view.n_map, 1)
-    kr_o, kr_s = terms.opacity_reg / n_map, terms.scale_reg / (3.0 * n_map)
-    flat = lambda t: t.detach().view(-1).numpy()  # noqa: E731
-    adam = gmap.adam
-    with rows_threads(m):
-        step_view(tuple(flat(p[n]) for n in _STEPPED), tuple(flat(adam.exp_avg[n]) for n in _STEPPED),
-                  tuple(flat(adam.exp_avg_sq[n]) for n in _STEPPED), g["means"], g["quats"], g["scales"],
-                  g["opacities"], colors, has, hyper, idx.numpy(), gmap.sh_degree == 0, kr_o, kr_s, z,
+    with jit.rows_threads(m):
+        k_.step_view(host_params(gmap), host_params(gmap, 1), host_params(gmap, 2),
+                  *(_host(g, 1 if t == k_.OPACITIES else 2, m) for t, g in enumerate(grads)), has, hyper, idx.numpy(),
+                  gmap.sh_degree == 0, terms.opacity_reg / n_map, terms.scale_reg / (3.0 * n_map), z,
                   terms.noise_scaler if noise else 0.0)

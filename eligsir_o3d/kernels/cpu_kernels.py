@@ -35,29 +35,29 @@ def _sigmoid(x):
 
 
 @_jit
-def gather_activated(means, quats, log_scales, logits, sh0, shN, rows, deg0, o_means, o_quats, o_scales, o_opac,
-                     o_colors):
-    """Rows ``rows`` [M] of the raw map (means [N, 3], quats [N, 4], log scales [N, 3], logits [N], sh0 [N, 3],
-    shN [N, W]) into o_means [M, 3], o_quats [M, 4], o_scales [M, 3] (exp), o_opac [M] (sigmoid) and o_colors:
-    [M, 3] RGB with ``deg0``, else [M, 3 + W] (sh0 then shN, the rows of a [M, K + 1, 3] tensor)."""
+def gather_activated(ps, rows, deg0, o_means, o_quats, o_scales, o_opac, o_colors):
+    """Rows ``rows`` [M] of the raw map (``ps``: flat means, quats, log scales, logits, sh0, shN as in
+    :func:`step_view`) into o_means [M, 3], o_quats [M, 4], o_scales [M, 3] (exp), o_opac [M] (sigmoid) and
+    o_colors: [M, 3] RGB with ``deg0``, else [M, 3 + W] (sh0 then shN, the rows of a [M, K + 1, 3] tensor)."""
+    pm, pq, ps_, po, p0, pn = ps
     c0, half, zero = np.float32(C0), np.float32(0.5), np.float32(0.0)
-    wn = shN.shape[1]
+    wn = o_colors.shape[1] - 3
     for i in prange(rows.shape[0]):
         g = rows[i]
         for j in range(3):
-            o_means[i, j] = means[g, j]
-            o_scales[i, j] = np.float32(math.exp(log_scales[g, j]))
+            o_means[i, j] = pm[3 * g + j]
+            o_scales[i, j] = np.float32(math.exp(ps_[3 * g + j]))
         for j in range(4):
-            o_quats[i, j] = quats[g, j]
-        o_opac[i] = _sigmoid(logits[g])
+            o_quats[i, j] = pq[4 * g + j]
+        o_opac[i] = _sigmoid(po[g])
         if deg0:
             for c in range(3):
-                o_colors[i, c] = max(sh0[g, c] * c0 + half, zero)
+                o_colors[i, c] = max(p0[3 * g + c] * c0 + half, zero)
         else:
             for c in range(3):
-                o_colors[i, c] = sh0[g, c]
+                o_colors[i, c] = p0[3 * g + c]
             for j in range(wn):
-                o_colors[i, 3 + j] = shN[g, j]
+                o_colors[i, 3 + j] = pn[wn * g + j]
 
 
 @numba.njit(inline="always", fastmath=False)
@@ -87,7 +87,7 @@ def step_view(ps, ms, vs, g_means, g_quats, g_scales, g_opac, g_colors, has, hyp
     pm, pq, ps_, po, p0, pn = ps
     f_o, f_s = np.float32(kr_o), np.float32(kr_s)
     c0, half, zero = np.float32(C0), np.float32(0.5), np.float32(0.0)
-    wn = pn.shape[0] // max(po.shape[0], 1)
+    wn = pn.shape[0] // max(po.shape[0], 1)  # over the capacity: shN's row width
     means3, quats4 = pm.reshape((pm.shape[0] // 3, 3)), pq.reshape((pq.shape[0] // 4, 4))
     for i in prange(rows.shape[0]):
         g = rows[i]

@@ -99,42 +99,53 @@ def dssim_torch(pred: torch.Tensor, ref: torch.Tensor, win: int = 11, sigma: flo
     return 1.0 - ssim_map.mean()
 
 
+@lru_cache(maxsize=1)
+def _compiled() -> tuple:
+    """(runtime.jit, the D-SSIM kernels, the fused loss's kernels), imported (numba with them) on first use."""
+    from ..runtime import jit
+    from . import dssim_kernels, loss_kernels
+
+    return jit, dssim_kernels, loss_kernels
+
+
+def _host32(t: torch.Tensor) -> np.ndarray:
+    """``t`` as a contiguous float32 numpy array (no operator where it already is one)."""
+    t = t.detach()
+    if t.dtype != torch.float32:
+        t = t.to(torch.float32)
+    return (t if t.is_contiguous() else t.contiguous()).numpy()
+
+
 def fused_loss_cpu(acc, alpha, background, color, depth, cfg: LossConfig):
     """:func:`supervision_loss` from a ``cpu`` render's accumulations (acc [H, W, 4], alpha [H, W], the background
     or None) in compiled passes (:mod:`.loss_kernels` around the D-SSIM kernel), without autograd: (value, a host
     float; error [H, W]; the loss's gradients with respect to acc and alpha)."""
-    from ..runtime.jit import pixels_threads
-    from .dssim_kernels import dssim_value_and_grad
-    from .loss_kernels import loss_grad, loss_terms
-
+    jit, dssim_kernels, loss_kernels = _compiled()
     h, w = alpha.shape
     f32 = np.float32
-    a_np = alpha.detach().contiguous().numpy()
-    acc_np = acc.detach().contiguous().numpy()
+    a_np, acc_np, ref_depth = _host32(alpha), _host32(acc), _host32(depth)
     has_bg = background is not None
-    bg = background.detach().to(torch.float32).reshape(3).contiguous().numpy() if has_bg else np.zeros(3, f32)
-    ref_depth = depth.detach().to(torch.float32).contiguous().numpy()
+    bg = _host32(background.reshape(3)) if has_bg else np.zeros(3, f32)
     x, y = np.empty((3, h, w), f32), np.empty((3, h, w), f32)
     error, rows = np.empty((h, w), f32), np.empty((h, 3), np.float64)
     alpha_min = f32(cfg.depth_alpha_min)
     win = _dssim_window(h, w)
     use_dssim = cfg.lambda_dssim > 0 and win >= 3
     grad_acc, grad_alpha = np.empty((h, w, 4), f32), np.empty((h, w), f32)
-    with pixels_threads(h * w):
-        loss_terms(acc_np, a_np, bg, has_bg, color.detach().contiguous().numpy(), ref_depth, alpha_min, x, y,
-                   error, rows)
+    with jit.pixels_threads(h * w):
+        loss_kernels.loss_terms(acc_np, a_np, bg, has_bg, _host32(color), ref_depth, alpha_min, x, y, error, rows)
         l1_sum, depth_sum, n_valid = rows.sum(0)
         w_l1 = (1.0 - cfg.lambda_dssim) / (3 * h * w)
         value = w_l1 * l1_sum
         d_grad = np.empty_like(x)  # D-SSIM's gradient; not read when D-SSIM is off (its weight 0 below)
         if use_dssim:
-            value += cfg.lambda_dssim * dssim_value_and_grad(x, y, _window(win, 1.5), d_grad)
+            value += cfg.lambda_dssim * dssim_kernels.dssim_value_and_grad(x, y, _window(win, 1.5), d_grad)
         w_depth = 0.0
         if cfg.lambda_depth > 0 and n_valid > 0:
             w_depth = cfg.lambda_depth / n_valid
             value += w_depth * depth_sum
-        loss_grad(acc_np, a_np, bg, has_bg, x, y, ref_depth, alpha_min, f32(w_l1),
-                  f32(cfg.lambda_dssim if use_dssim else 0.0), d_grad, f32(w_depth), grad_acc, grad_alpha)
+        loss_kernels.loss_grad(acc_np, a_np, bg, has_bg, x, y, ref_depth, alpha_min, f32(w_l1),
+                               f32(cfg.lambda_dssim if use_dssim else 0.0), d_grad, f32(w_depth), grad_acc, grad_alpha)
     return value, torch.from_numpy(error), torch.from_numpy(grad_acc), torch.from_numpy(grad_alpha)
 
 

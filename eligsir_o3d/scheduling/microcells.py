@@ -139,6 +139,8 @@ class Microcells:
         self.best = torch.zeros(0)
         self.visits = torch.zeros(0, dtype=torch.long)
         self.coverage = torch.zeros(0, dtype=torch.long)
+        self._plans: dict = {}  # id(ids) -> (ids, their samples' pixels, slots, cells and counts)
+        self._stats = None  # (error, best, visits) and their numpy views, while those tensors stay
 
     def __len__(self) -> int:
         return len(self.hash)
@@ -184,6 +186,30 @@ class Microcells:
         settled = self.visits[cells] >= 2
         self.best[cells] = torch.where(settled, torch.minimum(self.best[cells], self.error[cells]), self.best[cells])
         return cells
+
+    def accumulate_samples(self, pix: torch.Tensor, ids: torch.Tensor, error: torch.Tensor) -> None:
+        """:meth:`accumulate` of the errors at flat pixels ``pix`` [M] of ``error`` [H W] (a view's samples from
+        :meth:`locate`, ``ids`` their cells). On the CPU one compiled pass (same values), each (pix, ids) pair's
+        cells and sample slots computed once."""
+        if error.device.type != "cpu" or error.dtype != torch.float32 or self.error.dtype != torch.float32:
+            self.accumulate(ids, error[pix])
+            return
+        from .cell_kernels import fold_cells
+
+        plan = self._plans.get(id(ids))
+        if plan is None or plan[0] is not ids:
+            keep = ids >= 0
+            cells, inv, counts = torch.unique(ids[keep], return_inverse=True, return_counts=True)
+            if len(self._plans) > 4096:  # views dropped long ago
+                self._plans.clear()
+            plan = self._plans[id(ids)] = (ids, pix[keep].numpy(), inv.numpy(), cells.numpy(),
+                                           counts.to(torch.float32).numpy())
+        stats = self._stats
+        if stats is None or stats[0] is not self.error or stats[1] is not self.best or stats[2] is not self.visits:
+            stats = self._stats = (self.error, self.best, self.visits, self.error.numpy(), self.best.numpy(),
+                                   self.visits.numpy())
+        if plan[3].shape[0]:
+            fold_cells(error.contiguous().numpy(), *plan[1:], float(self.cfg.ema), *stats[3:])
 
     def need(self, cells: torch.Tensor, good_error: float, regress_gain: float, regress_margin: float) -> torch.Tensor:
         """How much supervision each cell still needs: error above ``good_error`` plus a bonus for regression

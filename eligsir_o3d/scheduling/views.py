@@ -301,7 +301,7 @@ class MapGuidedViews(ViewPolicy):
             view.pixel_cells[key] = self.cells.locate(depth, camera, frame.T_world_cam)
         pix, ids = view.pixel_cells[key]
         err = error.detach().reshape(-1).cpu()
-        self.cells.accumulate(ids, err[pix])
+        self.cells.accumulate_samples(pix, ids, err)
         view.updates += 1
         self.updates += 1
         view.last_update = self.updates
