@@ -18,8 +18,8 @@ import torch
 from ..core.camera import Camera
 from ..core.gaussians import EPS2D
 from ..optim.losses import fused_applies, fused_loss_cpu, torch_loss
+from ..render import culling
 from ..render.culling import gather_rows as gather_raw
-from ..render.culling import map_in_view
 from .base import KernelSet, RowView, StepTerms, adam_factors
 
 _compiled = []  # [cpu_kernels, runtime.jit] once loaded: numba is imported on the first update, not with the module
@@ -52,7 +52,7 @@ class NumbaKernels(KernelSet):
 
     def select(self, gmap, camera: Camera, T_world_cam, low_pass: float = EPS2D, *, cull: bool = True,
                grad: bool = True, capacity: int = 0) -> RowView:
-        idx = map_in_view(gmap, camera, T_world_cam, low_pass) if cull else torch.arange(len(gmap))
+        idx = culling.map_in_view(gmap, camera, T_world_cam, low_pass) if cull else torch.arange(len(gmap))
         return RowView(gmap, idx, gather_activated_rows(gmap, idx, grad), activated=True)
 
     def backward(self, out, color, depth, loss_cfg, view: RowView, terms: StepTerms) -> torch.Tensor:
@@ -110,22 +110,26 @@ _EMPTY = {1: np.zeros(0, np.float32), 2: np.zeros((0, 0), np.float32)}  # a grad
 
 def _host(grad: torch.Tensor | None, ndim: int, rows: int) -> np.ndarray:
     """A leaf's gradient as the kernel reads it ([M] or [M, width], any strides), or an empty stand-in."""
-    if grad is None:
+    if grad is None or grad.numel() == 0:
         return _EMPTY[ndim]
     return (grad if ndim == 1 or grad.ndim == 2 else grad.reshape(rows, -1)).numpy()
 
 
 def step_activated(gmap, view: RowView, terms: StepTerms) -> None:
-    """:func:`.cpu_kernels.step_view` on ``view``'s rows from its activated leaves' gradients: chain rule,
-    regulariser (``terms``' weights over the map's mean), Adam (one step counted for each parameter with a
-    gradient and rows) and, where ``terms.noise_scaler`` > 0, the position noise (one normal triple per row drawn
-    from ``terms.generator``)."""
+    """:func:`.cpu_kernels.step_view` on ``view``'s rows from its leaves' gradients: the chain rule (activated
+    leaves; raw leaves carry the raw parameters' gradients), the regulariser (``terms``' weights over the map's
+    mean), Adam (one step counted for each parameter with a gradient and rows) and, where ``terms.noise_scaler``
+    > 0, the position noise (one normal triple per row drawn from ``terms.generator``)."""
     k_, jit = compiled()
     idx, lv, m = view.idx, view.leaves, view.idx.numel()
-    grads = [lv[n].grad for n in ("means", "quats", "scales", "opacities", "colors")]
+    if view.activated:
+        gc = lv["colors"].grad
+        grads = [lv[n].grad for n in ("means", "quats", "scales", "opacities")] + [gc, gc]
+    else:
+        grads = [lv[n].grad for n in _STEPPED]
     has = np.zeros(6, np.bool_)
     hyper = np.zeros((6, k_.HYPER), np.float64)
-    for t, (name, g) in enumerate(zip(_STEPPED, grads + grads[-1:])):
+    for t, (name, g) in enumerate(zip(_STEPPED, grads)):
         if g is not None and len(gmap) > 0 and (name != "shN" or gmap.sh_degree > 0):
             has[t] = True
             hyper[t] = adam_factors(gmap, name)
@@ -134,9 +138,11 @@ def step_activated(gmap, view: RowView, terms: StepTerms) -> None:
     z = torch.randn(m, 3, generator=terms.generator).numpy() if noise and m else _EMPTY[2]
     if m == 0 or not (has.any() or noise):
         return
+    host = [_host(g, 1 if t == k_.OPACITIES else 2, m) for t, g in enumerate(grads)]
+    if view.activated and gmap.sh_degree > 0 and grads[4] is not None:  # [M, (K + 1) 3]: DC, then the rest
+        host[4], host[5] = host[4][:, :3], host[4][:, 3:]
     n_map = max(view.n_map, 1)
     with jit.rows_threads(m):
-        k_.step_view(host_params(gmap), host_params(gmap, 1), host_params(gmap, 2),
-                  *(_host(g, 1 if t == k_.OPACITIES else 2, m) for t, g in enumerate(grads)), has, hyper, idx.numpy(),
-                  gmap.sh_degree == 0, terms.opacity_reg / n_map, terms.scale_reg / (3.0 * n_map), z,
-                  terms.noise_scaler if noise else 0.0)
+        k_.step_view(host_params(gmap), host_params(gmap, 1), host_params(gmap, 2), *host, has, hyper, idx.numpy(),
+                     gmap.sh_degree == 0, view.activated, terms.opacity_reg / n_map,
+                     terms.scale_reg / (3.0 * n_map), z, terms.noise_scaler if noise else 0.0)

@@ -74,14 +74,15 @@ def _adam(p, m, v, t, k, grad, hyper):
 
 
 @_jit
-def step_view(ps, ms, vs, g_means, g_quats, g_scales, g_opac, g_colors, has, hyper, rows, deg0, kr_o, kr_s, z,
-              scaler):
+def step_view(ps, ms, vs, g_means, g_quats, g_scales, g_opac, g_sh0, g_shn, has, hyper, rows, deg0, chain, kr_o,
+              kr_s, z, scaler):
     """The step of the map's rows ``rows`` [M] (distinct ids), in place.
 
     ``ps``, ``ms``, ``vs``: the map's raw parameters and Adam moments as flat float32 arrays, in the order means,
     quats, log scales, logits, sh0, shN (row r of parameter t at r * width); ``g_*``: the activated leaves'
-    gradients [M, ...] (g_colors [M, 3] at degree 0, else [M, 3 + W]); ``has[t]``: parameter t is stepped (its
-    gradient given and its tensor not empty); ``hyper`` [6, 6] float64 (:data:`HYPER`); ``kr_o``, ``kr_s``: the
+    gradients [M, ...] (g_sh0 [M, 3]: the colours' at degree 0, else the DC coefficients'; g_shn [M, W]), or with
+    ``chain`` False the raw parameters' (no chain rule); ``has[t]``: parameter t is stepped (its gradient given
+    and its tensor not empty); ``hyper`` [6, 6] float64 (:data:`HYPER`); ``kr_o``, ``kr_s``: the
     regulariser's gradients per unit opacity and scale (opacity_reg / N, scale_reg / (3 N)); ``z`` [M, 3] normals
     and ``scaler`` > 0: the position noise of the updated row (0: none)."""
     pm, pq, ps_, po, p0, pn = ps
@@ -100,20 +101,22 @@ def step_view(ps, ms, vs, g_means, g_quats, g_scales, g_opac, g_colors, has, hyp
         if has[SCALES]:
             for j in range(3):
                 e = np.float32(math.exp(ps_[3 * g + j]))
-                _adam(ps_, ms[2], vs[2], SCALES, 3 * g + j, g_scales[i, j] * e + f_s * e, hyper)
+                gs = g_scales[i, j] * e if chain else g_scales[i, j]
+                _adam(ps_, ms[2], vs[2], SCALES, 3 * g + j, gs + f_s * e, hyper)
         if has[OPACITIES]:
             o = _sigmoid(po[g])
             d = (np.float32(1.0) - o) * o
-            _adam(po, ms[3], vs[3], OPACITIES, g, g_opac[i] * d + f_o * d, hyper)
+            go = g_opac[i] * d if chain else g_opac[i]
+            _adam(po, ms[3], vs[3], OPACITIES, g, go + f_o * d, hyper)
         if has[SH0]:
             for c in range(3):
-                gc = g_colors[i, c]
-                if deg0:
+                gc = g_sh0[i, c]
+                if deg0 and chain:
                     gc = gc * c0 if p0[3 * g + c] * c0 + half >= zero else zero
                 _adam(p0, ms[4], vs[4], SH0, 3 * g + c, gc, hyper)
         if has[SHN]:
             for j in range(wn):
-                _adam(pn, ms[5], vs[5], SHN, wn * g + j, g_colors[i, 3 + j], hyper)
+                _adam(pn, ms[5], vs[5], SHN, wn * g + j, g_shn[i, j], hyper)
         if scaler > 0:
             o = _sigmoid(po[g])
             e0 = np.float32(math.exp(ps_[3 * g]))

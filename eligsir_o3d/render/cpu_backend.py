@@ -290,8 +290,9 @@ class CpuRenderer(TileRenderer):
                                           camera.height, self.block)
         if background is not None:
             background = torch.as_tensor(background, dtype=acc.dtype, device=acc.device)
-        return DeferredRenderOutput(alpha_acc, proj.radii, mask_culled(proj.means2d, proj.radii),
-                                    (acc, alpha_acc, background))
+        radii, means2d = proj.radii, proj.means2d  # the culled rows' NaN mask made when first read
+        return DeferredRenderOutput(alpha_acc, None, None, (acc, alpha_acc, background),
+                                    screen=lambda: (radii, mask_culled(means2d, radii)))
 
     def composite(self, proj: Projection, opacities, colors, bins: TileBins, width: int, height: int):
         warmup()
