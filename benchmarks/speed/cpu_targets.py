@@ -170,6 +170,10 @@ def _time_compositing(row: dict, case: tuple, blocks: list[int], kern, best) -> 
             vg = np.empty((m.shape[0], 10), f32)
             row["comp_bwd" + sfx] = best(lambda: k.run(kb, *gathered, off, fl, order, slots, tiles_x, W, H, oT, ol, gf,
                                                        ga, v, vg))
+            # Gaussian-pixel pairs: each pixel's walk through its block's list (the forward's out_last: what the
+            # backward walks back), and the blocks' culled lists times their pixels (the work without early stops)
+            row["pairs_walked" + sfx] = float(ol.astype(np.float64).sum())
+            row["pairs_block" + sfx] = float(gathered[2].astype(np.float64).sum()) * blk
         else:
             row["comp_fwd" + sfx] = best(lambda: k.run(kf, m, c, o, feats, bounds, off, fl, order, tiles_x, W, H,
                                                        of, oa, oT, ol))
@@ -184,7 +188,9 @@ def _time_projection_and_dssim(row: dict, case: tuple, kern, best) -> None:
 
     _, _, params, cam, T0, rgb, _ = case
     cb, pk, f32 = kern.cb, kern.pk, np.float32
-    V = cb.world_to_cam(T0, "cpu", torch.float32).double().numpy()
+    from eligsir_o3d.render.projection import world_to_cam
+
+    V = world_to_cam(T0, "cpu", torch.float32).double().numpy()
     camv = np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cb.NEAR, cb.EPS2D])
     mq, qq, sq = (params[kk].numpy().astype(f32) for kk in ("means", "quats", "scales"))
     nn = mq.shape[0]
@@ -213,6 +219,41 @@ def _update_setup():
 
 
 # ------------------------------------------------------------------------------------------------ driver side ----
+
+# Float operations per Gaussian-pixel pair, counted in the kernels' source (render/_cpu_forward.py,
+# _cpu_backward.py, _cpu_kernels.py: every add, mul, compare, min/max, select and conversion of the per-pixel loop;
+# the exp polynomial ~28; the backward's miss pre-pass, one division and its share of the pixel sums included)
+OPS_PER_PAIR = {"comp_fwd": 75, "comp_bwd": 140}
+
+
+def pair_limit_ns(ops: int, lanes: int = 16, per_cycle: int = 4, ghz: float | None = None) -> float:
+    """This CPU's floor for ``ops`` float32 operations per pair on one core: lanes (16: AVX-512) x vector operations
+    per cycle (4: two multiply/FMA and two add pipes, each op counted once as the kernels use no FMA) x clock
+    (default: the TSC rate, bogomips / 2, where the VM reports no boost clock)."""
+    if ghz is None:
+        bogo = [float(line.split(":")[1]) for line in open("/proc/cpuinfo") if line.startswith("bogomips")]
+        ghz = bogo[0] / 2000.0 if bogo else 2.5
+    return ops / (lanes * per_cycle * ghz)
+
+
+def _pair_table(results: dict, targets: list, n_cases: int) -> None:
+    """ns per Gaussian-pixel pair of the compositing kernels (walked pairs; block-list pairs), beside the floor."""
+    import numpy as np
+
+    if "pairs_walked" not in results[targets[0]][0][0]:
+        return
+    lim = {k: pair_limit_ns(ops) for k, ops in OPS_PER_PAIR.items()}
+    print("# ns per Gaussian-pixel pair, one core: walked / block-list pairs; floor at 4 and 2 vector ops per cycle: "
+          + ", ".join(f"{k} {ops} ops: {lim[k]:.2f} / {2 * lim[k]:.2f} ns" for k, ops in OPS_PER_PAIR.items()))
+    for ci in range(n_cases):
+        for t in targets:
+            rows = [rr[ci] for rr in results[t]]
+            pw, pb = rows[0]["pairs_walked"], rows[0]["pairs_block"]
+            ns = {k: 1e9 * float(np.median([r[k] for r in rows])) for k in OPS_PER_PAIR}
+            print(f"{_label(t):>16} {rows[0]['gaussians']:>6} x{rows[0]['scale']}: walked {pw:.3g} block {pb:.3g} "
+                  + " ".join(f"{k} {ns[k] / pw:.2f} / {ns[k] / pb:.2f} ns ({ns[k] / pw / lim[k]:.1f}x floor)"
+                             for k in OPS_PER_PAIR))
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -272,6 +313,7 @@ def main(argv=None) -> int:
             w, h = int(round(640 * rows[0]["scale"])), int(round(480 * rows[0]["scale"]))
             med = [1e3 * float(np.median([row[k] for row in rows])) for k in keys]
             print(f"{_label(t):>16} {w:>4}x{h:<4} {rows[0]['gaussians']:>6} " + " ".join(f"{x:11.2f}" for x in med))
+    _pair_table(results, args.targets, n_cases)
     if args.update:
         for t in args.targets:
             u = [rr[-1]["update_q"] for rr in results[t]]

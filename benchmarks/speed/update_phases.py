@@ -71,12 +71,18 @@ def phase_timer(rec):
                              ("renderer", "render", "render"), ("growth", "pre_backward", "regulariser"),
                              ("", "_adam_step", "adam"), ("growth", "post_step", "mcmc"),
                              ("views", "feedback", "feedback"), ("kernels", "select", "rows in view"),
-                             ("kernels", "backward", "loss and backward"), ("kernels", "step", "step")):
+                             ("kernels", "step", "step")):  # the kernel set's backward: its loss and autograd's
         _wrap(timing, getattr(rec, path, None) if path else rec, attr, name)  # absent in a checkout: not timed
     # module-level steps (those an older checkout lacks are not timed; the view test and gather of the rows in view
     # is one classmethod, which stays one when wrapped: the class hands out the wrapper unbound)
+    # autograd's backward: torch.autograd.backward, which Tensor.backward calls too (a kernel set may call it directly)
+    try:
+        from eligsir_o3d.kernels import cpu as cpu_set  # the numba set's fused loss (absent in older checkouts)
+    except ImportError:
+        cpu_set = None
     for obj, attr, name in ((getattr(culling, "InView", None), "select", "rows in view"),
-                            (recmod, "supervision_loss", "loss"), (torch.Tensor, "backward", "backward")):
+                            (recmod, "supervision_loss", "loss"), (cpu_set, "fused_loss_cpu", "loss"),
+                            (torch.autograd, "backward", "backward")):
         _wrap(timing, obj, attr, name)
     return timing
 

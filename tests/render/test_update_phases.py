@@ -30,7 +30,7 @@ def test_phases_add_up_to_the_update(tmp_path):
         if not m:
             break
         rows[m.group(1)] = (float(m.group(2)), float(m.group(3)))
-    for phase in ("render", "loss", "backward", "adam", "mcmc", "feedback", "select view", "rows in view",
+    for phase in ("render", "loss", "backward", "step", "mcmc", "feedback", "select view", "rows in view",
                   "the rest", "update"):
         assert phase in rows, (phase, list(rows))
     named = [k for k in rows if k != "update"]
