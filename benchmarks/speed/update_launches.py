@@ -2,6 +2,7 @@
 
     python benchmarks/speed/update_launches.py                 # the fused (CUDA) path and the numba CPU path
     python benchmarks/speed/update_launches.py --kernels fused --floor 200
+    python benchmarks/speed/update_launches.py --kernels numba --renderer cpu --ops   # the CPU path as it runs
 
 A Reconstructor on the embedded synthetic room at 1/4 scale (area supervision) runs the kernel set chosen
 (``--kernels``) with the gsplat backend on the CPU (its CUDA ops replaced by the stand-in of
@@ -169,9 +170,9 @@ def _wrap_phase(counts: Counts, obj, attr: str, phase: str) -> None:
     setattr(obj, attr, timed)
 
 
-def build(kernels: str, frames: int = 12, size: tuple[int, int] | None = None):
-    """A warm Reconstructor of the embedded room with ``kernels`` and the gsplat backend on the stand-in, and its
-    Counts (phases wired, counting idle)."""
+def build(kernels: str, frames: int = 12, size: tuple[int, int] | None = None, renderer: str = "gsplat"):
+    """A warm Reconstructor of the embedded room with ``kernels`` and the gsplat backend on the stand-in (or, with
+    ``renderer="cpu"``, the CPU path's own renderer), and its Counts (phases wired, counting idle)."""
     import pytest
 
     import eligsir_o3d as eo3d
@@ -192,8 +193,11 @@ def build(kernels: str, frames: int = 12, size: tuple[int, int] | None = None):
     cfg.optim.kernels = kernels
     cfg.supervision.mode = "area"
     cfg.growth.mcmc.refine_start, cfg.growth.mcmc.refine_every = 10 ** 6, 10 ** 6  # no relocation round counted
+    if renderer == "cpu":
+        cfg.renderer = "cpu"
     rec = eo3d.Reconstructor(seq.camera, "cpu", cfg)
-    rec.renderer = GsplatRenderer("cpu", rasterization=_opaque_gsplat(counts, rasterization))
+    if renderer != "cpu":
+        rec.renderer = GsplatRenderer("cpu", rasterization=_opaque_gsplat(counts, rasterization))
     for i in range(len(seq)):
         rec.integrate(seq.frame(i), updates=4)
     for obj, attr, phase in ((rec.kernels, "select", "select"), (rec.renderer, "render", "render"),
@@ -204,11 +208,12 @@ def build(kernels: str, frames: int = 12, size: tuple[int, int] | None = None):
     return rec, counts, mp
 
 
-def count_update(kernels: str = "fused", updates: int = 10, frames: int = 12) -> dict:
-    """Launches, syncs and copies per update of ``kernels`` on the CUDA code path (see the module docstring)."""
+def count_update(kernels: str = "fused", updates: int = 10, frames: int = 12, renderer: str = "gsplat") -> dict:
+    """Launches, syncs and copies per update of ``kernels`` on the CUDA code path (see the module docstring); with
+    ``renderer="cpu"`` the CPU path as a CPU run takes it (the cpu renderer's own operators counted)."""
     from eligsir_o3d.kernels import triton_launch
 
-    rec, counts, mp = build(kernels, frames)
+    rec, counts, mp = build(kernels, frames, renderer=renderer)
     try:
         rec.optimize(2)  # the views' first renders at this scale, caches
         counts.launches.clear(), counts.syncs.clear(), counts.copies.clear(), counts.ops.clear()
@@ -219,7 +224,8 @@ def count_update(kernels: str = "fused", updates: int = 10, frames: int = 12) ->
     finally:
         mp.undo()
     out = counts.per_update(updates)
-    out["kernels"], out["gaussians"], out["in_view"] = kernels, len(rec.gmap), rec.last_in_view
+    out["kernels"], out["renderer"] = kernels, renderer
+    out["gaussians"], out["in_view"] = len(rec.gmap), rec.last_in_view
     out["ops"] = {p: dict(c.most_common(12)) for p, c in counts.ops.items()}
     return out
 
@@ -251,9 +257,11 @@ def main(argv=None) -> int:
     ap.add_argument("--updates", type=int, default=10)
     ap.add_argument("--floor", type=int, default=0, help="also time this many updates at 16x12 per kernel set")
     ap.add_argument("--ops", action="store_true", help="print the most frequent operators per phase")
+    ap.add_argument("--renderer", choices=("gsplat", "cpu"), default="gsplat",
+                    help="gsplat: its CPU stand-in, the CUDA code path (default); cpu: the CPU path's own renderer")
     args = ap.parse_args(argv)
     for k in args.kernels:
-        r = count_update(k, args.updates)
+        r = count_update(k, args.updates, renderer=args.renderer)
         ops = r.pop("ops")
         print(json.dumps(r))
         if args.ops:
