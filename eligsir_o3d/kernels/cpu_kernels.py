@@ -25,7 +25,7 @@ from ..optim.update_kernels import move_mean, noise_gate
 from ..runtime.jit import jit as _jit
 from .device_reference import C0
 
-HYPER = 6  # per stepped parameter: (a, b, 1 - beta1, beta2, 1 - beta2, eps); a = -lr / (1 - beta1^k), b = ...
+HYPER = 6  # per stepped parameter: (a, b, 1 - beta1, beta2, 1 - beta2, eps), as base.adam_factors gives them
 MEANS, QUATS, SCALES, OPACITIES, SH0, SHN = range(6)  # the rows of ``hyper`` and ``has`` in step_view
 
 
