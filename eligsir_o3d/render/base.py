@@ -76,6 +76,19 @@ class DeferredRenderOutput(RenderOutput):
         self.color, self.depth, _ = finish(acc[..., :3], acc[..., 3], alpha, background)
         return getattr(self, name)
 
+    @property
+    def means2d(self):
+        """The projected centres; with a ``screen`` function made (with ``radii``) when first read (a property:
+        the class default of :class:`RenderOutput` would otherwise answer before ``__getattr__``)."""
+        d = self.__dict__
+        if "_means2d" not in d:
+            self.radii, d["_means2d"] = self._screen()
+        return d["_means2d"]
+
+    @means2d.setter
+    def means2d(self, value) -> None:
+        self.__dict__["_means2d"] = value
+
 
 def view_colors(colors: torch.Tensor, means: torch.Tensor, T_world_cam, sh_degree: int | None = None) -> torch.Tensor:
     """[N, 3] colours for the camera at ``T_world_cam``: ``colors`` itself when it is [N, 3] RGB, else [N, K, 3]

@@ -192,3 +192,21 @@ def test_sh_rejects_bad_shapes():
         sh_eval(torch.zeros(4, 4, 3), torch.zeros(5, 3))
     with pytest.raises(ValueError):
         sh_eval(torch.zeros(4, 4, 3), torch.zeros(4, 3), degree=2)
+
+
+def test_a_deferred_output_makes_means2d_when_it_is_read_first():
+    """``means2d`` read before ``radii`` comes from the screen function, not the RenderOutput class default."""
+    from eligsir_o3d.render.base import DeferredRenderOutput
+
+    calls = []
+
+    def screen():
+        calls.append(1)
+        return torch.tensor([3, 0], dtype=torch.int32), torch.tensor([[1.0, 2.0], [float("nan")] * 2])
+
+    raw = (torch.zeros(2, 2, 4), torch.zeros(2, 2), None)
+    out = DeferredRenderOutput(torch.zeros(2, 2), None, None, raw, screen=screen)
+    assert out.means2d.shape == (2, 2) and out.means2d[0, 1] == 2.0
+    assert out.radii.tolist() == [3, 0] and len(calls) == 1
+    eager = DeferredRenderOutput(torch.zeros(2, 2), torch.ones(1, dtype=torch.int32), torch.ones(1, 2), raw)
+    assert eager.means2d.shape == (1, 2)
