@@ -145,8 +145,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     rec, seq = build(args.data, args.device, args.frames, args.warm_updates, args.renderer, args.kernels)
-    out = {"device": args.device, "renderer": rec.renderer.name if hasattr(rec.renderer, "name") else
-           type(rec.renderer).__name__, "kernels": rec.kernels.name, "gaussians": len(rec.gmap)}
+    out = {"device": args.device, "renderer": rec.renderer.name, "kernels": rec.kernels.name,
+           "gaussians": len(rec.gmap)}
     out["profile"] = profile(rec, args.device, args.updates)
     out["host_ms"] = host_ms(rec, args.device, args.updates)
     out["in_view"] = rec.last_in_view

@@ -38,7 +38,8 @@ def bucket(rows: int) -> int:
 
 
 def stages(use_triton: bool | None = None):
-    """The module pair (select/step, loss) that implements the stages: Triton's where it imports (or as asked)."""
+    """The functions (select, loss, step, feedback fold) that implement the stages: Triton's where it imports (or
+    as asked); without it the torch references, whose fold is the microcells' own (None)."""
     from . import triton_launch
 
     if use_triton is None:
@@ -46,10 +47,12 @@ def stages(use_triton: bool | None = None):
     if use_triton:
         from . import triton_loss, triton_select, triton_step
 
-        return triton_select.select_rows, triton_loss.fused_loss, triton_step.step_rows
+        from .triton_feedback import fold_cells
+
+        return triton_select.select_rows, triton_loss.fused_loss, triton_step.step_rows, fold_cells
     from . import device_reference, device_reference_loss
 
-    return device_reference.select_rows, device_reference_loss.fused_loss, device_reference.step_rows
+    return device_reference.select_rows, device_reference_loss.fused_loss, device_reference.step_rows, None
 
 
 def view_args(camera: Camera, T_world_cam, low_pass: float) -> tuple[tuple, tuple]:
@@ -68,11 +71,7 @@ class FusedKernels(KernelSet):
 
     def __init__(self, device: str | torch.device = "cpu", use_triton: bool | None = None):
         self.device = torch.device(device)
-        self._select, self._loss, self._step = stages(use_triton)
-        if self._select.__module__.endswith("triton_select"):
-            from .triton_feedback import fold_cells
-
-            self.fold_cells = fold_cells
+        self._select, self._loss, self._step, self.fold_cells = stages(use_triton)
         self.capacity = MIN_CAPACITY  # rows of the next view: grows with the views, shrinks when 4x too large
 
     def _count_host(self, count: torch.Tensor) -> np.ndarray:

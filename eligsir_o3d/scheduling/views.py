@@ -262,7 +262,7 @@ class MapGuidedViews(ViewPolicy):
     def bind(self, device, kernels) -> None:
         """Fold the training renders' errors on ``device`` (the map's), by ``kernels``' fused fold if it has one."""
         self.cells.to(device)
-        self.fold_fn = getattr(kernels, "fold_cells", None)
+        self.fold_fn = kernels.fold_cells
 
     def poses_moved(self) -> None:
         for v in self._views:  # the pixels' cells follow the view's pose: located again at the next feedback
