@@ -12,7 +12,7 @@ from ._version import __version__
 
 _PUBLIC = {  # name -> the module that defines it
     "Camera": "core.camera", "Config": "config", "Frame": "core.frame", "FrameError": "core.frame",
-    "GaussianMap": "core.gaussians", "Reconstructor": "reconstructor", "RenderOutput": "render",
+    "GaussianMap": "core.gaussians", "Reconstructor": "mapper", "RenderOutput": "render",
     "get_renderer": "render",
 }
 

@@ -102,8 +102,7 @@ _CACHE: dict = {}
 def run(path: Path, out: Path, factor: float, policy_on: bool, max_frames: int | None, breakdown: bool,
         seed: int, speed: float = 1.0) -> dict:
     import eligsir_o3d.datasets as datasets
-    import eligsir_o3d.reconstructor as reconstructor
-    from eligsir_o3d.budget.stages import detail
+    import eligsir_o3d.mapper.reconstructor as reconstructor
     from eligsir_o3d.run.pipeline import MappingPipeline
 
     real_get, real_build, real_open = reconstructor.get_renderer, MappingPipeline.build, datasets.open_sequence
@@ -120,7 +119,7 @@ def run(path: Path, out: Path, factor: float, policy_on: bool, max_frames: int |
     def build(self):
         real_build(self)
         if breakdown:
-            detail(self.rec)
+            self.rec.timing.detail = True  # sub-stages too (budget.stages.SUB_STAGES)
 
     cfg = Config(renderer="cpu", seed=seed)
     cfg.clock.mode, cfg.clock.speed = "realtime", float(speed)

@@ -55,16 +55,43 @@ def ideal_speedup(probe, threads: int) -> float:
     return sorted(ts[1])[1] / sorted(ts[threads])[1]
 
 
+def _wrap(timing, obj, attr: str, name: str) -> None:
+    """Time every call of ``obj.attr`` into ``timing`` under ``name`` (in this worker process only: a checkout of
+    any age is timed the same way, without code of its own for it); absent or already wrapped: unchanged."""
+    import functools
+
+    fn = getattr(obj, attr, None)
+    if fn is None or getattr(fn, "_stage", None) == name:
+        return
+
+    @functools.wraps(fn)
+    def timed(*a, **kw):
+        t0 = time.perf_counter()
+        try:
+            return fn(*a, **kw)
+        finally:
+            timing.add(name, time.perf_counter() - t0)
+
+    timed._stage = name
+    setattr(obj, attr, timed)
+
+
 def phase_timer(rec):
     """Wall seconds per phase of ``rec``'s updates (``--phases``): the policies' methods on this Reconstructor's
-    instances (:func:`eligsir_o3d.budget.stages.detail`'s way), and, in this worker process only, the module-level
+    instances (wrapped here, so that any checkout is timed alike), and, in this worker process only, the module-level
     steps an update calls (the view test and gather of the rows in view, the loss, autograd's backward). Returns
     the StageTimes they add to."""
+    import importlib
+
     import torch
 
-    import eligsir_o3d.reconstructor as recmod
-    from eligsir_o3d.budget.stages import StageTimes, _wrap
+    from eligsir_o3d.budget.stages import StageTimes
     from eligsir_o3d.render import culling
+
+    try:  # the module that calls the loss: where it is in this checkout
+        recmod = importlib.import_module("eligsir_o3d.mapper.reconstructor")
+    except ImportError:
+        recmod = importlib.import_module("eligsir_o3d.reconstructor")
 
     timing = StageTimes()
     for path, attr, name in (("views", "select", "select view"), ("supervision", "sample", "supervision"),

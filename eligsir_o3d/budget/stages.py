@@ -5,23 +5,43 @@ The Reconstructor times its own stages with one :class:`StageTimes` (``rec.timin
 (a pose source); the pipeline adds ``decode`` (reading the recording, off the mapper's clock). metrics.json holds
 :meth:`StageTimes.summary` as ``stage_times``. Two ``perf_counter`` calls per stage, nothing else.
 
-:func:`detail` adds sub-stages (the support render, the voxel hash, view bookkeeping, scheduling, MCMC) by
-wrapping bound methods of one Reconstructor's policies, so the policies carry no timing code; benchmarks use it
-(``benchmarks/budget/realtime_load.py --breakdown``). Nested stages are reported as they are: a sub-stage's seconds are
-also in its parent's.
+Sub-stages (:data:`SUB_STAGES`: the support render, the voxel hash, view bookkeeping, the update's kernels, MCMC)
+are marked where they run, with :meth:`StageTimes.sub`: the Reconstructor marks the calls it makes, a policy marks
+its own steps with the timer its hook receives (``MapContext.timing``). They are timed only where the timer's
+``detail`` is on (``benchmarks/budget/realtime_load.py --breakdown``); otherwise ``sub`` is one shared no-op
+context. Nested stages are reported as they are: a sub-stage's seconds are also in its parent's.
 """
 
 from __future__ import annotations
 
-import functools
 import time
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
+
+
+# every sub-stage name, for readers of a breakdown (``stage_times`` with ``detail`` on)
+SUB_STAGES = {
+    "admission.pose_filter": "the views' pose pre-filter (is the frame's pose close to a retained one)",
+    "admission.view_bookkeeping": "a retained view's footprint cells, coverage and priorities",
+    "support_render": "the support probe's render of the map at a new frame (shared by admission and growth)",
+    "growth.voxel_hash": "the depth evidence's voxel-hash lookup",
+    "growth.insert": "placing new Gaussians (seeds, insertions, relocation of dead ones)",
+    "scheduling.select": "choosing the next update's view",
+    "scheduling.feedback": "the views' microcell feedback from an update's error map",
+    "update.select": "the rows in view, gathered",
+    "update.backward": "loss, error map and gradient through the renderer",
+    "update.step": "chain rule, regulariser, Adam and noise on the rows in view",
+    "update.mcmc": "the growth policy's MCMC round after the step",
+    "render": "every render of the map (training, support probe, evaluation)",
+}
+
+_NOTHING = nullcontext()
 
 
 class StageTimes:
-    """Accumulated wall seconds and calls per stage name."""
+    """Accumulated wall seconds and calls per stage name; ``detail``: also time :meth:`sub` stages."""
 
-    def __init__(self):
+    def __init__(self, detail: bool = False):
+        self.detail = bool(detail)
         self.seconds: dict[str, float] = {}
         self.calls: dict[str, int] = {}
 
@@ -32,6 +52,11 @@ class StageTimes:
             yield
         finally:
             self.add(name, time.perf_counter() - t0)
+
+    def sub(self, name: str):
+        """The context of sub-stage ``name`` (one of :data:`SUB_STAGES`): timed as a stage where :attr:`detail` is
+        on, a shared no-op context otherwise."""
+        return self(name) if self.detail else _NOTHING
 
     def add(self, name: str, seconds: float, calls: int = 1) -> None:
         self.seconds[name] = self.seconds.get(name, 0.0) + float(seconds)
@@ -57,53 +82,3 @@ class StageTimes:
 
     def load_state_dict(self, state: dict) -> None:
         self.seconds, self.calls = dict(state.get("seconds", {})), dict(state.get("calls", {}))
-
-
-def _wrap(timing: StageTimes, obj, attr: str, name: str) -> None:
-    fn = getattr(obj, attr, None)
-    if fn is None or getattr(fn, "_stage", None) == name:
-        return
-
-    @functools.wraps(fn)
-    def timed(*a, **kw):
-        t0 = time.perf_counter()
-        try:
-            return fn(*a, **kw)
-        finally:
-            timing.add(name, time.perf_counter() - t0)
-
-    timed._stage = name
-    setattr(obj, attr, timed)
-
-
-# (path from the Reconstructor, method, stage name): what the per-frame and per-update fixed work is made of
-DETAIL = (
-    ("views", "is_redundant", "admission.pose_filter"),
-    ("views.probe", "check", "support_render"),  # shared by admission and growth (cached per frame)
-    ("views", "_admit", "admission.view_bookkeeping"),  # footprint cells, coverage, priority refresh
-    ("views", "refresh", "scheduling.refresh"),
-    ("views", "select", "scheduling.select"),
-    ("views", "feedback", "scheduling.feedback"),
-    ("growth.voxels", "lookup", "growth.voxel_hash"),
-    ("growth", "_insert", "growth.insert"),
-    ("growth", "post_step", "update.mcmc"),
-    ("kernels", "select", "update.select"),  # the rows in view, gathered
-    ("kernels", "backward", "update.backward"),  # loss, error map and gradient through the renderer
-    ("kernels", "step", "update.step"),  # chain rule, regulariser, Adam and noise on the rows in view
-    ("renderer", "render", "render"),
-)
-
-
-def detail(rec, timing: StageTimes | None = None) -> StageTimes:
-    """Time the sub-stages of :data:`DETAIL` that ``rec``'s policies have, into ``timing`` (default
-    ``rec.timing``). Wraps bound methods of these instances only; a policy replaced later is not timed."""
-    timing = timing or rec.timing
-    for path, attr, name in DETAIL:
-        obj = rec
-        for part in filter(None, path.split(".")):  # "" is the Reconstructor itself
-            obj = getattr(obj, part, None)
-            if obj is None:
-                break
-        if obj is not None:
-            _wrap(timing, obj, attr, name)
-    return timing

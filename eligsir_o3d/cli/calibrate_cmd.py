@@ -49,7 +49,7 @@ def calibrate_cmd(
         path = cache_path(machine_key(cfg.device, cfg.renderer))
         if force:
             from ..export.views import DEFAULT_CAMERA
-            from ..reconstructor import Reconstructor
+            from ..mapper import Reconstructor
 
             rec = Reconstructor(DEFAULT_CAMERA, cfg.device, cfg)
             rec.calibrate(force=True)

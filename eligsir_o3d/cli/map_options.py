@@ -11,7 +11,6 @@ from typing import List, Optional
 
 import typer
 
-from ..config import ABLATION_RENAMED
 from ..run.option_table import default
 from ..run.options import COST_MODEL_RULE
 from ..scheduling import ABLATIONS
@@ -21,10 +20,8 @@ INPUT, POSE, BUDGET, EVAL, OUTPUT, MAPPER = "Input", "Pose", "Budget", "Evaluati
 
 
 def ablation(value: str) -> str:
-    """One ``--ablate`` value, one of :data:`~eligsir_o3d.scheduling.ABLATIONS`. A first-release spelling
-    (``config.ABLATION_RENAMED``: ``scheduling``) passes through to :func:`~eligsir_o3d.run.options.to_config`, which
-    refuses it with one line naming the new one (as it does for ``eligsir batch``'s ``ablate``)."""
-    if value in ABLATIONS or value in ABLATION_RENAMED:
+    """One ``--ablate`` value, one of :data:`~eligsir_o3d.scheduling.ABLATIONS`."""
+    if value in ABLATIONS:
         return value
     raise ValueError(f"{value!r} is not one of {', '.join(map(repr, ABLATIONS))}.")
 

@@ -206,7 +206,7 @@ def _run_live(source: FrameSource, out: Path, config, *, pose: str, max_frames: 
     from ..config import Config
     from ..core.frame import Frame, FrameError
     from ..pose import TrackingLost, get_pose_source
-    from ..reconstructor import Reconstructor
+    from ..mapper import Reconstructor
 
     config = config or Config()
     source.start()

@@ -105,7 +105,7 @@ def to_config(o: MapOptions):
     """The :class:`~eligsir_o3d.Config` of a run: the config file (or the defaults), then ``overrides``, then each
     option given."""
     from ..budget import CostModel
-    from ..config import ABLATION_RENAMED, Config, apply_override
+    from ..config import Config, apply_override
 
     for name in ("speed", "updates_per_frame", "seed", "depth_max", "offline_updates", "refine"):
         setattr(o, name, check_option(name, getattr(o, name)))  # one line naming the option, before any work
@@ -115,10 +115,6 @@ def to_config(o: MapOptions):
     for name in ("device", "renderer", "seed", "depth_max"):
         if getattr(o, name) is not None:
             setattr(cfg, name, getattr(o, name))
-    renamed = [a for a in o.ablate if a in ABLATION_RENAMED]
-    if renamed:  # a CLI value of the first release: refused, not aliased
-        raise ValueError(f"--ablate {renamed[0]}: the first release's spelling is no longer accepted; use "
-                         f"--ablate {ABLATION_RENAMED[renamed[0]]}")
     if o.ablate:
         cfg.ablate = tuple(sorted(set(o.ablate)))
     mode = clock_mode(o.clock, o.realtime, o.updates_per_frame)

@@ -167,7 +167,7 @@ class MappingPipeline:
     # ---- build ---------------------------------------------------------------------------------------------
     def build(self) -> None:
         from ..budget import get_clock
-        from ..reconstructor import Reconstructor
+        from ..mapper import Reconstructor
 
         ck_path = self.out / "checkpoint.pt"
         if self.opts.resume and ck_path.is_file():
@@ -186,7 +186,7 @@ class MappingPipeline:
 
     def _resume(self, ck_path: Path):
         from ..io.checkpoint import read_checkpoint
-        from ..reconstructor import Reconstructor
+        from ..mapper import Reconstructor
 
         ck = read_checkpoint(ck_path, sequence=self.seq)
         check_resume(self.out, ck, self.config, self._run_record())  # another config or split: refused

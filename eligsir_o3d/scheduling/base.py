@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from contextlib import contextmanager
-from types import SimpleNamespace
+from dataclasses import dataclass, field
 from typing import Callable
 
 import torch
@@ -17,81 +17,52 @@ import torch
 from ..core.camera import Camera
 from ..core.frame import Frame
 from ..core.gaussians import GaussianMap
-from ..kernels.base import StepTerms
+from ..budget.stages import StageTimes
+from ..kernels.base import RowView, StepTerms
 from ..render import RenderOutput
-from .fixed_work import FULL
+from .fixed_work import FULL, FramePlan
 
 
+@dataclass
 class MapContext:
-    """What a policy may read or change: the map, a renderer call and the running counters. It holds no copies:
-    every attribute reads through to its owner (the Reconstructor: ``gmap``, ``device``, ``config.max_gaussians``,
-    ``stats.updates``, ``stats.frames_released``, ``_render``), so a map replaced by ``load_ply`` or a restored
-    checkpoint is what the policies see next."""
+    """What a policy's hook may read or change, handed to it by the caller for that one call (as gsplat's
+    strategies take the parameters, optimizers and step): the map, a renderer call, the map-size limit and the
+    counters and per-frame decisions of this moment. The Reconstructor builds one per hook call
+    (``Reconstructor.context``), so a map replaced by ``load_ply`` or a restored checkpoint is what the next hook
+    sees; a test or tool that drives a policy without a Reconstructor builds one from a bare map and renderer.
 
-    def __init__(self, owner):
-        self._owner = owner
+    Args:
+        gmap: the map the policy reads and grows.
+        render: ``(camera, T_world_cam) -> RenderOutput`` of the current map.
+        max_gaussians: the map-size limit (memory).
+        count_in_view: ``(gmap, camera, T_world_cam) -> int``, the Gaussians of ``gmap`` that can reach that
+            image (``KernelSet.count_in_view``); None: every Gaussian counts (the map is not culled).
+        updates, frames_released: the mapper's counters now.
+        plan: the current frame's :class:`~.fixed_work.FramePlan` (full admission check or not, probe scale).
+        seed_scale: the image scale whose pixels new seeds are spaced in
+            (:meth:`.supervision.SupervisionGrid.seed_scale`); None: the support probe's scale.
+        view: the running update's :class:`~..kernels.RowView` (the rows it supervises); None outside an update.
+        timing: where a hook's sub-stages are timed (:meth:`~..budget.stages.StageTimes.sub`).
+    """
 
-    @classmethod
-    def standalone(cls, gmap: GaussianMap, render: Callable[[Camera, object], RenderOutput], device: torch.device,
-                   max_gaussians: int) -> "MapContext":
-        """A context over a bare map and renderer (tests, tools that drive a policy without a Reconstructor)."""
-        stats = SimpleNamespace(updates=0, frames_released=0)
-        return cls(SimpleNamespace(gmap=gmap, _render=render, device=device, stats=stats,
-                                   config=SimpleNamespace(max_gaussians=max_gaussians)))
-
-    @property
-    def gmap(self) -> GaussianMap:
-        return self._owner.gmap
+    gmap: GaussianMap
+    render: Callable[[Camera, object], RenderOutput]
+    max_gaussians: int
+    count_in_view: Callable[[GaussianMap, Camera, object], int] | None = None
+    updates: int = 0
+    frames_released: int = 0
+    plan: FramePlan = FULL
+    seed_scale: float | None = None
+    view: RowView | None = None
+    timing: StageTimes = field(default_factory=StageTimes)
 
     @property
     def device(self) -> torch.device:
-        return self._owner.device
-
-    @property
-    def max_gaussians(self) -> int:
-        return int(self._owner.config.max_gaussians)
-
-    @property
-    def updates(self) -> int:
-        return self._owner.stats.updates
-
-    @property
-    def frames_released(self) -> int:
-        return self._owner.stats.frames_released
-
-    @property
-    def view(self):
-        """The current update's :class:`~..kernels.RowView` (the rows it supervises) while a view-culled update
-        runs; None otherwise (the update covers the whole map)."""
-        return getattr(self._owner, "view", None)
+        return self.gmap.device
 
     def in_view(self, camera: Camera, T_world_cam) -> int:
-        """How many Gaussians can reach ``camera``'s image at ``T_world_cam`` (:func:`~..culling.in_view`); the
-        map's total where the owner does not cull."""
-        optim = getattr(self._owner.config, "optim", None)
-        if not getattr(optim, "cull", False):
-            return len(self.gmap)
-        kernels = getattr(self._owner, "kernels", None)
-        if kernels is None:
-            from ..kernels import get_kernels
-
-            kernels = get_kernels("auto", self.gmap.device, self.gmap.means.dtype)
-        return kernels.count_in_view(self.gmap, camera, T_world_cam)
-
-    @property
-    def seed_scale(self) -> float | None:
-        """The image scale whose pixels new seeds are spaced in (:meth:`.supervision.SupervisionGrid.seed_scale`):
-        the updates' scale where the run's views agree at full resolution; None (the support probe's scale) else."""
-        return getattr(self._owner, "seed_scale", None)
-
-    @property
-    def plan(self):
-        """The current frame's :class:`~.load.FramePlan` (full admission check or not, support render scale)."""
-        return getattr(self._owner, "frame_plan", FULL)
-
-    def render(self, camera: Camera, T_world_cam) -> RenderOutput:
-        """(camera, T_world_cam) -> RenderOutput of the current map, differentiable."""
-        return self._owner._render(camera, T_world_cam)
+        """How many Gaussians can reach ``camera``'s image at ``T_world_cam``; the map's size without a count."""
+        return len(self.gmap) if self.count_in_view is None else int(self.count_in_view(self.gmap, camera, T_world_cam))
 
 
 class Policy(ABC):
@@ -166,6 +137,11 @@ class FidelityPolicy(Policy):
     @abstractmethod
     def scale(self) -> float:
         raise NotImplementedError
+
+    def current_scale(self) -> float:
+        """The scale :meth:`scale` would give now, without handing it out (a policy that records what it handed
+        out, to tell its own measurements from explicit scales, records nothing here)."""
+        return self.scale()
 
     def observe(self, seconds: float, pixels: int, backlog: int) -> None:
         """After an update: its measured cost and the current backlog of unprocessed frames."""

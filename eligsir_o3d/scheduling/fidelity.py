@@ -110,6 +110,9 @@ class LoadAdaptiveFidelity(FidelityPolicy):
         self._issued = self.level
         return self.scales[self.level]
 
+    def current_scale(self) -> float:
+        return self.scales[self.level]
+
     def observe(self, seconds: float, pixels: int, backlog: int) -> None:
         issued, self._issued = self._issued, None
         cost = float(self.cost_fn(pixels)) if self.cost_fn is not None else float(seconds)

@@ -112,7 +112,8 @@ class TargetedGrowth(GrowthPolicy):
         if vs.numel() == 0:
             return 0
         pts = _world(sup.depth, sup.camera, frame.T_world_cam, vs, us)
-        ids, first_seen = self.voxels.lookup(pts)
+        with ctx.timing.sub("growth.voxel_hash"):
+            ids, first_seen = self.voxels.lookup(pts)
         n = len(self.voxels)
         self.votes = grow(self.votes, n, 0)
         self.last_view = grow(self.last_view, n, -1)
@@ -193,6 +194,10 @@ class TargetedGrowth(GrowthPolicy):
         over dead (low-opacity) Gaussians (MCMC-style replacement); never beyond ``cap``."""
         if vs.numel() == 0:
             return 0
+        with ctx.timing.sub("growth.insert"):
+            return self._seed(sup, frame, vs, us, stride, limit, ctx, what, cap)
+
+    def _seed(self, sup, frame: Frame, vs, us, stride: int, limit: int, ctx: MapContext, what: str, cap: int) -> int:
         mask = torch.zeros_like(sup.valid)
         mask[vs, us] = True
         room, dead, budget = self._room(ctx, limit, cap)

@@ -73,7 +73,8 @@ class SupportProbe:
         if len(ctx.gmap) == 0:
             unsupported, misplaced = valid.clone(), torch.zeros_like(valid)
         else:
-            out = ctx.render(cam, frame.T_world_cam)
+            with ctx.timing.sub("support_render"):
+                out = ctx.render(cam, frame.T_world_cam)
             dev = out.alpha.device  # the masks are made where the render is; only they come to the host
             observed = depth if dev.type == "cpu" else frame.at_scale(scale, dev)[1]
             unsupported, misplaced = support_masks(out.alpha.detach(), out.depth.detach(), observed, self.cfg,

@@ -73,24 +73,27 @@ class MapGuidedViews(ViewPolicy):
     def admit(self, frame: Frame, ctx: MapContext) -> bool:
         self.counts["released"] += 1
         if not self._views:
-            return self._admit(frame)
+            return self._admit(frame, ctx)
         # a closer spacing can only clear a candidate within the configured one: the budget is priced only then
-        if self.is_redundant(frame.T_world_cam) and self.is_redundant(frame.T_world_cam, self._spacing(frame, ctx)):
+        with ctx.timing.sub("admission.pose_filter"):
+            redundant = (self.is_redundant(frame.T_world_cam)
+                         and self.is_redundant(frame.T_world_cam, self._spacing(frame, ctx)))
+        if redundant:
             self.counts["pose_filtered"] += 1
             return False
         gap = self._last_admit_ts is not None and frame.timestamp - self._last_admit_ts >= self.cfg.max_gap_s
         if not ctx.plan.check:  # under load (scheduling.load): no support render; the max-gap rule still admits
             if gap:
                 self.counts["max_gap"] += 1
-                return self._admit(frame)
+                return self._admit(frame, ctx)
             self.counts["unchecked"] += 1
             return False
         novelty = self.probe.check(frame, ctx).novelty()
         if novelty >= self.cfg.min_novelty:
-            return self._admit(frame)
+            return self._admit(frame, ctx)
         if self._last_admit_ts is not None and frame.timestamp - self._last_admit_ts >= self.cfg.max_gap_s:
             self.counts["max_gap"] += 1
-            return self._admit(frame)
+            return self._admit(frame, ctx)
         self.counts["low_novelty"] += 1
         return False
 
@@ -117,7 +120,11 @@ class MapGuidedViews(ViewPolicy):
         ang = np.degrees(np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0)))
         return bool(np.any((dt < factor * self.cfg.min_translation_m) & (ang < factor * self.cfg.min_rotation_deg)))
 
-    def _admit(self, frame: Frame) -> bool:
+    def _admit(self, frame: Frame, ctx: MapContext) -> bool:
+        with ctx.timing.sub("admission.view_bookkeeping"):
+            return self._retain(frame)
+
+    def _retain(self, frame: Frame) -> bool:
         cells, weights = self.cells.footprint(frame.depth, frame.camera, frame.T_world_cam)
         self.cells.add_coverage(cells, 1)
         view = _View(frame, cells, weights)

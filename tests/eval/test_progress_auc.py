@@ -18,7 +18,7 @@ N_FRAMES, W, H = 48, 64, 48
 def maps():
     """Two map states: of the first 8 frames of the synthetic loop (poor), and of all of them (good)."""
     from eligsir_o3d.datasets import open_sequence
-    from eligsir_o3d.reconstructor import Reconstructor
+    from eligsir_o3d.mapper import Reconstructor
 
     seq = open_sequence("synthetic", n_frames=N_FRAMES, width=W, height=H)
     rec = Reconstructor(seq.camera, "cpu", Config(renderer="cpu"))

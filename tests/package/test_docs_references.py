@@ -98,7 +98,7 @@ def test_lab_ids_resolve_in_the_lab_notebook():
 def test_the_checks_catch_what_they_are_for(tmp_path):
     assert dangling_names("see eligsir_o3d.scheduling.nowhere and eligsir_o3d/culling.py") == [
         "eligsir_o3d.scheduling.nowhere", "eligsir_o3d/culling.py"]
-    assert dangling_names("eligsir_o3d.scheduling.views.ViewConfig, eligsir_o3d/config.py, tests/helpers") == []
+    assert dangling_names("eligsir_o3d.scheduling.views.ViewConfig, eligsir_o3d/config/checks.py, tests/helpers") == []
     assert dangling_names("eligsir_o3d.config.NoSuchThing") == ["eligsir_o3d.config.NoSuchThing"]
     assert slug("The `cpu` renderer: on CUDA (gsplat)") == "the-cpu-renderer-on-cuda-gsplat"
 

@@ -179,7 +179,7 @@ def test_every_numeric_option_is_in_range_or_refused_naming_it(name, value):
                         "clock.cost_feedback", "views.active_size"]), OPTION_VALUES)
 def test_config_values_resolve_or_are_refused_naming_the_key(key, value):
     from eligsir_o3d import Config
-    from eligsir_o3d.config_checks import check_values
+    from eligsir_o3d.config.checks import check_values
 
     d = Config().to_dict()
     *path, last = key.split(".")

@@ -206,3 +206,13 @@ def test_every_benchmark_is_a_module_named_in_the_index():
     scripts = [p for p in [*bench.rglob("*.py"), *bench.rglob("*.sh")] if p.name != "__init__.py"]
     missing = [str(p.relative_to(bench)) for p in scripts if f"`{p.relative_to(bench)}`" not in index]
     assert scripts and not missing, missing
+
+
+def test_the_package_top_level_is_its_face_and_its_subpackages():
+    """``eligsir_o3d/`` holds ``__init__``, ``_version`` and the subpackages only: every concept, the Reconstructor
+    and the config included, lives in a package of its own."""
+    modules = sorted(p.name for p in PKG.glob("*.py"))
+    assert modules == ["__init__.py", "_version.py"], modules
+    folders = [p for p in PKG.iterdir() if p.is_dir() and p.name != "__pycache__"]
+    assert {"config", "mapper"} <= {p.name for p in folders}
+    assert all((p / "__init__.py").is_file() for p in folders), [p.name for p in folders]

@@ -152,7 +152,7 @@ def test_reconstructor_with_sh_degree_learns_the_higher_bands():
     u, v = np.meshgrid(np.arange(w), np.arange(h))
     color = (((u // 6 + v // 6) % 2)[..., None] * np.array([180, 40, 60]) + 50).astype(np.uint8)
     rgbd = o3d.t.geometry.RGBDImage(o3d.t.geometry.Image(color), o3d.t.geometry.Image(np.full((h, w), 1500, np.uint16)))
-    cfg = eo3d.Config(renderer="cpu", sh_degree=2, ablate=("scheduling", "fidelity", "growth"))
+    cfg = eo3d.Config(renderer="cpu", sh_degree=2, ablate=("views", "fidelity", "growth"))
     cfg.keyframes.every = 1
     cfg.seeding.pixel_stride = 3
     cfg.clock.mode, cfg.clock.updates_per_frame = "updates", 5

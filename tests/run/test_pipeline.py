@@ -31,7 +31,7 @@ def test_heldout_split():
 
 
 def test_results_folder_contract_and_heldout_never_supervise(tmp_path, monkeypatch):
-    from eligsir_o3d.reconstructor import Reconstructor
+    from eligsir_o3d.mapper import Reconstructor
 
     seen = []
     orig = Reconstructor.integrate
@@ -193,7 +193,7 @@ def test_progress_is_the_streams_so_a_run_that_drops_frames_still_ends_at_p_1(tm
 def test_heldout_views_render_at_their_given_poses(tmp_path, monkeypatch):
     """The final evaluation renders each held-out view at its given pose; the figures of a pose-refined map stay
     null in metrics.json and the rule is "given"."""
-    from eligsir_o3d.reconstructor import Reconstructor
+    from eligsir_o3d.mapper import Reconstructor
 
     rendered = []
     orig = Reconstructor.render

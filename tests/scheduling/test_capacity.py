@@ -117,8 +117,7 @@ def test_seed_scale_follows_depth_focal_length_stride_and_footprint():
 
 def test_growth_policy_inserts_no_more_than_the_budget_cap():
     gmap, renderer = GaussianMap(0), get_renderer("torch")
-    ctx = MapContext.standalone(gmap, lambda cam, T: renderer.render(*gmap.render_args(), cam, T, torch.zeros(3)),
-                                torch.device("cpu"), 100_000)
+    ctx = MapContext(gmap, lambda cam, T: renderer.render(*gmap.render_args(), cam, T, torch.zeros(3)), 100_000)
     growth = TargetedGrowth(GrowthConfig(seed_stride=1, budget_updates=2, budget_min_gaussians=10))
     growth.attach(0.0301, CostModel(update_s=0.0, gaussian_s=1e-4, pixel_s=0.0, pixel_gaussian_s=0.0, frame_s=0.0))
     T = np.eye(4)
@@ -140,8 +139,7 @@ def test_mcmc_densification_fills_the_budget_room():
     assert grown(5000) == 1000  # never beyond the cap
     # the growth policy asks for budget_fill of the room under its budget cap
     gmap, renderer = GaussianMap(0), get_renderer("torch")
-    ctx = MapContext.standalone(gmap, lambda cam, T: renderer.render(*gmap.render_args(), cam, T, torch.zeros(3)),
-                                torch.device("cpu"), 100_000)
+    ctx = MapContext(gmap, lambda cam, T: renderer.render(*gmap.render_args(), cam, T, torch.zeros(3)), 100_000)
     cfg = GrowthConfig(seed_stride=4, budget_updates=2, budget_min_gaussians=10, budget_fill=0.5)
     cfg.mcmc.refine_start = cfg.mcmc.refine_every = 1
     growth = TargetedGrowth(cfg)
@@ -155,8 +153,7 @@ def test_mcmc_densification_fills_the_budget_room():
 
 def test_budget_cap_is_priced_at_the_configured_scale_not_the_update_scale():
     gmap, renderer = GaussianMap(0), get_renderer("torch")
-    ctx = MapContext.standalone(gmap, lambda cam, T: renderer.render(*gmap.render_args(), cam, T, torch.zeros(3)),
-                                torch.device("cpu"), 100_000)
+    ctx = MapContext(gmap, lambda cam, T: renderer.render(*gmap.render_args(), cam, T, torch.zeros(3)), 100_000)
     cost = CostModel(update_s=0.0, gaussian_s=0.0, pixel_s=0.0, pixel_gaussian_s=1e-7, frame_s=0.0)
     frame = _plane(np.eye(4), 0)  # 64 x 48
 
@@ -185,7 +182,7 @@ def test_default_map_size_cap_follows_the_budget():
                               np.eye(4), timestamp=0.0, index=0)
     _, depth, cam = frame.at_scale(1.0)  # an update at full resolution: the cap is still priced at 1/4
     period = 1.0 / 30.0 * 8 / 7
-    ctx = MapContext.standalone(GaussianMap(0), None, torch.device("cpu"), 300_000)
+    ctx = MapContext(GaussianMap(0), None, 300_000)
     assert TargetedGrowth(eo3d.Config().growth).cap(ctx, 160 * 120) == 300_000  # no budget handed over yet
     growth.attach(period, CostModel())
     growth.post_step(frame, None, depth, cam, ctx)

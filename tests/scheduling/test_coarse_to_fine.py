@@ -62,7 +62,7 @@ def _offline(tmp_path, **clock):
     seen = []
     opts = RunOptions(max_frames=8, holdout_every=4, eval_every=0, progress=False, plots=False, pictures=False,
                       offline_reference=True)
-    from eligsir_o3d.reconstructor import Reconstructor
+    from eligsir_o3d.mapper import Reconstructor
 
     step = Reconstructor._step
 

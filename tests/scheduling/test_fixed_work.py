@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import eligsir_o3d as eo3d
-from eligsir_o3d.budget.stages import StageTimes, detail
+from eligsir_o3d.budget.stages import StageTimes
 from eligsir_o3d.scheduling.fixed_work import FULL, FramePlan, FixedWorkConfig, LoadScaledChecks
 
 
@@ -138,7 +138,7 @@ def test_stage_times_add_up_and_detail_wraps_the_sub_stages():
     assert list(s) == ["a", "b"] and s["b"]["ms_per_frame"] == pytest.approx(50.0)
     seq, frames = _room(6)
     rec = eo3d.Reconstructor(seq.camera, "cpu", eo3d.Config(renderer="cpu"))
-    detail(rec)
+    rec.timing.detail = True
     for f in frames:
         rec.integrate(f, updates=2)
     s = rec.timing.summary(len(frames))

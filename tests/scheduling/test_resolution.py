@@ -65,7 +65,7 @@ def test_a_larger_camera_renders_and_seeds_as_a_640x480_one():
         rec = eo3d.Reconstructor(seq.camera, "cpu", cfg)
         rec.integrate(seq.frame(0), updates=0)
         seeded[(w, follow)] = rec.growth.counts["seeded"]
-        probe = rec.views.probe.check(seq.frame(0), rec.ctx).camera
+        probe = rec.views.probe.check(seq.frame(0), rec.context()).camera
         assert probe.pixels == (160 * 120 if follow else 320 * 240)
     assert seeded[(1280, True)] == pytest.approx(seeded[(640, True)], rel=0.15), seeded
     assert seeded[(1280, False)] > 3 * seeded[(640, True)], seeded

@@ -23,7 +23,7 @@ def _ctx(cap=100_000):
     def render(camera, T):
         return renderer.render(*gmap.render_args(), camera, T, torch.zeros(3))
 
-    return MapContext.standalone(gmap, render, torch.device("cpu"), cap)
+    return MapContext(gmap, render, cap)
 
 
 def _pose(x=0.0, y=0.0, z=0.0, yaw_deg=0.0):
@@ -240,12 +240,12 @@ def test_seeds_are_spaced_in_pixels_of_the_seed_scale_and_earlier_views_get_the_
     counts = {}
     for scale in (None, 0.25, 0.125, 0.5, 1.0):
         ctx = _ctx()
-        ctx._owner.seed_scale = scale
+        ctx.seed_scale = scale
         counts[scale] = TargetedGrowth(GrowthConfig()).on_frame(_plane_frame(_pose(), 0), True, ctx)
     assert counts[None] == counts[0.25] == counts[0.125] == 4 * 3  # 16x12 probe pixels, every 4th
     assert counts[0.5] == 8 * 6 and counts[1.0] == 16 * 12
     off = _ctx()
-    off._owner.seed_scale = 1.0
+    off.seed_scale = 1.0
     assert TargetedGrowth(GrowthConfig(seed_follows_detail=False)).on_frame(_plane_frame(_pose(), 0), True, off) == 12
 
     ctx = _ctx()
@@ -255,7 +255,7 @@ def test_seeds_are_spaced_in_pixels_of_the_seed_scale_and_earlier_views_get_the_
         growth.on_frame(f, True, ctx)
     before = len(ctx.gmap)
     assert growth.reseed(frames, ctx) == 0 and growth.counts["reseeded"] == 0  # no finer scale: nothing to add
-    ctx._owner.seed_scale = 0.5
+    ctx.seed_scale = 0.5
     added = growth.reseed(frames, ctx)
     assert added == 2 * 8 * 6 and len(ctx.gmap) == before + added and growth.counts["reseeded"] == added
     assert growth.counters()["reseeded"] == added

@@ -105,7 +105,7 @@ def test_point_supervision_seeds_as_finely_as_the_updates_and_reseeds_the_views_
             rec.integrate(room.frame(i), room.frame(i).T_world_cam)
         runs[mode] = rec
     auto, area = runs["auto"], runs["area"]
-    assert auto.supervision.mode == "point" and auto.seed_scale == 0.5 and area.seed_scale is None
+    assert auto.supervision.mode == "point" and auto.context().seed_scale == 0.5 and area.context().seed_scale is None
     grown = auto.policy_counters()["growth"]
     assert grown["reseeded"] > 0  # the views before the decision
     assert area.policy_counters()["growth"]["reseeded"] == 0

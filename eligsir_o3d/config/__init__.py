@@ -15,24 +15,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .budget.clock import ClockConfig
-from .config_checks import ConfigError, checked_value
-from .core.frame import DEPTH_MAX
-from .core.gaussians import LearningRates
-from .optim.adam import AdamConfig
-from .optim.losses import LossConfig
-from .pose.loop_closure import LoopClosureConfig
-from .scheduling.fidelity import FidelityConfig
-from .scheduling.growth import GrowthConfig
-from .scheduling.fixed_work import FixedWorkConfig
-from .scheduling.keyframes import KeyframesConfig
-from .scheduling.seeding import SeedingConfig
-from .scheduling.support import SupportConfig
-from .scheduling.supervision import SupervisionConfig
-from .scheduling.view_config import ViewConfig
-
-ABLATION_RENAMED = {"scheduling": "views"}
-
+from ..budget.clock import ClockConfig
+from .checks import ConfigError, checked_value
+from ..core.frame import DEPTH_MAX
+from ..core.gaussians import LearningRates
+from ..optim.adam import AdamConfig
+from ..optim.losses import LossConfig
+from ..pose.loop_closure import LoopClosureConfig
+from ..scheduling.fidelity import FidelityConfig
+from ..scheduling.growth import GrowthConfig
+from ..scheduling.fixed_work import FixedWorkConfig
+from ..scheduling.keyframes import KeyframesConfig
+from ..scheduling.seeding import SeedingConfig
+from ..scheduling.support import SupportConfig
+from ..scheduling.supervision import SupervisionConfig
+from ..scheduling.view_config import ViewConfig
 
 @dataclass
 class OptimConfig:
@@ -108,10 +105,10 @@ class Config:
         not changed. Resolving a resolved config changes nothing."""
         import torch
 
-        from .budget.clock import check_clock_config
-        from .config_checks import check_values
-        from .render import resolve_backend
-        from .scheduling import ABLATIONS
+        from ..budget.clock import check_clock_config
+        from .checks import check_values
+        from ..render import resolve_backend
+        from ..scheduling import ABLATIONS
 
         cfg = copy.deepcopy(self)
         names = {f.name for f in dataclasses.fields(cfg)}
@@ -125,7 +122,6 @@ class Config:
             raise ValueError(f"device {cfg.device!r} is not a device name ('cpu', 'cuda', 'cuda:0', ...)") from None
         cfg.device = str(device)
         cfg.renderer = resolve_backend(cfg.renderer, device)
-        cfg.ablate = tuple(ABLATION_RENAMED.get(a, a) if isinstance(a, str) else a for a in cfg.ablate)
         unknown = [a for a in cfg.ablate if a not in ABLATIONS]
         if unknown:
             raise ValueError(f"config key ablate: unknown ablation(s) {unknown}; choose from {', '.join(ABLATIONS)}")
@@ -138,7 +134,7 @@ class Config:
         return dataclasses.asdict(self)
 
     def save(self, path: str | Path) -> None:
-        from .io.atomic import atomic_write_text
+        from ..io.atomic import atomic_write_text
 
         atomic_write_text(path, json.dumps(self.to_dict(), indent=2))  # a full disk leaves the old file intact
 
@@ -152,7 +148,7 @@ class Config:
 
     @classmethod
     def load(cls, path: str | Path) -> "Config":
-        from .io.inputs import read_json
+        from ..io.inputs import read_json
 
         path = Path(path)
         try:  # a regular file, size-capped: /dev/zero, a FIFO or a folder is one line, not a hang
@@ -160,7 +156,7 @@ class Config:
         except ValueError as e:
             raise ConfigError(f"{e} (expected a JSON config file)") from None
         cfg = cls.from_dict(data, str(path))
-        from .config_checks import check_values
+        from .checks import check_values
 
         try:  # values no run can use (NaN, negative counts): named with the file here, not later
             check_values(cfg)

@@ -45,7 +45,7 @@ def check_values(cfg) -> None:
                 raise ValueError(f"config key {key}: {x} is too large (at most 2**63 - 1)")
         if key in POSITIVE and not (isinstance(v, (int, float)) and v > 0):
             raise ValueError(f"config key {key}: must be > 0, got {v!r}")
-    from .run.option_table import check_option
+    from ..run.option_table import check_option
 
     for key, name in (("clock.speed", "speed"), ("clock.updates_per_frame", "updates_per_frame"),
                       ("seed", "seed"), ("depth_max", "depth_max"), ("clock.offline_updates", "offline_updates")):
@@ -66,11 +66,11 @@ def check_values(cfg) -> None:
                                                                   for x in bg)):
         raise ValueError(f"config key background: must be three numbers in [0, 1] (red, green, blue), got "
                          f"{list(bg) if isinstance(bg, (tuple, list)) else bg!r}")
-    from .scheduling.supervision import MODES
+    from ..scheduling.supervision import MODES
 
     if cfg.supervision.mode not in MODES:
         raise ValueError(f"config key supervision.mode: choose from {', '.join(MODES)}, got {cfg.supervision.mode!r}")
-    from .kernels import KERNEL_SETS
+    from ..kernels import KERNEL_SETS
 
     if cfg.optim.kernels not in KERNEL_SETS:
         raise ValueError(f"config key optim.kernels: choose from {', '.join(KERNEL_SETS)}, got {cfg.optim.kernels!r}")

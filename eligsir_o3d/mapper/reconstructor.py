@@ -9,51 +9,35 @@
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import open3d as o3d
 import torch
 
-from .core.camera import Camera, check_pose
-from .budget.stages import StageTimes
-from .budget.cost import priced_gaussians
-from .config import Config
-from .core.frame import Frame, FrameError
-from .core.gaussians import EPS2D, GaussianMap
-from .kernels import get_kernels
-from .runtime.threads import TORCH_MIN_PIXELS, TORCH_MIN_ROWS, torch_threads
-from .optim.losses import supervision_loss
-from .pose.loop_closure import loop_closure_for, track_corrected
-from .reconstructor_state import ReconstructorState
-from .render import RenderOutput, get_renderer
-from .scheduling import MapContext, get_policies
-from .scheduling.coarse_to_fine import install_means_lr_decay
-from .scheduling.fixed_work import FULL, LoadScaledChecks
-from .scheduling.supervision import SupervisionGrid
+from ..budget.cost import priced_gaussians
+from ..budget.stages import StageTimes
+from ..config import Config
+from ..core.camera import Camera, check_pose
+from ..core.frame import Frame, FrameError
+from ..core.gaussians import EPS2D, GaussianMap
+from ..io.checkpoint import read_checkpoint, save_checkpoint
+from ..io.ply import load_ply, save_ply
+from ..kernels import get_kernels
+from ..pose.loop_closure import loop_closure_for, track_corrected
+from ..render import RenderOutput, get_renderer
+from ..runtime.threads import TORCH_MIN_PIXELS, TORCH_MIN_ROWS, torch_threads
+from ..scheduling import MapContext, get_policies
+from ..scheduling.coarse_to_fine import install_means_lr_decay
+from ..scheduling.fixed_work import FULL, LoadScaledChecks
+from ..scheduling.supervision import SupervisionGrid
+from .checkpoints import restore
+from .intake import checked_pose, to_frame
+from .state import MapperState, StatePart
 
 
-@dataclass
-class MappingStats:
-    """Compute accounting of the paper's protocol (evaluation callbacks excluded from the time)."""
-
-    frames_released: int = 0
-    frames_admitted: int = 0
-    updates: int = 0
-    supervised_pixels: int = 0  # sum of image sizes of every supervised view over all updates
-    mapping_s: float = 0.0
-    tracking_s: float = 0.0
-    frames_tracked: int = 0  # frames whose pose came from the pose source (the first one is anchored)
-    excluded_s: float = 0.0  # wall time of evaluation callbacks, checkpoint I/O and (pipeline) decoding the recording
-    last_timestamp: float | None = None  # of the last integrated frame: timestamps must increase
-
-    @property
-    def supervised_mpix(self) -> float:
-        return self.supervised_pixels / 1e6
-
-
-class Reconstructor(ReconstructorState):
+class Reconstructor:
     """Online RGB-D -> 3D Gaussian map under a bounded optimisation budget (EliGSiR).
 
     intrinsic: ``o3d.camera.PinholeCameraIntrinsic`` of the incoming images; device: ``"cpu"`` or ``"cuda:0"``.
@@ -62,40 +46,51 @@ class Reconstructor(ReconstructorState):
     integer depth / depth_scale = metres (Open3D's spelling; default ``config.depth_scale``, 1000).
     ``offline_frames``: the offline reference over that many source frames (every frame retained and seeded, one
     long coarse-to-fine schedule: ``get_policies(config, offline=True)``); None: the online mapper.
+
+    Composed of its :class:`~.state.MapperState` (``rec.state``: what a checkpoint saves); ``rec.gmap``,
+    ``rec.views`` and the other parts below read and assign through to it.
     """
+
+    config, camera, device, gmap, views, fidelity, growth, supervision = (StatePart() for _ in range(8))
+    fixed_work, rng, stats, backlog, pose_source, loops, offline_frames = (StatePart() for _ in range(7))
 
     def __init__(self, intrinsic: o3d.camera.PinholeCameraIntrinsic, device: str = "cpu",
                  config: Config | None = None, pose_source=None, *, depth_scale: float | None = None,
                  offline_frames: int | None = None):
         changes = {"device": str(device)} if depth_scale is None else {"device": str(device),
                                                                         "depth_scale": float(depth_scale)}
-        self.config = (config if config is not None else Config()).resolve(**changes)  # a resolved copy
-        self.device = torch.device(self.config.device)
-        self.camera = intrinsic if isinstance(intrinsic, Camera) else Camera.from_o3d(intrinsic)
-        self.renderer = get_renderer(self.config.renderer, self.device)
-        self.kernels = get_kernels(self.config.optim.kernels, self.device)  # the update's select/backward/step
-        torch.manual_seed(self.config.seed)
-        self.rng = torch.Generator().manual_seed(self.config.seed)
-        self.gmap = GaussianMap(self.config.sh_degree, self.device, self.config.optim.lrs, self.config.optim.adam)
-        self.offline_frames = None if offline_frames is None else int(offline_frames)
-        self.views, self.fidelity, self.growth = get_policies(self.config, offline=self.offline_frames is not None,
-                                                              n_source=self.offline_frames or 0, camera=self.camera)
-        self.views.bind(self.device, self.kernels)
-        self.supervision = SupervisionGrid(self.config.supervision)  # area or point samples at reduced scales
-        self.fixed_work = LoadScaledChecks(self.config.fixed_work)  # how much fixed work each frame gets, from the backlog
-        self.frame_plan = FULL  # the current frame's plan (read by the policies through ctx.plan)
-        self.ctx = MapContext(self)
-        self.pose_source = pose_source
-        self.loops = loop_closure_for(self.config.loops, getattr(pose_source, "drifts", False), pose_source)
-        self.stats = MappingStats()
-        self.backlog = 0  # frames waiting to be integrated (set_load, by a clock)
+        cfg = (config if config is not None else Config()).resolve(**changes)  # a resolved copy
+        dev = torch.device(cfg.device)
+        camera = intrinsic if isinstance(intrinsic, Camera) else Camera.from_o3d(intrinsic)
+        self.renderer = get_renderer(cfg.renderer, dev)
+        self.kernels = get_kernels(cfg.optim.kernels, dev)  # the update's select/backward/step
+        torch.manual_seed(cfg.seed)
+        rng = torch.Generator().manual_seed(cfg.seed)
+        gmap = GaussianMap(cfg.sh_degree, dev, cfg.optim.lrs, cfg.optim.adam)
+        offline = None if offline_frames is None else int(offline_frames)
+        views, fidelity, growth = get_policies(cfg, offline=offline is not None, n_source=offline or 0, camera=camera)
+        views.bind(dev, self.kernels)
+        self.state = MapperState(
+            cfg, camera, dev, gmap, views, fidelity, growth, rng=rng, offline_frames=offline,
+            supervision=SupervisionGrid(cfg.supervision),  # area or point samples at reduced scales
+            fixed_work=LoadScaledChecks(cfg.fixed_work),  # how much fixed work each frame gets, from the backlog
+            pose_source=pose_source, loops=loop_closure_for(cfg.loops, getattr(pose_source, "drifts", False), pose_source))
+        self.frame_plan = FULL  # the current frame's plan (the policies' ``MapContext.plan``)
         self.callbacks: list[Callable[["Reconstructor"], None]] = []  # after every update; time excluded
         self.timing = StageTimes()  # wall seconds per stage (admission, growth, update, tracking): stage_times
-        self._background = torch.tensor(self.config.background, dtype=torch.float32, device=self.device)
+        self._background = torch.tensor(cfg.background, dtype=torch.float32, device=dev)
         self.view, self.last_in_view = None, None  # the running update's RowView (the rows in view); the last one's size
-        self.set_load(0, self.config.clock.frame_period_s)
-        if self.offline_frames is not None:  # the means' step size decays over the offline schedule
-            install_means_lr_decay(self, self.fidelity, self.config.clock.offline_means_lr_final)
+        self.set_load(0, cfg.clock.frame_period_s)
+        if offline is not None:  # the means' step size decays over the offline schedule
+            install_means_lr_decay(self, fidelity, cfg.clock.offline_means_lr_final)
+
+    def context(self) -> MapContext:
+        """The :class:`~eligsir_o3d.scheduling.MapContext` a policy's hook gets now: the map, the renderer, the
+        counters, the frame's plan, the seed scale, the running update's view and the stage timer."""
+        count = self.kernels.count_in_view if self.config.optim.cull else None
+        return MapContext(self.gmap, self._render, int(self.config.max_gaussians), count, self.stats.updates,
+                          self.stats.frames_released, self.frame_plan,
+                          self.supervision.seed_scale(self.fidelity.current_scale()), self.view, self.timing)
 
     # ---- the online loop -------------------------------------------------------------------------------
     def integrate(self, rgbd, pose=None, timestamp: float | None = None, *, updates: int | None = None,
@@ -107,30 +102,27 @@ class Reconstructor(ReconstructorState):
         A bad frame raises :class:`FrameError` before anything in the map changes.
         """
         t0 = time.perf_counter()
-        frame = self._to_frame(rgbd, pose, timestamp)
+        frame = to_frame(rgbd, pose, timestamp, index=self.stats.frames_released, camera=self.camera, config=self.config,
+                         last_timestamp=self.stats.last_timestamp, track=self.track)
         self.stats.last_timestamp = frame.timestamp
         self.stats.frames_released += 1
         self.frame_plan = self.fixed_work.plan(self.backlog, self.fidelity.at_lowest_scale())
         with self._threads(self.camera.scaled(self.config.support.scale_for(self.camera)).pixels):
             with self.timing("admission"):
-                admitted = self.views.admit(frame, self.ctx)
+                admitted = self.views.admit(frame, self.context())
                 decided = admitted and self.supervision.on_admitted(frame)
             self.stats.frames_admitted += int(admitted)
             with self.timing("growth"):
-                added = self.growth.on_frame(frame, admitted, self.ctx)
+                ctx = self.context()  # after admission: it may have decided the seed scale
+                added = self.growth.on_frame(frame, admitted, ctx)
                 if decided:  # seeds may have become finer (seed_scale): the views admitted before get them too
-                    added += self.growth.reseed([f for f in self.views.views if f.index != frame.index], self.ctx)
+                    added += self.growth.reseed([f for f in self.views.views if f.index != frame.index], ctx)
         self.stats.mapping_s += time.perf_counter() - t0
         if updates is None and deadline is None:
             updates = self.config.clock.updates_per_frame
         done = self.optimize(updates, deadline)
         return {"index": frame.index, "admitted": admitted, "added": added, "updates": done,
                 "gaussians": len(self.gmap)}
-
-    @property
-    def seed_scale(self) -> float | None:
-        """The scale new seeds are spaced in (``MapContext.seed_scale``): the supervision's choice at today's scale."""
-        return self.supervision.seed_scale(self.fidelity.scale())
 
     def optimize(self, updates: int | None = None, deadline: float | None = None, scale: float | None = None) -> int:
         """Run optimisation updates: ``updates`` of them, or as many as fit before ``deadline`` (:meth:`clock_now`)."""
@@ -160,7 +152,8 @@ class Reconstructor(ReconstructorState):
 
     def _step(self, scale: float | None) -> None:
         t0 = time.perf_counter()
-        frame = self.views.select(self.rng)
+        with self.timing.sub("scheduling.select"):
+            frame = self.views.select(self.rng)
         sample = self.supervision.sample(frame, self.fidelity.scale() if scale is None else scale, self.rng,
                                          self.device)
         with self._threads(sample.camera.pixels):
@@ -186,22 +179,30 @@ class Reconstructor(ReconstructorState):
         self.view, out = self._draw_view(frame.T_world_cam, cam, low_pass)
         self.last_in_view = len(self.view)
         self.gmap.note_supervision(sample.fitted)
-        terms = self.growth.step_terms(self.ctx)
-        error = self.kernels.backward(out, color, depth, self.config.optim.loss, self.view, terms)
-        self.kernels.step(self.gmap, self.view, terms)
-        self.growth.post_step(frame, out, depth, cam, self.ctx)
+        ctx = self.context()
+        terms = self.growth.step_terms(ctx)
+        with self.timing.sub("update.backward"):
+            error = self.kernels.backward(out, color, depth, self.config.optim.loss, self.view, terms)
+        with self.timing.sub("update.step"):
+            self.kernels.step(self.gmap, self.view, terms)
+        with self.timing.sub("update.mcmc"):
+            self.growth.post_step(frame, out, depth, cam, ctx)
         self.view = None
-        self.views.feedback(frame, out, error, depth, cam)
+        with self.timing.sub("scheduling.feedback"):
+            self.views.feedback(frame, out, error, depth, cam)
 
     def _draw_view(self, T_world_cam, cam: Camera, low_pass: float):
         """(view, render) of the rows that can reach ``cam`` at ``T_world_cam``, the view's leaves requiring grad.
-        A fused view that held fewer rows than
-        passed its test (known once the render synchronised) is selected again with room for them all."""
+        A fused view that held fewer rows than passed its test (known once the render synchronised) is selected
+        again with room for them all."""
         capacity = 0
         for _ in range(2):
-            view = self.kernels.select(self.gmap, cam, T_world_cam, low_pass, cull=self.config.optim.cull,
-                                       capacity=capacity)
-            out = self.renderer.render(*view.render_args(), cam, T_world_cam, self._background, low_pass=low_pass)
+            with self.timing.sub("update.select"):
+                view = self.kernels.select(self.gmap, cam, T_world_cam, low_pass, cull=self.config.optim.cull,
+                                           capacity=capacity)
+            with self.timing.sub("render"):
+                out = self.renderer.render(*view.render_args(), cam, T_world_cam, self._background,
+                                           low_pass=low_pass)
             if not view.overflowed():
                 break
             capacity = view.hits()
@@ -220,7 +221,7 @@ class Reconstructor(ReconstructorState):
 
     def policy_counters(self) -> dict:
         """Each policy's name and what it decided so far (admissions, seeds, insertions, relocations, scales)."""
-        counters = {kind: {"policy": p.name, **p.counters()} for kind, p in self._policies()}
+        counters = {kind: {"policy": p.name, **p.counters()} for kind, p in self.state.policies()}
         return {**counters, "fixed_work": {"policy": self.fixed_work.name, **self.fixed_work.counters()},
                 "supervision": {"policy": self.supervision.name, **self.supervision.counters()}}
 
@@ -229,32 +230,57 @@ class Reconstructor(ReconstructorState):
         return time.perf_counter() - self.stats.excluded_s
 
     def warmup(self) -> float:
-        """Render a one-Gaussian scene and back-propagate the supervision loss through it, so that first-use costs
-        (numba compilation or cache load for ``cpu`` and the CPU D-SSIM, CUDA kernel loading for ``gsplat``) are
-        paid before a live stream starts rather than on its first frames. Returns the seconds it took; the map is
-        untouched. With an explicit ``gsplat`` renderer whose extension is not built yet, this includes gsplat's
-        one-time JIT compile (minutes), which is logged when it starts and ends (``auto`` compiles it when it
-        chooses the renderer instead)."""
-        t0 = time.perf_counter()
-        dev = self.device
-        means = torch.tensor([[0.0, 0.0, 1.0]], device=dev, requires_grad=True)
-        quats = torch.tensor([[1.0, 0.0, 0.0, 0.0]], device=dev)
-        scales, colors = torch.full((1, 3), 0.1, device=dev), torch.full((1, 3), 0.5, device=dev)
-        opacities = torch.full((1,), 0.5, device=dev)
-        out = self.renderer.render(means, quats, scales, opacities, colors, Camera(16, 16, 16.0, 16.0, 7.5, 7.5),
-                                   np.eye(4), self._background)
-        loss = supervision_loss(out, torch.zeros_like(out.color), torch.ones_like(out.depth), self.config.optim.loss)[0]
-        (loss + out.alpha.sum()).backward()  # the loss's own compiled kernels (D-SSIM on the CPU) load here too
-        return time.perf_counter() - t0
+        """Pay first-use costs (numba compilation or cache load, the CPU D-SSIM, CUDA kernel loading; an explicit
+        ``gsplat`` whose extension is not built yet compiles it here, logged) before a live stream starts, by one
+        render and backward of a one-Gaussian scene (:func:`.optim.warmup.warm_up`). Returns the seconds; the map is
+        untouched."""
+        from ..optim.warmup import warm_up
+
+        return warm_up(self.renderer, self.config.optim.loss, self.device, self._background)
 
     def calibrate(self, frames=None, *, cache: bool = True, **kw):
         """Fit the budget's cost model to this machine, device and renderer: time a few updates at each
         supervision scale in a scratch Reconstructor (this one's map is untouched) on ``frames`` (Frames with
         poses; default: the embedded synthetic room at this camera's size). With ``cache``, the fit is cached per
         machine/device/renderer under the user's cache directory and reused. Returns (CostModel, info)."""
-        from .budget.calibrate import cached_cost_model, calibrate
+        from ..budget.calibrate import cached_cost_model, calibrate
 
         return cached_cost_model(self, frames, **kw) if cache else calibrate(self, frames, **kw)
+
+    # ---- state and checkpoints ------------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """Everything the next decisions depend on (:meth:`.state.MapperState.state_dict`)."""
+        return self.state.state_dict()
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`'s output; transactional (:meth:`.state.MapperState.load_state_dict`)."""
+        self.state.load_state_dict(state)
+
+    def save(self, path: str | Path, *, extra: dict | None = None, sequence=None) -> Path:
+        """Checkpoint the state to ``path`` atomically; ``extra``: a caller's dict; ``sequence``: its frames by reference."""
+        return save_checkpoint(self.state_dict(), path, extra=extra, sequence=sequence)
+
+    @classmethod
+    def load(cls, path: str | Path, device: str | None = None, *, sequence=None, pose_source=None,
+             setup: Callable[["Reconstructor"], None] | None = None) -> "Reconstructor":
+        """A Reconstructor restored from :meth:`save`'s checkpoint, continuing where it stopped (:func:`.restore`)."""
+        return cls.from_checkpoint(read_checkpoint(path, sequence=sequence), device, pose_source=pose_source,
+                                   setup=setup)
+
+    @classmethod
+    def from_checkpoint(cls, ck: dict, device: str | None = None, *, pose_source=None,
+                        setup: Callable[["Reconstructor"], None] | None = None) -> "Reconstructor":
+        """A Reconstructor built from a decoded checkpoint (``read_checkpoint``'s dict; :func:`.checkpoints.restore`)."""
+        return restore(cls, ck, device, pose_source=pose_source, setup=setup)
+
+    def save_ply(self, path: str | Path) -> Path:
+        """Write the map as a standard 3DGS PLY (atomic replace)."""
+        return save_ply(self.gmap, path)
+
+    def load_ply(self, path: str | Path) -> None:
+        """Replace the map with the Gaussians of a 3DGS PLY (optimizer state starts fresh)."""
+        self.gmap = load_ply(path, self.device, self.config.optim.lrs, self.config.optim.adam)
+        self.config.sh_degree = self.gmap.sh_degree
 
     # ---- rendering -------------------------------------------------------------------------------------
     def _render(self, camera: Camera, T_world_cam, low_pass: float = EPS2D) -> RenderOutput:
@@ -263,8 +289,9 @@ class Reconstructor(ReconstructorState):
         with torch.no_grad():
             view = self.kernels.select(self.gmap, camera, T_world_cam, low_pass, cull=self.config.optim.cull,
                                        grad=False)
-            return self.renderer.render(*view.render_args(), camera, T_world_cam, self._background,
-                                        low_pass=low_pass)
+            with self.timing.sub("render"):
+                return self.renderer.render(*view.render_args(), camera, T_world_cam, self._background,
+                                            low_pass=low_pass)
 
     @torch.no_grad()
     def render(self, pose, intrinsic: o3d.camera.PinholeCameraIntrinsic | Camera | None = None,
@@ -279,34 +306,7 @@ class Reconstructor(ReconstructorState):
         out.color = out.color.clamp(0.0, 1.0)
         return out
 
-    # ---- input -----------------------------------------------------------------------------------------
-    def _to_frame(self, rgbd, pose, timestamp) -> Frame:
-        index = self.stats.frames_released
-        ts = float(timestamp) if timestamp is not None else index * self.config.clock.frame_period_s
-        if isinstance(rgbd, Frame):
-            frame = rgbd
-            if pose is not None:
-                frame.T_world_cam = self._checked(pose, frame.index)
-        else:
-            given = np.eye(4) if pose is None else pose  # no pose: decoded at the identity, then tracked
-            frame = Frame.from_rgbd(rgbd, self.camera, given, depth_scale=self.config.depth_scale,
-                                    depth_max=self.config.depth_max, timestamp=ts, index=index)
-            if pose is None:
-                frame.T_world_cam = self.track(frame)
-        if frame.camera != self.camera:
-            raise FrameError(f"frame {frame.index}: camera {frame.camera} differs from the reconstructor's {self.camera}")
-        last = self.stats.last_timestamp
-        if last is not None and not frame.timestamp > last:
-            raise FrameError(f"frame {frame.index}: timestamp {frame.timestamp:g} s is not after the previous "
-                             f"frame's {last:g} s (timestamps must increase)")
-        return frame
-
-    def _checked(self, pose, index: int) -> np.ndarray:
-        try:
-            return check_pose(pose, f"frame {index}: pose")
-        except ValueError as e:
-            raise FrameError(str(e)) from None
-
+    # ---- tracking -----------------------------------------------------------------------------------------
     def track(self, frame: Frame, gt_pose: np.ndarray | None = None) -> np.ndarray:
         """``frame``'s T_world_cam from the pose source, timed as tracking. The first tracked frame is anchored at
         ``gt_pose`` when one is given (so the map lives in the ground truth's frame and fixed evaluation poses see
@@ -322,14 +322,14 @@ class Reconstructor(ReconstructorState):
         finally:
             self.stats.tracking_s += time.perf_counter() - t0
             self.timing.add("tracking", time.perf_counter() - t0)
-        T = self._checked(T, frame.index)
+        T = checked_pose(T, frame.index)
         self.stats.frames_tracked += 1
         return T if self.loops is None else track_corrected(self, frame, T)  # loop closure: pose.loop_closure
 
     # ---- geometry export -------------------------------------------------------------------------------
     def extract_point_cloud(self, min_opacity: float = 0.1, **kw) -> o3d.geometry.PointCloud:
         """Gaussian centres with SH-DC colour and normals (oriented toward the retained views' cameras)."""
-        from .export import extract_point_cloud
+        from ..export import extract_point_cloud
 
         kw.setdefault("poses", [f.T_world_cam for f in self.views.views])
         return extract_point_cloud(self.gmap, min_opacity, **kw)
@@ -338,7 +338,7 @@ class Reconstructor(ReconstructorState):
                               scale: float = 0.5, **kw) -> o3d.geometry.TriangleMesh:
         """TSDF mesh (Open3D VoxelBlockGrid) of depth and colour rendered from the map at ``poses``
         (default: the retained views' poses), rendered at ``scale`` of the camera with the map's low-pass."""
-        from .export import extract_triangle_mesh
+        from ..export import extract_triangle_mesh
 
         poses = [f.T_world_cam for f in self.views.views] if poses is None else list(poses)
         with torch.no_grad():
