@@ -25,7 +25,7 @@ from ..core.gaussians import EPS2D, GaussianMap
 from ..io.checkpoint import read_checkpoint, save_checkpoint
 from ..io.ply import load_ply, save_ply
 from ..kernels import get_kernels
-from ..pose.loop_closure import loop_closure_for, track_corrected
+from ..pose.loop_closure import finish_loops, loop_closure_for, track_corrected
 from ..render import RenderOutput, get_renderer
 from ..runtime.threads import TORCH_MIN_PIXELS, TORCH_MIN_ROWS, torch_threads
 from ..scheduling import MapContext, get_policies
@@ -74,7 +74,8 @@ class Reconstructor:
             cfg, camera, dev, gmap, views, fidelity, growth, rng=rng, offline_frames=offline,
             supervision=SupervisionGrid(cfg.supervision),  # area or point samples at reduced scales
             fixed_work=LoadScaledChecks(cfg.fixed_work),  # how much fixed work each frame gets, from the backlog
-            pose_source=pose_source, loops=loop_closure_for(cfg.loops, getattr(pose_source, "drifts", False), pose_source))
+            pose_source=pose_source, loops=loop_closure_for(cfg.loops, getattr(pose_source, "drifts", False),
+                                                            pose_source, cfg.clock.mode == "realtime"))
         self.frame_plan = FULL  # the current frame's plan (the policies' ``MapContext.plan``)
         self.callbacks: list[Callable[["Reconstructor"], None]] = []  # after every update; time excluded
         self.timing = StageTimes()  # wall seconds per stage (admission, growth, update, tracking): stage_times
@@ -85,8 +86,7 @@ class Reconstructor:
             install_means_lr_decay(self, fidelity, cfg.clock.offline_means_lr_final)
 
     def context(self) -> MapContext:
-        """The :class:`~eligsir_o3d.scheduling.MapContext` a policy's hook gets now: the map, the renderer, the
-        counters, the frame's plan, the seed scale, the running update's view and the stage timer."""
+        """The :class:`~eligsir_o3d.scheduling.MapContext` a policy's hook gets now (built for each call)."""
         count = self.kernels.count_in_view if self.config.optim.cull else None
         return MapContext(self.gmap, self._render, int(self.config.max_gaussians), count, self.stats.updates,
                           self.stats.frames_released, self.frame_plan,
@@ -142,7 +142,9 @@ class Reconstructor:
         return torch_threads(self.config.optim.torch_threads if small else 0)
 
     def finalize(self, deadline: float | None = None) -> None:
-        """The bounded drain (the paper's ME state): ``clock.drain_updates`` updates, or fewer by ``deadline``."""
+        """The bounded drain (the paper's ME state): ``clock.drain_updates`` updates, or fewer by ``deadline``, after
+        loop closure's last verification (the map follows the poses it corrects)."""
+        finish_loops(self)
         with self.views.drain():
             self.optimize(self.config.clock.drain_updates, deadline)
 
@@ -306,7 +308,6 @@ class Reconstructor:
         out.color = out.color.clamp(0.0, 1.0)
         return out
 
-    # ---- tracking -----------------------------------------------------------------------------------------
     def track(self, frame: Frame, gt_pose: np.ndarray | None = None) -> np.ndarray:
         """``frame``'s T_world_cam from the pose source, timed as tracking. The first tracked frame is anchored at
         ``gt_pose`` when one is given (so the map lives in the ground truth's frame and fixed evaluation poses see
@@ -326,7 +327,6 @@ class Reconstructor:
         self.stats.frames_tracked += 1
         return T if self.loops is None else track_corrected(self, frame, T)  # loop closure: pose.loop_closure
 
-    # ---- geometry export -------------------------------------------------------------------------------
     def extract_point_cloud(self, min_opacity: float = 0.1, **kw) -> o3d.geometry.PointCloud:
         """Gaussian centres with SH-DC colour and normals (oriented toward the retained views' cameras)."""
         from ..export import extract_point_cloud

@@ -7,12 +7,20 @@ candidates (:func:`.loops.candidates`) and verifies at most ``max_candidates`` o
 an accepted loop edge triggers one optimisation of the graph (:func:`.pose_graph.optimise`), whose line process
 may still prune it (then counted as rejected). After an optimisation, :meth:`LoopClosure.take_moves` hands the
 caller each keyframe whose corrected pose changed, so the map can follow.
+
+Verification (registration, the expensive part) runs on the mapper's thread, one candidate per frame, or, with
+``background``, on one worker thread (Open3D releases the GIL while it registers): a frame then only submits the
+next candidate and takes a finished result, so a real-time stream never waits for a registration, at the price
+of results arriving a few frames later (when depends on the machine, so background verification is for real-time
+runs; replays on a deterministic clock verify on the mapper's thread). :meth:`LoopClosure.finish` waits for the
+last one at the end of the stream.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,21 +40,26 @@ class LoopClosureConfig:
     """Keyframes, loop candidates and their registration test."""
     graph: GraphConfig = field(default_factory=GraphConfig)
     """The pose graph's optimisation."""
+    background: str = "auto"
+    """Verify loop candidates on a worker thread: auto (on under the real-time clock and in live runs), on, off."""
 
 
-def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None) -> "LoopClosure | None":
+def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None, realtime: bool = False) -> "LoopClosure | None":
     """The loop-closure policy of a run (None where it is off: poses given, or ``enabled = off``); ``source``:
-    the pose source, or its name (one of ``detect.loose_sources`` gets the looser fitness test)."""
+    the pose source, or its name (one of ``detect.loose_sources`` gets the looser fitness test); ``realtime``: the
+    run is on the real-time clock (``background = auto`` verifies on a worker thread then)."""
     source = getattr(source, "name", source) or ""
-    mode = str(cfg.enabled).lower()
+    mode, background = str(cfg.enabled).lower(), str(cfg.background).lower()
     if mode not in ("auto", "on", "off"):
         raise ValueError(f"loops.enabled must be auto, on or off, got {cfg.enabled!r}")
+    if background not in ("auto", "on", "off"):
+        raise ValueError(f"loops.background must be auto, on or off, got {cfg.background!r}")
     if mode == "off" or (mode == "auto" and not tracked):
         return None
     detect = cfg.detect
     if source and source in [s.strip() for s in detect.loose_sources.split(",")]:
         detect = dataclasses.replace(detect, min_fitness=detect.min_fitness_loose)
-    return LoopClosure(detect, cfg.graph)
+    return LoopClosure(detect, cfg.graph, background=background == "on" or (background == "auto" and realtime))
 
 
 class LoopClosure:
@@ -59,8 +72,11 @@ class LoopClosure:
 
     name = "loop-closure"
 
-    def __init__(self, loops: LoopConfig | None = None, graph: GraphConfig | None = None):
+    def __init__(self, loops: LoopConfig | None = None, graph: GraphConfig | None = None, *, background: bool = False):
         self.cfg = loops or LoopConfig()
+        self.background = bool(background)
+        self._job: tuple[int, int, Future] | None = None  # (keyframe, candidate, its verification on the worker)
+        self._worker: ThreadPoolExecutor | None = None  # made on first use
         self.graph_cfg = graph or GraphConfig()
         self.keys: list[Keyframe] = []
         self.corrected: list[np.ndarray] = []  # per keyframe, T_world_cam after the last optimisation
@@ -72,7 +88,8 @@ class LoopClosure:
         self.summary: dict = {}  # ATE before and after, where the run has ground truth (run.poses.loop_closed)
         self.counts = {"keyframes": 0, "candidates": 0, "verified": 0, "rejected_registration": 0,
                        "rejected_graph": 0, "accepted": 0, "optimisations": 0}
-        self.seconds = 0.0
+        self.seconds = 0.0  # on the mapper's thread
+        self.worker_seconds = 0.0  # verification on the worker thread
         self.injected: list[tuple[int, np.ndarray]] = []  # test hook: (frame index, wrong T_target_source)
         self.pending: list[tuple[int, int]] = []  # (keyframe, candidate) pairs waiting for verification
         self._moves: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -130,21 +147,56 @@ class LoopClosure:
             self.keys[old].local_cloud = None
 
     def _verify_pending(self) -> bool:
-        """Verify up to ``per_frame`` waiting candidates (a bounded slice of work per frame); True when one was
-        accepted as a loop edge."""
+        """Verify up to ``per_frame`` waiting candidates (a bounded slice of work per frame), or with
+        ``background`` take the worker's finished result and hand it the next; True when one was accepted as a
+        loop edge."""
+        if self.background:
+            return self._verify_in_background()
         found = False
         for _ in range(min(self.cfg.per_frame, len(self.pending))):
             k, j = self.pending.pop(0)
-            result = verify(self.keys, self.corrected, k, j, self.cfg)
-            result = self._maybe_injected(result)
-            self.counts["verified"] += 1
-            self.log.append(_row(result, self.keys))
-            if not result.accepted:
-                self.counts["rejected_registration"] += 1
-                continue
-            self.loop_edges.append(Edge(k, j, result.transform, result.information, True))
-            found = True
+            found |= self._take(verify(self.keys, self.corrected, k, j, self.cfg))
         return found
+
+    def _verify_in_background(self, wait: bool = False) -> bool:
+        found = False
+        if self._job is not None and (wait or self._job[2].done()):
+            result, seconds = self._job[2].result()
+            self.worker_seconds += seconds
+            self._job = None
+            found = self._take(result)
+        if self._job is None and self.pending and not wait:
+            k, j = self.pending.pop(0)
+            if self._worker is None:
+                self._worker = ThreadPoolExecutor(1, thread_name_prefix="eligsir-loops")
+            # the keyframe list grows by appending and poses are copied: the worker reads a consistent snapshot
+            self._job = (k, j, self._worker.submit(_timed_verify, list(self.keys), [T.copy() for T in self.corrected],
+                                                   k, j, self.cfg))
+        return found
+
+    def finish(self) -> None:
+        """At the end of the stream: wait for a verification still on the worker and, if it closed a loop,
+        optimise (:meth:`take_moves` then has the moves)."""
+        t0 = time.perf_counter()
+        try:
+            if self._job is not None and self._verify_in_background(wait=True):
+                self._optimise()
+        finally:
+            self.seconds += time.perf_counter() - t0
+            if self._worker is not None:
+                self._worker.shutdown(wait=False)
+                self._worker = None
+
+    def _take(self, result: LoopResult) -> bool:
+        """Count and log one verification; an accepted one becomes a loop edge (True)."""
+        result = self._maybe_injected(result)
+        self.counts["verified"] += 1
+        self.log.append(_row(result, self.keys))
+        if not result.accepted:
+            self.counts["rejected_registration"] += 1
+            return False
+        self.loop_edges.append(Edge(result.source, result.target, result.transform, result.information, True))
+        return True
 
     def _maybe_injected(self, result: LoopResult) -> LoopResult:
         for index, T in self.injected:
@@ -200,7 +252,8 @@ class LoopClosure:
         return {"policy": self.name, "keyframes": c["keyframes"], "loops_found": c["verified"],
                 "loops_accepted": c["accepted"], "loops_rejected": c["rejected_registration"] + c["rejected_graph"],
                 "rejected_by_registration": c["rejected_registration"], "rejected_by_graph": c["rejected_graph"],
-                "optimisations": c["optimisations"], "seconds": self.seconds, **self.summary}
+                "optimisations": c["optimisations"], "seconds": self.seconds, "background": self.background,
+                "worker_seconds": self.worker_seconds, **self.summary}
 
     # ---- state -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -211,7 +264,8 @@ class LoopClosure:
         edges = [{"source": e.source, "target": e.target, "transform": e.transform, "information": e.information}
                  for e in self.loop_edges]
         return {"keys": keys, "corrected": [T.copy() for T in self.corrected], "odo_info": list(self.odo_info),
-                "loop_edges": edges, "pruned": sorted(self.pruned), "pending": [list(p) for p in self.pending],
+                "loop_edges": edges, "pruned": sorted(self.pruned),
+                "pending": [list(p) for p in ([self._job[:2]] if self._job else []) + self.pending],  # running first
                 "counts": dict(self.counts),
                 "seconds": self.seconds, "frames": {int(i): [k, rel.copy()] for i, (k, rel) in self.frames.items()},
                 "raw": {int(i): T.copy() for i, T in self.raw.items()}, "log": list(self.log)}
@@ -239,6 +293,11 @@ class LoopClosure:
         self._moves = {}
 
 
+def _timed_verify(keys, poses, k: int, j: int, cfg: LoopConfig) -> tuple[LoopResult, float]:
+    t0 = time.perf_counter()
+    return verify(keys, poses, k, j, cfg), time.perf_counter() - t0
+
+
 def _row(r: LoopResult, keys: list[Keyframe]) -> dict:
     return {"frame": keys[r.source].index, "with": keys[r.target].index, "fitness": round(r.fitness, 4),
             "rmse_m": round(r.rmse, 5), "shift_m": round(r.shift, 4), "turn_deg": round(r.turn_deg, 3),
@@ -249,17 +308,34 @@ def track_corrected(rec, frame, T_raw: np.ndarray) -> np.ndarray:
     """A Reconstructor's tracked pose ``T_raw`` of ``frame`` through its loop closure ``rec.loops``: the
     corrected pose; after an optimisation the map follows (anchored Gaussians and retained views move). The time
     is the ``loops`` stage's and counts as tracking; new Gaussians are anchored to the current keyframe."""
-    from ..core.anchors import move_anchored
-
     t0 = time.perf_counter()
     with rec.timing("loops"):
         T = rec.loops.on_frame(frame.index, T_raw, frame.depth, frame.camera)
-        moves = rec.loops.take_moves()
-        if moves:
-            move_anchored(rec.gmap, moves)
-            for view in rec.views.views:
-                view.T_world_cam = rec.loops.pose_of(view.index, view.T_world_cam)
-            rec.views.poses_moved()
-        rec.gmap.anchor_view = rec.loops.anchor
+        _follow(rec)
     rec.stats.tracking_s += time.perf_counter() - t0
     return T
+
+
+def finish_loops(rec) -> None:
+    """At the end of a Reconstructor's stream: its loop closure's last background verification taken
+    (:meth:`LoopClosure.finish`) and the map moved where it closed a loop; nothing without loop closure."""
+    if rec.loops is None:
+        return
+    t0 = time.perf_counter()
+    with rec.timing("loops"):
+        rec.loops.finish()
+        _follow(rec)
+    rec.stats.tracking_s += time.perf_counter() - t0
+
+
+def _follow(rec) -> None:
+    """The map follows the keyframes the last optimisation moved; new Gaussians anchor to the current keyframe."""
+    from ..core.anchors import move_anchored
+
+    moves = rec.loops.take_moves()
+    if moves:
+        move_anchored(rec.gmap, moves)
+        for view in rec.views.views:
+            view.T_world_cam = rec.loops.pose_of(view.index, view.T_world_cam)
+        rec.views.poses_moved()
+    rec.gmap.anchor_view = rec.loops.anchor

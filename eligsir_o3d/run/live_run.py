@@ -8,7 +8,8 @@ deliver frames at the recording's pace, as a camera would.
 
 :func:`run_live` maps such a stream against the wall clock: a capture thread puts frames in a bounded queue that
 drops its oldest frame when full (as the real-time replay clock does); the mapper takes the oldest waiting
-frame, tracks it (RGB-D odometry by default), integrates it and optimises until the next frame is due, and keeps
+frame, tracks it (RGB-D odometry by default; loop closure corrects the poses, verifying loops on a worker
+thread), integrates it and optimises until the next frame is due, and keeps
 optimising while nothing waits. When the stream ends (or ``max_frames`` / ``seconds`` is reached) it drains for
 a bounded time and writes ``map.ply``, ``trajectory.txt``, ``config.json`` and ``live.json`` to ``out``.
 
@@ -182,6 +183,7 @@ def _write_outputs(out: Path, rec, config, source: FrameSource, tracker, stats: 
     atomic_write_text(out / "config.json", json.dumps(config.to_dict(), indent=2))
     summary = {"source": source.name, **stats, "gaussians": len(rec.gmap), "updates": rec.stats.updates,
                "wall_s": time.perf_counter() - wall0, "tracking_ms_per_frame": tracker.ms_per_frame,
+               "loop_closure": None if rec.loops is None else rec.loops.counters(),
                "camera": {"width": source.camera.width, "height": source.camera.height, "fx": source.camera.fx,
                           "fy": source.camera.fy, "cx": source.camera.cx, "cy": source.camera.cy}}
     atomic_write_text(out / "live.json", json.dumps(summary, indent=1))
@@ -211,9 +213,11 @@ def _run_live(source: FrameSource, out: Path, config, *, pose: str, max_frames: 
     config = config or Config()
     source.start()
     config.depth_scale = float(source.depth_scale)
-    rec = Reconstructor(source.camera, config.device, config)
+    if str(config.loops.background).lower() == "auto":  # a live stream never waits for a loop's registration
+        config.loops.background = "on"
     tracker = get_pose_source(pose)
     tracker.prepare(None)
+    rec = Reconstructor(source.camera, config.device, config, pose_source=tracker)  # tracks, and closes loops
     rec.warmup()
     queue: deque = deque()
     stats = {"captured": 0, "dropped": 0, "integrated": 0, "lost": 0, "bad": 0}
@@ -245,7 +249,7 @@ def _run_live(source: FrameSource, out: Path, config, *, pose: str, max_frames: 
             try:
                 frame = Frame.from_rgbd(rgbd, source.camera, np.eye(4), depth_scale=config.depth_scale,
                                         depth_max=config.depth_max, timestamp=ts, index=index)
-                frame.T_world_cam = tracker.track(index, ts, frame.color, frame.depth, frame.camera)
+                frame.T_world_cam = rec.track(frame)  # the tracker's pose, corrected by loop closure
                 if queue:  # behind: one update, then the next frame (as the real-time replay clock does)
                     rec.integrate(frame, updates=1)
                 else:
@@ -260,10 +264,11 @@ def _run_live(source: FrameSource, out: Path, config, *, pose: str, max_frames: 
                 continue
             stats["integrated"] += 1
             stamps.append(ts)
-            poses.append(frame.T_world_cam)
+            poses.append((frame.index, frame.T_world_cam))
     finally:
         done.set()
         thread.join(timeout=5.0)
         source.stop()
     rec.finalize(rec.clock_now() + drain_s)
+    poses = [T if rec.loops is None else rec.loops.pose_of(i, T) for i, T in poses]  # the final loop-closed poses
     return _write_outputs(out, rec, config, source, tracker, stats, stamps, poses, wall0)

@@ -37,7 +37,7 @@ class LiveView:
         self.push_s = 0.0  # seconds spent in pushes (inside the excluded callback time)
         self._last = -math.inf
         self._frame = None
-        self._centres: list[np.ndarray] = []
+        self._path: list[tuple[int, np.ndarray]] = []  # (frame index, T_world_cam as integrated)
         self._new_client = False
         self._started = False
         server = self.viewer.server
@@ -60,7 +60,7 @@ class LiveView:
     def observe(self, frame) -> None:
         """A frame was released to the mapper: it is the current camera."""
         self._frame = frame
-        self._centres.append(np.asarray(frame.T_world_cam, dtype=np.float64)[:3, 3].copy())
+        self._path.append((int(frame.index), np.asarray(frame.T_world_cam, dtype=np.float64).copy()))
 
     def on_update(self, rec) -> None:
         now = time.perf_counter()
@@ -89,8 +89,8 @@ class LiveView:
             v.camera = f.camera
             scale = 0.05 * v.scene_size
             v._frustum("/live/camera", T, f.camera, (240, 60, 40), scale, image=_thumbnail(f.color))
-            if len(self._centres) > 1:
-                c = np.stack(self._centres)
+            if len(self._path) > 1:
+                c = self.path_centres(rec)
                 v.server.scene.add_line_segments("/live/path", np.stack([c[:-1], c[1:]], 1), colors=(230, 120, 30),
                                                  thickness=2.0, thickness_units="screen")
             if self._follow.value:
@@ -99,6 +99,13 @@ class LiveView:
         self._status.content = (f"mapping: frame {getattr(f, 'index', '-')}, {len(splats)} Gaussians, "
                                 f"{rec.stats.updates} updates")
         self.pushes += 1
+
+    def path_centres(self, rec) -> np.ndarray:
+        """[n, 3] camera centres of the frames so far, at their poses now: where loop closure (``rec.loops``)
+        corrected them, the path jumps into place at the next push."""
+        loops = getattr(rec, "loops", None)
+        poses = [T if loops is None else loops.pose_of(i, T) for i, T in self._path]
+        return np.stack([T[:3, 3] for T in poses])
 
     def show_results(self, out_dir: str | Path) -> None:
         """Replace the live scene with the saved map of a finished run (splats, cameras, go-to buttons)."""

@@ -104,6 +104,64 @@ def test_state_round_trip(room):
     assert lc.counters() == {**other.counters(), "seconds": lc.counters()["seconds"]}
 
 
+def test_background_verification_closes_the_loop_as_well(room):
+    """With ``background`` the registrations run on a worker thread and a frame takes the result the next frame
+    finds finished; after :meth:`finish` (the end of the stream) the last frame is as close to the truth as with
+    verification inline. (Here each frame lets the worker finish first, so that the run does not depend on the
+    machine's speed: the results arrive one frame late.)"""
+    seq, depths, poses = room
+    lc = LoopClosure(_config(), background=True)
+    raw = drifted(poses)
+    for i in range(N):
+        lc.on_frame(i, raw[i], depths[i], seq.camera)
+        if lc._job is not None:
+            lc._job[2].result()  # a frame period long enough for one registration
+    lc.finish()
+    assert lc._job is None and lc._worker is None
+    after = _err(poses[-1], lc.pose_of(N - 1, raw[-1]))
+    c = lc.counters()
+    assert c["background"] and c["worker_seconds"] > 0 and c["loops_accepted"] >= 1, c
+    assert after[0] < 0.01 and after[1] < 0.5, after
+
+
+def test_a_checkpoint_keeps_the_candidate_the_worker_is_verifying(room):
+    seq, depths, poses = room
+    lc = LoopClosure(_config(), background=True)
+    raw = drifted(poses)
+    i = 0
+    while lc._job is None:
+        lc.on_frame(i, raw[i], depths[i], seq.camera)
+        i += 1
+    running = list(lc._job[:2])
+    state = lc.state_dict()
+    assert state["pending"][0] == running  # re-verified after a resume, not lost
+    lc.finish()
+
+
+def test_background_follows_the_clock_unless_set():
+    cfg = LoopClosureConfig()
+    assert not loop_closure_for(cfg, tracked=True).background  # a deterministic replay verifies inline
+    assert loop_closure_for(cfg, tracked=True, realtime=True).background
+    assert not loop_closure_for(LoopClosureConfig(background="off"), tracked=True, realtime=True).background
+    assert loop_closure_for(LoopClosureConfig(background="on"), tracked=True).background
+    with pytest.raises(ValueError, match="loops.background"):
+        loop_closure_for(LoopClosureConfig(background="maybe"), tracked=True)
+
+
+def test_the_live_path_is_drawn_at_the_loop_closed_poses():
+    """The live view's path (visual.live.LiveView.path_centres) takes each frame's pose now, so a loop closure
+    moves the drawn path at the next push."""
+    from types import SimpleNamespace
+
+    from eligsir_o3d.visual.live import LiveView
+
+    view = LiveView.__new__(LiveView)  # no server: only the path
+    view._path = [(i, np.eye(4)) for i in range(3)]
+    shifted = lambda i, T: T @ np.array([[1, 0, 0, 0.1 * i], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+    assert np.allclose(view.path_centres(SimpleNamespace(loops=None))[:, 0], 0.0)
+    assert np.allclose(view.path_centres(SimpleNamespace(loops=SimpleNamespace(pose_of=shifted)))[:, 0], [0, 0.1, 0.2])
+
+
 def test_on_only_for_trackers():
     cfg = LoopClosureConfig()
     assert loop_closure_for(cfg, tracked=False) is None
