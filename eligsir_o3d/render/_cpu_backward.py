@@ -7,11 +7,54 @@ the forward and backward kernels of a render must use the same shape (the forwar
 from __future__ import annotations
 
 import numpy as np
-from numba import prange
+from llvmlite import ir
+from numba import prange, types
+from numba.extending import intrinsic
 
 from ..runtime.jit import compile_kernel as _compile
-from ._cpu_kernels import ALPHA_MAX, ALPHA_MIN, HALF, ONE, SOURCE_CRC, TILE, ZERO, conic_alpha, reaches
+from ._cpu_kernels import (ALPHA_MAX, ALPHA_MIN, HALF, ISECT_COLS, ONE, SOURCE_CRC, TILE, ZERO, conic_alpha,
+                           reaches)
 
+CHANNELS = 10  # gradient channels per intersection: mean x, y, conic a, b, c, opacity, 4 features
+assert CHANNELS <= ISECT_COLS == 16
+
+
+def _pair_halves(builder, x, y, h):
+    """Lanes of x then y in groups of 2h, each group's first h lanes plus its last h: ``z[g h + q] = w[2 g h + q] +
+    w[2 g h + q + h]`` over the concatenation w of x and y (16 lanes each), the same additions as a scalar
+    ``a[q] += a[q + h]`` over every group."""
+    lo = [g * 2 * h + q for g in range(16 // h) for q in range(h)]
+    hi = [i + h for i in lo]
+    i32 = ir.IntType(32)
+    mask = [ir.Constant(ir.VectorType(i32, 16), [ir.Constant(i32, i) for i in m]) for m in (lo, hi)]
+    return builder.fadd(builder.shuffle_vector(x, y, mask[0]), builder.shuffle_vector(x, y, mask[1]))
+
+
+@intrinsic
+def add_pixel_sums(typingctx, dv, v_isect, row):
+    """v_isect[row, c] += the sum of dv[c, 0:16], for the CHANNELS rows of dv [CHANNELS, 16] (C order) and a
+    v_isect [M, 16] (C order; columns CHANNELS.. are scratch). The sums run in the pairwise order 16 -> 8 -> 4 -> 2 -> 1
+    (``dv[c, p] + dv[c, p + 8]``, then ``+ 4``, ``+ 2``, then lanes 0 + 1), written as vector shuffles and adds so
+    that the sums of all rows run side by side in whole registers (a scalar reduction per row was half of the
+    backward kernel). Lane for lane these are the additions of the scalar order, so the bits do not depend on the
+    target's vector width."""
+    sig = types.void(dv, v_isect, row)
+
+    def codegen(context, builder, signature, args):
+        v16 = ir.VectorType(ir.FloatType(), 16)
+        src = context.make_array(signature.args[0])(context, builder, args[0]).data
+        dst = context.make_array(signature.args[1])(context, builder, args[1]).data
+        base = builder.bitcast(src, v16.as_pointer())
+        rows = [builder.load(builder.gep(base, [ir.Constant(ir.IntType(64), c)], source_etype=v16), typ=v16,
+                             align=4) for c in range(CHANNELS)]
+        h = 8
+        while h >= 1:  # each step halves the partial sums per channel and packs twice the channels per register
+            rows = [_pair_halves(builder, rows[i], rows[min(i + 1, len(rows) - 1)], h) for i in range(0, len(rows), 2)]
+            h //= 2
+        at = builder.gep(builder.bitcast(dst, v16.as_pointer()), [args[2]], source_etype=v16)
+        builder.store(builder.fadd(builder.load(at, typ=v16, align=4), rows[0]), at, align=4)
+        return context.get_dummy_value()
+    return sig, codegen
 
 def make(bw: int, bh: int):
     """The backward kernel for blocks of bw x bh pixels (both divide the 16-pixel tile)."""
@@ -20,16 +63,16 @@ def make(bw: int, bh: int):
     NB = NBX * (TILE // bh)
     if NP != 16:
         raise ValueError(f"the backward kernel's pixel sum is written for 16-pixel blocks, not {bw}x{bh}")
-    H1, H2, H3 = NP // 2, NP // 4, NP // 8
     crc = SOURCE_CRC  # the helpers' source, in the cache key (see _cpu_kernels.SOURCE_CRC)
 
     def composite_backward(par, sub, sub_n, offsets, flat_ids, order, slots, tiles_x, width, height, final_T, last,
                            grad_feats, grad_alpha, v_isect, v):
         """Back-to-front gradients of the forward kernel, on the tiles it gathered (par, sub, sub_n).
 
-        grad_feats [H, W, 4], grad_alpha [H, W]: gradients of the accumulated outputs. Writes v_isect [M, 10], one
-        row per intersection: d/d(mean x, mean y, conic a, conic b, conic c, opacity, r, g, b, depth), and their
-        sums per Gaussian into v [N, 10] (after the tiles, in intersection order: deterministic).
+        grad_feats [H, W, 4], grad_alpha [H, W]: gradients of the accumulated outputs. Writes v_isect [M, ISECT_COLS],
+        one row per intersection: d/d(mean x, mean y, conic a, conic b, conic c, opacity, r, g, b, depth), then
+        scratch columns, and the sums of those 10 per Gaussian into v [N, 10] (after the tiles, in intersection order:
+        deterministic).
 
         Per pixel this is gsplat's backward: start from the final transmittance, walk the blended Gaussians back to
         front, recover each one's transmittance as ``T / (1 - alpha)`` and keep the running sums of what lies
@@ -38,6 +81,8 @@ def make(bw: int, bh: int):
         """
         if crc < 0:  # never (a checksum is >= 0); it makes crc a closure constant of the kernel
             return
+        if v_isect.shape[1] != ISECT_COLS or not v_isect.flags.c_contiguous:
+            raise ValueError("v_isect must be a C-ordered [M, ISECT_COLS] array")
         for task in prange(slots):
             lx = np.empty(NP, np.float32)
             ly = np.empty(NP, np.float32)
@@ -53,7 +98,7 @@ def make(bw: int, bh: int):
             b1 = np.empty(NP, np.float32)
             b2 = np.empty(NP, np.float32)
             b3 = np.empty(NP, np.float32)
-            dv = np.empty((10, NP), np.float32)
+            dv = np.empty((CHANNELS, NP), np.float32)
             for i in range(task, order.shape[0], slots):
                 t = order[i]
                 ty = t // tiles_x
@@ -61,7 +106,7 @@ def make(bw: int, bh: int):
                 s = offsets[t]
                 n = offsets[t + 1] - s
                 for k in range(n):  # this tile's rows (indexed, not a view: see gather_tile)
-                    for c in range(10):
+                    for c in range(ISECT_COLS):
                         v_isect[s + k, c] = ZERO
                 for sb in range(NB):
                     bx0 = tx * TILE + (sb % NBX) * bw
@@ -142,20 +187,11 @@ def make(bw: int, bh: int):
                             any_use = any_use | use
                         if not any_use:  # most of a block's list misses most of its pixels
                             continue
-                        # pairwise sum over the block's pixels, 16 -> 8 -> 4 -> 2 -> 1, in steps of constant length
-                        # (a loop over a varying length is vectorised with masked loads and stores on AVX2)
-                        for c in range(10):
-                            for p in range(H1):
-                                dv[c, p] += dv[c, p + H1]
-                            for p in range(H2):
-                                dv[c, p] += dv[c, p + H2]
-                            for p in range(H3):
-                                dv[c, p] += dv[c, p + H3]
-                            v_isect[s + k, c] += dv[c, 0] + dv[c, 1]
+                        add_pixel_sums(dv, v_isect, s + k)  # pairwise over the block's pixels
         v[:] = ZERO
         for i in range(flat_ids.shape[0]):
             g = flat_ids[i]
-            for c in range(10):
+            for c in range(CHANNELS):
                 v[g, c] += v_isect[i, c]
 
     return _compile(parallel=True)(composite_backward)

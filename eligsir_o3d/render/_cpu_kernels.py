@@ -169,6 +169,9 @@ def gather_shapes(m: int, n_tiles: int, block_pixels: int = 16) -> tuple:
 
 
 GATHER_DTYPES = (np.float32, np.int32, np.int64)
+# columns of the backward kernel's gradient row per intersection (v_isect): its 10 channels padded to one 16-float
+# vector, so that a block's pixel sums are added to the row in one vector operation
+ISECT_COLS = 16
 
 
 def gather_buffers(m: int, n_tiles: int, block_pixels: int = 16) -> tuple:
