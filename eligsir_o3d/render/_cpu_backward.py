@@ -2,6 +2,9 @@
 
 :func:`make` compiles it for one block shape (bw x bh pixels), a compile-time constant as in :mod:`._cpu_forward`;
 the forward and backward kernels of a render must use the same shape (the forward's walk counts are per block list).
+A block's per-Gaussian gradients (:data:`CHANNELS` rows of its pixels) are summed over the pixels by
+:func:`add_pixel_sums`, vector shuffles and adds that LLVM emits for the target's width, in the same pairwise order
+on every target.
 """
 
 from __future__ import annotations
@@ -36,8 +39,8 @@ def add_pixel_sums(typingctx, st, first, v_isect, row):
     [CHANNELS, 16] (st 1-D float32, first a multiple of 16), v_isect [M, 16] C-ordered (columns CHANNELS.. are
     scratch). The sums run in the pairwise order 16 -> 8 -> 4 -> 2 -> 1
     (``dv[c, p] + dv[c, p + 8]``, then ``+ 4``, ``+ 2``, then lanes 0 + 1), written as vector shuffles and adds so
-    that the sums of all rows run side by side in whole registers (a scalar reduction per row was half of the
-    backward kernel). Lane for lane these are the additions of the scalar order, so the bits do not depend on the
+    that the sums of all rows run side by side in whole registers (summed row by row in scalar code, they were the
+    kernel's largest part). Lane for lane these are the additions of the scalar order, so the bits do not depend on the
     target's vector width."""
     sig = types.void(st, first, v_isect, row)
 
