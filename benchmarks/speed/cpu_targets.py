@@ -152,7 +152,7 @@ def _time_compositing(row: dict, case: tuple, blocks: list[int], kern, best) -> 
                       np.empty((H, W), np.int32))
     off, fl = offsets.numpy(), flat.numpy()
     gf, ga = np.full((H, W, 4), 0.01, f32), np.full((H, W), 0.01, f32)
-    v = np.empty((fl.shape[0], 10), f32)
+    v = np.empty((fl.shape[0], getattr(k, "ISECT_COLS", 10)), f32)  # by code version: rows padded to a vector
     for blk in blocks:
         sfx = "" if blk == blocks[0] else f"_{blk}"
         comp = getattr(cb, "_compositors", None) or getattr(k, "compositors", None)  # by code version

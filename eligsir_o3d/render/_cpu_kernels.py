@@ -169,6 +169,9 @@ def gather_shapes(m: int, n_tiles: int, block_pixels: int = 16) -> tuple:
 
 
 GATHER_DTYPES = (np.float32, np.int32, np.int64)
+# columns of the backward kernel's gradient row per intersection (v_isect): its 10 channels padded to one 16-float
+# vector, so that a block's pixel sums are added to the row in one vector operation
+ISECT_COLS = 16
 
 
 def gather_buffers(m: int, n_tiles: int, block_pixels: int = 16) -> tuple:
@@ -229,11 +232,11 @@ def gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, n, x0, y
                 for p in range(bw * bh):
                     hit = hit | reaches(np.float32(x0 + bx * bw + p % bw), np.float32(y0 + by * bh + p // bw), mx, my,
                                         ca, cb, cc, smax)
-                if not hit:
-                    continue
+                # written whether or not it hits (the next entry overwrites a miss; a list has room for all n), so
+                # that the outcome, a coin flip in the box's border blocks, is not a branch to mispredict
                 j = by * nbx + bx
                 sub[base + j * n + sub_n[t, j]] = k
-                sub_n[t, j] += 1
+                sub_n[t, j] += 1 if hit else 0
 
 
 # The compositing kernels' parallel tasks: this many per thread, each taking every slots-th tile of the heaviest-first

@@ -111,7 +111,7 @@ def warmup() -> float:
         k.run(forward, means2d, conics, opac, feats, bounds, offsets, ids, order, 1, 1, w, h,
               out_f, out_a, out_T, out_last, *gathered)
         k.run(backward, *gathered, offsets, ids, order, 1, 1, w, h, out_T, out_last, np.ones((h, w, 4), f32),
-              np.ones((h, w), f32), np.empty((1, 10), f32), np.empty((1, 10), f32))
+              np.ones((h, w), f32), np.empty((1, k.ISECT_COLS), f32), np.empty((1, 10), f32))
         pk = _proj_kernels()
         V, cam = np.eye(4), np.array([5.0, 5.0, 4.0, 4.0, 8, 8, NEAR, EPS2D])
         means = np.array([[0.0, 0.0, 2.0]], f32)
@@ -163,7 +163,7 @@ class _Composite(torch.autograd.Function):
             grad_feats = torch.zeros(height, width, n_feat)
         if grad_alpha is None:
             grad_alpha = torch.zeros(height, width)
-        v_isect = torch.empty(flat_ids.shape[0], 6 + n_feat, dtype=torch.float32)
+        v_isect = torch.empty(flat_ids.shape[0], k.ISECT_COLS, dtype=torch.float32)
         v = torch.empty(n, 6 + n_feat, dtype=torch.float32)
         k.run(_compositors(block)[1], *ctx.gathered, offsets.numpy(), flat_ids.numpy(), order.numpy(),
               k.task_slots(order.shape[0]), tiles_x, width, height, out_T.numpy(), out_last.numpy(),
