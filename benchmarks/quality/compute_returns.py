@@ -104,7 +104,8 @@ def reconstructor_over(seq, cfg, poses: dict, views: list[int], start):
 
     rec = Reconstructor(seq.camera, "cpu", cfg)
     for i in views:
-        rec.views._admit(seq.frame(i, depth_max=cfg.depth_max, T_world_cam=poses[i]))
+        retain = getattr(rec.views, "retain", None) or rec.views._admit  # an older checkout: the private name
+        retain(seq.frame(i, depth_max=cfg.depth_max, T_world_cam=poses[i]))
     if isinstance(start, (str, Path)):
         rec.load_ply(start)
     else:

@@ -83,7 +83,7 @@ def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in
     cfg = Config(renderer="cpu")
     rec = Reconstructor(seq.camera, "cpu", cfg)
     for i in view_frames(in_view):
-        rec.views._admit(seq.frame(i, depth_max=rec.config.depth_max))
+        (getattr(rec.views, "retain", None) or rec.views._admit)(seq.frame(i, depth_max=rec.config.depth_max))
     rec.warmup()
     probe = _phases().ideal_loop()
     timing = _phases().phase_timer(rec) if phases else None

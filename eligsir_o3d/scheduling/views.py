@@ -122,9 +122,11 @@ class MapGuidedViews(ViewPolicy):
 
     def _admit(self, frame: Frame, ctx: MapContext) -> bool:
         with ctx.timing.sub("admission.view_bookkeeping"):
-            return self._retain(frame)
+            return self.retain(frame)
 
-    def _retain(self, frame: Frame) -> bool:
+    def retain(self, frame: Frame) -> bool:
+        """Retain ``frame`` as a training view without the admission test (its footprint cells, coverage and
+        priorities): what an admitted frame gets; tools and benchmarks that fix the views call it directly."""
         cells, weights = self.cells.footprint(frame.depth, frame.camera, frame.T_world_cam)
         self.cells.add_coverage(cells, 1)
         view = _View(frame, cells, weights)

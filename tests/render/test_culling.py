@@ -127,7 +127,7 @@ def _scene_rec(tmp_cull=True):
     T = _pose(0.2)
     color = torch.rand(CAM.height, CAM.width, 3, generator=torch.Generator().manual_seed(4))
     depth = torch.full((CAM.height, CAM.width), 2.0)
-    rec.views._admit(Frame(color, depth, CAM, T, 0.0, 0))
+    rec.views.retain(Frame(color, depth, CAM, T, 0.0, 0))
     return rec, T
 
 
