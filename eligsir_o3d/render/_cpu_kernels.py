@@ -155,28 +155,68 @@ def cull_bounds(conics, opacities, out):
 
 
 PAR = 11  # per tile intersection in the gathered table: mean x, mean y, conic a, b, c, opacity, sigma bound, features
+# records of the forward's blends that the backward reads (the record table): per (block, list entry) where some
+# pixel blended, the entry's tile-local index and its 16 pixels' exp(-sigma) (0 where the pixel did not blend), in
+# list order per block; the last RECORD_SPARE records are the tasks' scratch for tiles the table cannot hold
+RECORD_SPARE = 64
+RECORD_BYTES = 16 * 4 + 4
+RECORD_MAX_BYTES = 48 << 20  # tiles beyond this many bytes of records are not recorded: the backward recomputes them
 
 
-def gather_shapes(m: int, n_tiles: int, block_pixels: int = 16) -> tuple:
-    """Shapes of the tables :func:`gather_tile` fills over a render with ``m`` intersections and ``n_tiles`` tiles:
-    par [m, PAR] float32, sub [blocks * m] int32, sub_n [n_tiles, blocks] int64 (blocks = 256 / block pixels).
+def record_guess(m: int) -> int:
+    """Records to allocate for a render of ``m`` intersections before its need is known (the forward returns it)."""
+    return 2 * m
 
-    The forward kernel fills them and the backward kernel reads them, so a training render gathers each tile once.
-    ``sub`` has room for every Gaussian of a tile in every block of it; only the lists' entries are written, so the
-    pages that no list reaches cost address space, not memory."""
+
+def gather_shapes(m: int, n_tiles: int, block_pixels: int = 16, records: int | None = None) -> tuple:
+    """Shapes of the tables the forward kernel fills over a render with ``m`` intersections and ``n_tiles`` tiles:
+    par [m, PAR] float32, sub [blocks * m] int32, sub_n [n_tiles, blocks] int64 (blocks = 256 / block pixels), as
+    :func:`gather_tile` fills them; then the record table: values [(R + RECORD_SPARE) * 16] float32, tile-local
+    indices [R + RECORD_SPARE] int32 and per block its first record (-1: not recorded) and count [n_tiles,
+    2 * blocks] int64, for R = ``records`` (default :func:`record_guess`; at most :data:`RECORD_MAX_BYTES`).
+
+    The forward kernel fills them and the backward kernel reads them, so a training render gathers each tile once
+    and the backward takes each blend's exp(-sigma) from the forward. ``sub`` has room for every Gaussian of a tile
+    in every block of it; only the lists' entries are written, so the pages that no list reaches cost address
+    space, not memory."""
     blocks = TILE * TILE // block_pixels
-    return (m, PAR), (blocks * m,), (n_tiles, blocks)
+    r = record_guess(m) if records is None else records
+    r = min(r, RECORD_MAX_BYTES // RECORD_BYTES) + RECORD_SPARE
+    return (m, PAR), (blocks * m,), (n_tiles, blocks), (r * 16,), (r,), (n_tiles, 2 * blocks)
 
 
-GATHER_DTYPES = (np.float32, np.int32, np.int64)
+GATHER_DTYPES = (np.float32, np.int32, np.int64, np.float32, np.int32, np.int64)
 # columns of the backward kernel's gradient row per intersection (v_isect): its 10 channels padded to one 16-float
 # vector, so that a block's pixel sums are added to the row in one vector operation
 ISECT_COLS = 16
 
 
-def gather_buffers(m: int, n_tiles: int, block_pixels: int = 16) -> tuple:
+def gather_buffers(m: int, n_tiles: int, block_pixels: int = 16, records: int | None = None) -> tuple:
     """Fresh (empty) tables of :func:`gather_shapes`."""
-    return tuple(np.empty(s, d) for s, d in zip(gather_shapes(m, n_tiles, block_pixels), GATHER_DTYPES))
+    return tuple(np.empty(s, d) for s, d in zip(gather_shapes(m, n_tiles, block_pixels, records), GATHER_DTYPES))
+
+
+@_jit_serial
+def layout_records(order, sub_n, rec_i, cap):
+    """Place each tile's records in the table's first ``cap`` records (tiles in ``order``, while they fit): block b
+    of tile t starts at rec_i[t, b], with room for its sub_n[t, b] list entries; -1 where the tile is not
+    recorded. Returns the records every tile would take (the table a render needs)."""
+    nb = sub_n.shape[1]
+    need = 0
+    used = 0
+    for i in range(order.shape[0]):
+        t = order[i]
+        size = 0
+        for b in range(nb):
+            size += sub_n[t, b]
+        fits = used + size <= cap
+        at = used
+        for b in range(nb):
+            rec_i[t, b] = at if fits else -1
+            at += sub_n[t, b]
+        used += size if fits else 0
+        need += size
+    return need
 
 
 @_jit_serial
@@ -253,11 +293,12 @@ def task_slots(items: int) -> int:
     return max(1, min(items, SLOTS_PER_THREAD * numba.get_num_threads()))
 
 
-def run(kernel, *args) -> None:
-    """Call a kernel with chunks of one tile, so that idle cores take the next tile (dynamic load balance)."""
+def run(kernel, *args):
+    """Call a kernel with chunks of one tile, so that idle cores take the next tile (dynamic load balance); returns
+    what the kernel returns."""
     old = numba.set_parallel_chunksize(1)
     try:
-        kernel(*args)
+        return kernel(*args)
     finally:
         numba.set_parallel_chunksize(old)
 

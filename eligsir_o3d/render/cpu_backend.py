@@ -53,6 +53,7 @@ def _compositors(block: int | None = None):
 
 
 _pool = None
+_record_ratio = [0.0]  # records the last render needed per intersection (sizes the next one's record table)
 
 
 def _gather_pool():
@@ -144,11 +145,15 @@ class _Composite(torch.autograd.Function):
         out_alpha = torch.empty(height, width, dtype=torch.float32)
         out_T = torch.empty(height, width, dtype=torch.float32)
         out_last = torch.empty(height, width, dtype=torch.int32)
-        gathered = _gather_pool().take(*k.gather_shapes(flat_ids.shape[0], offsets.shape[0] - 1,
-                                                        block or k.default_block()))
-        k.run(forward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
+        n_isect = flat_ids.shape[0]
+        # the record table sized by the last render's need per intersection (the next one is much alike)
+        records = int(n_isect * _record_ratio[0] * 1.25) + 1 if _record_ratio[0] else None
+        gathered = _gather_pool().take(*k.gather_shapes(n_isect, offsets.shape[0] - 1, block or k.default_block(),
+                                                        records))
+        need = k.run(forward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
               flat_ids.numpy(), order.numpy(), k.task_slots(order.shape[0]), tiles_x, width, height,
               out_feats.numpy(), out_alpha.numpy(), out_T.numpy(), out_last.numpy(), *gathered)
+        _record_ratio[0] = need / max(n_isect, 1)
         ctx.save_for_backward(offsets, flat_ids, order, out_T, out_last)
         ctx.gathered = gathered  # the tiles as the forward kernel gathered them, for the backward kernel
         ctx.meta = (tiles_x, width, height, f.shape, [means2d.dtype, conics.dtype, opacities.dtype, feats.dtype], block)
