@@ -11,8 +11,30 @@ import numpy as np
 from numba import prange
 
 from ..runtime.jit import compile_kernel as _compile
-from ._cpu_kernels import (ALPHA_MIN, ONE, RECORD_SPARE, SOURCE_CRC, T_MIN, TILE, ZERO, conic_alpha, gather_tile,
-                           layout_records)
+from ._cpu_kernels import ALPHA_MIN, ONE, RECORD_SPARE, SOURCE_CRC, T_MIN, TILE, ZERO, conic_alpha, gather_tile
+
+
+@_compile(parallel=False)
+def layout_records(order, sub_n, rec_i, cap):
+    """Place each tile's records in the table's first ``cap`` records (tiles in ``order``, while they fit): block b
+    of tile t starts at rec_i[t, b], with room for its sub_n[t, b] list entries; -1 where the tile is not
+    recorded. Returns the records every tile would take (the table a render needs)."""
+    nb = sub_n.shape[1]
+    need = 0
+    used = 0
+    for i in range(order.shape[0]):
+        t = order[i]
+        size = 0
+        for b in range(nb):
+            size += sub_n[t, b]
+        fits = used + size <= cap
+        at = used
+        for b in range(nb):
+            rec_i[t, b] = at if fits else -1
+            at += sub_n[t, b]
+        used += size if fits else 0
+        need += size
+    return need
 
 
 def make(bw: int, bh: int):

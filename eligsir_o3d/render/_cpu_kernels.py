@@ -160,12 +160,12 @@ PAR = 11  # per tile intersection in the gathered table: mean x, mean y, conic a
 # list order per block; the last RECORD_SPARE records are the tasks' scratch for tiles the table cannot hold
 RECORD_SPARE = 64
 RECORD_BYTES = 16 * 4 + 4
-RECORD_MAX_BYTES = 48 << 20  # tiles beyond this many bytes of records are not recorded: the backward recomputes them
+RECORD_MAX_BYTES = 32 << 20  # tiles beyond this many bytes of records are not recorded: the backward recomputes them
 
 
 def record_guess(m: int) -> int:
     """Records to allocate for a render of ``m`` intersections before its need is known (the forward returns it)."""
-    return 2 * m
+    return 6 * m
 
 
 def gather_shapes(m: int, n_tiles: int, block_pixels: int = 16, records: int | None = None) -> tuple:
@@ -194,29 +194,6 @@ ISECT_COLS = 16
 def gather_buffers(m: int, n_tiles: int, block_pixels: int = 16, records: int | None = None) -> tuple:
     """Fresh (empty) tables of :func:`gather_shapes`."""
     return tuple(np.empty(s, d) for s, d in zip(gather_shapes(m, n_tiles, block_pixels, records), GATHER_DTYPES))
-
-
-@_jit_serial
-def layout_records(order, sub_n, rec_i, cap):
-    """Place each tile's records in the table's first ``cap`` records (tiles in ``order``, while they fit): block b
-    of tile t starts at rec_i[t, b], with room for its sub_n[t, b] list entries; -1 where the tile is not
-    recorded. Returns the records every tile would take (the table a render needs)."""
-    nb = sub_n.shape[1]
-    need = 0
-    used = 0
-    for i in range(order.shape[0]):
-        t = order[i]
-        size = 0
-        for b in range(nb):
-            size += sub_n[t, b]
-        fits = used + size <= cap
-        at = used
-        for b in range(nb):
-            rec_i[t, b] = at if fits else -1
-            at += sub_n[t, b]
-        used += size if fits else 0
-        need += size
-    return need
 
 
 @_jit_serial
