@@ -14,7 +14,9 @@ it: each tile's list is culled per block by the bounding box of the ellipse wher
 (conservatively, so the result is the same as walking the whole list; on a real scene this cuts the walk from ~540
 to ~80 Gaussians per pixel at 160x120). The forward kernel gathers each tile's Gaussians and block lists into tables
 (:func:`gather_shapes`) that the backward kernel reads, so a training render gathers once (the tables are reused
-from render to render: :mod:`.scratch`). The pixels of a block are processed together without branches, in float32
+from render to render: :mod:`.scratch`); it also records, per block list entry where a pixel blended, the pixels'
+exp(-sigma), so that the backward neither evaluates the conic and exp again nor walks the entries that no pixel
+blended (a bounded table: the tiles beyond it are evaluated again, with the same bits). The pixels of a block are processed together without branches, in float32
 only (int64 or bool lanes would narrow LLVM's vectors; conditional stores become masked stores, slow on AVX2), which
 LLVM turns into SIMD code at the target's width: one AVX-512 register, two AVX2 ones; exp is a branch-free
 polynomial within 2 ulp of float32 exp (the reference's exp differs from it by rounding only, so images agree to

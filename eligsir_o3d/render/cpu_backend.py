@@ -5,8 +5,9 @@ Three steps, each the reference's twin and each tested against it:
   a hand-written backward pass, as a ``torch.autograd.Function`` (the torch version costs ~40% of a 160x120 render);
 - tile binning (:func:`bin_tiles_csr`): the reference's per-tile, front-to-back lists, compressed instead of padded;
 - compositing (:mod:`._cpu_forward`, :mod:`._cpu_backward`, shared parts in :mod:`._cpu_kernels`): forward and
-  backward kernels, as a ``torch.autograd.Function``; the forward's gathered tiles, which the backward reads, live
-  in tables reused from render to render (:mod:`.scratch`).
+  backward kernels, as a ``torch.autograd.Function``; the forward's gathered tiles and records of its blends, which
+  the backward reads, live in tables reused from render to render (:mod:`.scratch`), the record table sized by the
+  previous render's need.
 The kernels run in parallel on the threads numba may use (``NUMBA_NUM_THREADS`` / ``numba.set_num_threads``).
 Float32 throughout; inputs of other dtypes are cast and the gradients cast back. Background and depth
 normalisation stay in torch (:func:`.base.finish`), shared with every backend, and run when a render's colour or
