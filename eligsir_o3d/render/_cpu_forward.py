@@ -7,6 +7,7 @@ kernel of its own and the tests can run every shape the package may choose on an
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numba import prange
 
@@ -14,27 +15,20 @@ from ..runtime.jit import compile_kernel as _compile
 from ._cpu_kernels import ALPHA_MIN, ONE, RECORD_SPARE, SOURCE_CRC, T_MIN, TILE, ZERO, conic_alpha, gather_tile
 
 
-@_compile(parallel=False)
-def layout_records(order, sub_n, rec_i, cap):
-    """Place each tile's records in the table's first ``cap`` records (tiles in ``order``, while they fit): block b
-    of tile t starts at rec_i[t, b], with room for its sub_n[t, b] list entries; -1 where the tile is not
-    recorded. Returns the records every tile would take (the table a render needs)."""
-    nb = sub_n.shape[1]
-    need = 0
-    used = 0
-    for i in range(order.shape[0]):
-        t = order[i]
-        size = 0
-        for b in range(nb):
-            size += sub_n[t, b]
-        fits = used + size <= cap
-        at = used
-        for b in range(nb):
-            rec_i[t, b] = at if fits else -1
-            at += sub_n[t, b]
-        used += size if fits else 0
-        need += size
-    return need
+@numba.njit(inline="always", fastmath=False)
+def place_tile(sub_n, rec_i, t, used, end):
+    """Place tile t's records at ``used`` if they fit before ``end``: block b starts at rec_i[t, b], with room for
+    its sub_n[t, b] list entries; -1 where the tile is not recorded. Returns (the records it takes, whether they
+    fit)."""
+    size = 0
+    for b in range(sub_n.shape[1]):
+        size += sub_n[t, b]
+    fits = used + size <= end
+    at = used
+    for b in range(sub_n.shape[1]):
+        rec_i[t, b] = at if fits else -1
+        at += sub_n[t, b]
+    return size, fits
 
 
 def make(bw: int, bh: int):
@@ -61,7 +55,8 @@ def make(bw: int, bh: int):
         (accumulated features), out_alpha [H, W] (accumulated opacity), out_T [H, W] (final transmittance) and
         out_last [H, W] int32 (how far the pixel walked through its block's list), and the gathered tiles (par, sub,
         sub_n) and the records of the blends (rec_v, rec_k, rec_i: :func:`._cpu_kernels.gather_shapes`) that the
-        backward pass reads. Returns the records the render needs (the table holds the tiles that fit).
+        backward pass reads. Returns the records a table needs to hold every tile (each of the ``slots`` tasks
+        records its tiles in its share of the table while they fit).
 
         The pixels of a block advance through the block's list together, branch-free (one SIMD batch); a pixel
         whose compositing has stopped is masked out, and the block stops when all its pixels have. Every
@@ -70,7 +65,14 @@ def make(bw: int, bh: int):
         """
         if crc < 0:  # never (a checksum is >= 0); it makes crc a closure constant of the kernel
             return
-        for task in prange(slots):  # gather every tile first: the record table's layout needs the block lists
+        cap = rec_k.shape[0] - RECORD_SPARE
+        needs = np.zeros(slots, np.int64)
+        for task in prange(slots):
+            st = np.empty(11 * NP, np.float32)  # the block's per-pixel state, one array (below)
+            # each task's tiles take records from its own share of the table, while they fit
+            used = cap * task // slots
+            end = cap * (task + 1) // slots
+            spare = cap + task % RECORD_SPARE  # where a tile without records writes (never read)
             for i in range(task, order.shape[0], slots):
                 t = order[i]
                 ty = t // tiles_x
@@ -78,16 +80,9 @@ def make(bw: int, bh: int):
                 s = offsets[t]
                 gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, offsets[t + 1] - s, tx * TILE,
                             ty * TILE, bw, bh, par, sub, sub_n, t)
-        cap = rec_k.shape[0] - RECORD_SPARE
-        need = layout_records(order, sub_n, rec_i, cap)
-        for task in prange(slots):
-            st = np.empty(11 * NP, np.float32)  # the block's per-pixel state, one array (below)
-            spare = cap + task % RECORD_SPARE  # where a tile without records writes (never read)
-            for i in range(task, order.shape[0], slots):
-                t = order[i]
-                ty = t // tiles_x
-                tx = t - ty * tiles_x
-                s = offsets[t]
+                size, fits = place_tile(sub_n, rec_i, t, used, end)
+                used += size if fits else 0
+                needs[task] += size
                 for sb in range(NB):
                     bx0 = tx * TILE + (sb % NBX) * bw
                     by0 = ty * TILE + (sb // NBX) * bh
@@ -167,6 +162,6 @@ def make(bw: int, bh: int):
                             out_alpha[y, x] = st[WSUM + p]  # = 1 - T up to rounding; summed like the reference
                             out_T[y, x] = st[TR + p]
                             out_last[y, x] = np.int32(st[WALKED + p])
-        return need
+        return slots * needs.max()  # a table where every task's tiles fit in its share
 
     return _compile(parallel=True)(composite_forward)
