@@ -52,7 +52,7 @@ def test_records_and_recomputation_give_the_same_bits(seed):
     full, tables, need = _render(inputs, camera, None)
     rec_i = tables[5]
     nb = tables[2].shape[1]
-    assert need == tables[2].sum()  # room for every block list entry
+    assert need >= tables[2].sum()  # room for every block list entry
     assert (rec_i[:, :nb] >= 0).all() and rec_i[:, nb:].sum() > 0  # every tile recorded
     none, tables0, _ = _render(inputs, camera, 0)
     assert (tables0[5][:, :nb] == -1).all()  # no tile recorded: all evaluated again
