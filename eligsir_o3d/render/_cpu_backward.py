@@ -9,14 +9,12 @@ on every target.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 from llvmlite import ir
 from numba import prange, types
 from numba.extending import intrinsic
 
 from ..runtime.jit import compile_kernel as _compile
-
 from ._cpu_kernels import (ALPHA_MAX, ALPHA_MIN, HALF, ISECT_COLS, ONE, SOURCE_CRC, TILE, ZERO, conic_alpha,
                            reaches)
 
@@ -72,49 +70,14 @@ def make(bw: int, bh: int):
         raise ValueError(f"the backward kernel's pixel sum is written for 16-pixel blocks, not {bw}x{bh}")
     # Offsets of the per-pixel state in the block's scratch (one array, so that LLVM sees the rows cannot overlap, as
     # in the forward kernel): pixel centre x, y; how far the forward walked; transmittance; final transmittance;
-    # gradients of alpha and the 4 features; running sums of the features behind; a record's exp(-sigma); then the
-    # CHANNELS gradient rows.
-    LX, LY, WALKED, TR, TFIN, GA, G0, G1, G2, G3, B0, B1, B2, B3, VIS, DV = (i * NP for i in range(16))
-    STATE = 15 + CHANNELS
+    # gradients of alpha and the 4 features; running sums of the features behind; then the CHANNELS gradient rows.
+    LX, LY, WALKED, TR, TFIN, GA, G0, G1, G2, G3, B0, B1, B2, B3, DV = (i * NP for i in range(15))
+    STATE = 14 + CHANNELS
     crc = SOURCE_CRC  # the helpers' source, in the cache key (see _cpu_kernels.SOURCE_CRC)
 
-    @numba.njit(inline="always", fastmath=False)
-    def pixel_grads(st, p, dx, dy, vis, o_vis, alpha, use, ca, cb, cc, f0, f1, f2, f3):
-        """Pixel p's gradient rows for one Gaussian (dx, dy: pixel - mean; vis = exp(-sigma), o_vis = o vis, alpha
-        as :func:`._cpu_kernels.conic_alpha`; use: the forward blended it there), its running sums and its
-        transmittance in front of the Gaussian."""
-        ra = ONE / (ONE - alpha)
-        Tp = st[TR + p]
-        Tk = Tp * ra  # transmittance in front of Gaussian k
-        fac = alpha * Tk
-        g0, g1, g2, g3 = st[G0 + p], st[G1 + p], st[G2 + p], st[G3 + p]
-        v_alpha = st[TFIN + p] * ra * st[GA + p] + (f0 * Tk - st[B0 + p] * ra) * g0 \
-            + (f1 * Tk - st[B1 + p] * ra) * g1 + (f2 * Tk - st[B2 + p] * ra) * g2 \
-            + (f3 * Tk - st[B3 + p] * ra) * g3
-        # the alpha clamp passes no gradient to opacity and sigma
-        v_sigma = -o_vis * v_alpha if use & (o_vis <= ALPHA_MAX) else ZERO
-        # d sigma / d mean = -(conic @ (pixel - mean))
-        st[DV + p] = -v_sigma * (ca * dx + cb * dy)
-        st[DV + NP + p] = -v_sigma * (cb * dx + cc * dy)
-        st[DV + 2 * NP + p] = HALF * v_sigma * dx * dx
-        st[DV + 3 * NP + p] = v_sigma * dx * dy
-        st[DV + 4 * NP + p] = HALF * v_sigma * dy * dy
-        st[DV + 5 * NP + p] = vis * v_alpha if use & (o_vis <= ALPHA_MAX) else ZERO
-        fac = fac if use else ZERO
-        st[DV + 6 * NP + p] = fac * g0
-        st[DV + 7 * NP + p] = fac * g1
-        st[DV + 8 * NP + p] = fac * g2
-        st[DV + 9 * NP + p] = fac * g3
-        st[B0 + p] += f0 * fac
-        st[B1 + p] += f1 * fac
-        st[B2 + p] += f2 * fac
-        st[B3 + p] += f3 * fac
-        st[TR + p] = Tp * (ra if use else ONE)  # = Tk where used, Tp (exactly) where not
-
-    def composite_backward(par, sub, sub_n, rec_v, rec_k, rec_i, offsets, flat_ids, order, slots, tiles_x, width,
-                           height, final_T, last, grad_feats, grad_alpha, v_isect, v):
-        """Back-to-front gradients of the forward kernel, on the tiles it gathered (par, sub, sub_n) and the
-        records of its blends (rec_v, rec_k, rec_i).
+    def composite_backward(par, sub, sub_n, offsets, flat_ids, order, slots, tiles_x, width, height, final_T, last,
+                           grad_feats, grad_alpha, v_isect, v):
+        """Back-to-front gradients of the forward kernel, on the tiles it gathered (par, sub, sub_n).
 
         grad_feats [H, W, 4], grad_alpha [H, W]: gradients of the accumulated outputs. Writes v_isect [M, ISECT_COLS],
         one row per intersection: d/d(mean x, mean y, conic a, conic b, conic c, opacity, r, g, b, depth), then
@@ -124,11 +87,7 @@ def make(bw: int, bh: int):
         Per pixel this is gsplat's backward: start from the final transmittance, walk the blended Gaussians back to
         front, recover each one's transmittance as ``T / (1 - alpha)`` and keep the running sums of what lies
         behind. The pixels of a block run as one branch-free SIMD batch (float32 throughout, no conditional
-        stores); their per-Gaussian gradients are summed in a fixed pairwise order. A recorded block walks its
-        records (the list entries where some pixel blended, with each pixel's exp(-sigma) from the forward, 0 where
-        it did not blend: there the backward's own tests fail too); a block of a tile without records walks its
-        list as far as the forward did and evaluates each Gaussian again. Both give the same bits: an entry where
-        no pixel blended changes nothing.
+        stores); their per-Gaussian gradients are summed in a fixed pairwise order.
         """
         if crc < 0:  # never (a checksum is >= 0); it makes crc a closure constant of the kernel
             return
@@ -176,22 +135,6 @@ def make(bw: int, bh: int):
                             st[G2 + p] = ZERO
                             st[G3 + p] = ZERO
                         st[TFIN + p] = st[TR + p]
-                    at = rec_i[t, sb]
-                    if at >= 0:
-                        for e in range(rec_i[t, NB + sb] - 1, -1, -1):
-                            r = s + rec_k[at + e]
-                            mx, my, ca, cb, cc, o = par[r, 0], par[r, 1], par[r, 2], par[r, 3], par[r, 4], par[r, 5]
-                            f0, f1, f2, f3 = par[r, 7], par[r, 8], par[r, 9], par[r, 10]
-                            v0 = (at + e) * NP
-                            for p in range(NP):  # into the block's scratch first: the pixel loop then reads one array
-                                st[VIS + p] = rec_v[v0 + p]
-                            for p in range(NP):
-                                vis = st[VIS + p]
-                                o_vis = o * vis
-                                pixel_grads(st, p, st[LX + p] - mx, st[LY + p] - my, vis, o_vis,
-                                            min(ALPHA_MAX, o_vis), vis > ZERO, ca, cb, cc, f0, f1, f2, f3)
-                            add_pixel_sums(st, DV, v_isect, r)  # pairwise over the block's pixels
-                        continue
                     first = NB * s + sb * n
                     for j in range(j_end - 1, -1, -1):
                         k = sub[first + j]
@@ -213,11 +156,37 @@ def make(bw: int, bh: int):
                             dx, dy, sigma, vis, o_vis, alpha = conic_alpha(st[LX + p], st[LY + p], mx, my, ca, cb, cc,
                                                                            o)
                             use = (jf < st[WALKED + p]) & (sigma >= ZERO) & (sigma <= smax) & (alpha >= ALPHA_MIN)
-                            pixel_grads(st, p, dx, dy, vis, o_vis, alpha, use, ca, cb, cc, f0, f1, f2, f3)
+                            ra = ONE / (ONE - alpha)
+                            Tp = st[TR + p]
+                            Tk = Tp * ra  # transmittance in front of Gaussian k
+                            fac = alpha * Tk
+                            g0, g1, g2, g3 = st[G0 + p], st[G1 + p], st[G2 + p], st[G3 + p]
+                            v_alpha = st[TFIN + p] * ra * st[GA + p] + (f0 * Tk - st[B0 + p] * ra) * g0 \
+                                + (f1 * Tk - st[B1 + p] * ra) * g1 + (f2 * Tk - st[B2 + p] * ra) * g2 \
+                                + (f3 * Tk - st[B3 + p] * ra) * g3
+                            # the alpha clamp passes no gradient to opacity and sigma
+                            v_sigma = -o_vis * v_alpha if use & (o_vis <= ALPHA_MAX) else ZERO
+                            # d sigma / d mean = -(conic @ (pixel - mean))
+                            st[DV + p] = -v_sigma * (ca * dx + cb * dy)
+                            st[DV + NP + p] = -v_sigma * (cb * dx + cc * dy)
+                            st[DV + 2 * NP + p] = HALF * v_sigma * dx * dx
+                            st[DV + 3 * NP + p] = v_sigma * dx * dy
+                            st[DV + 4 * NP + p] = HALF * v_sigma * dy * dy
+                            st[DV + 5 * NP + p] = vis * v_alpha if use & (o_vis <= ALPHA_MAX) else ZERO
+                            fac = fac if use else ZERO
+                            st[DV + 6 * NP + p] = fac * g0
+                            st[DV + 7 * NP + p] = fac * g1
+                            st[DV + 8 * NP + p] = fac * g2
+                            st[DV + 9 * NP + p] = fac * g3
+                            st[B0 + p] += f0 * fac
+                            st[B1 + p] += f1 * fac
+                            st[B2 + p] += f2 * fac
+                            st[B3 + p] += f3 * fac
+                            st[TR + p] = Tp * (ra if use else ONE)  # = Tk where used, Tp (exactly) where not
                             any_use = any_use | use
                         if not any_use:  # most of a block's list misses most of its pixels
                             continue
-                        add_pixel_sums(st, DV, v_isect, r)  # pairwise over the block's pixels
+                        add_pixel_sums(st, DV, v_isect, s + k)  # pairwise over the block's pixels
         v[:] = ZERO
         for i in range(flat_ids.shape[0]):
             g = flat_ids[i]

@@ -7,28 +7,11 @@ kernel of its own and the tests can run every shape the package may choose on an
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 from numba import prange
 
 from ..runtime.jit import compile_kernel as _compile
-from ._cpu_kernels import ALPHA_MIN, ONE, RECORD_SPARE, SOURCE_CRC, T_MIN, TILE, ZERO, conic_alpha, gather_tile
-
-
-@numba.njit(inline="always", fastmath=False)
-def place_tile(sub_n, rec_i, t, used, end):
-    """Place tile t's records at ``used`` if they fit before ``end``: block b starts at rec_i[t, b], with room for
-    its sub_n[t, b] list entries; -1 where the tile is not recorded. Returns (the records it takes, whether they
-    fit)."""
-    size = 0
-    for b in range(sub_n.shape[1]):
-        size += sub_n[t, b]
-    fits = used + size <= end
-    at = used
-    for b in range(sub_n.shape[1]):
-        rec_i[t, b] = at if fits else -1
-        at += sub_n[t, b]
-    return size, fits
+from ._cpu_kernels import ALPHA_MIN, ONE, SOURCE_CRC, T_MIN, TILE, ZERO, conic_alpha, gather_tile
 
 
 def make(bw: int, bh: int):
@@ -40,12 +23,12 @@ def make(bw: int, bh: int):
     # and vectorises the pixel loop without run-time overlap checks: 11-16 % off the kernel, the same bits):
     # pixel centre x, y; 1 while compositing (0: stopped or outside the image); transmittance; accumulated r, g, b,
     # depth; sum of weights; how far the pixel walked through the block's list (exact: lists are far shorter than
-    # 2^24); exp(-sigma) of the entry's blends, for its record.
-    LX, LY, LIVE, TR, A0, A1, A2, A3, WSUM, WALKED, VIS = (i * NP for i in range(11))
+    # 2^24).
+    LX, LY, LIVE, TR, A0, A1, A2, A3, WSUM, WALKED = (i * NP for i in range(10))
     crc = SOURCE_CRC  # the helpers' source, in the cache key (see _cpu_kernels.SOURCE_CRC)
 
     def composite_forward(means2d, conics, opacities, feats, bounds, offsets, flat_ids, order, slots, tiles_x, width,
-                          height, out_feats, out_alpha, out_T, out_last, par, sub, sub_n, rec_v, rec_k, rec_i):
+                          height, out_feats, out_alpha, out_T, out_last, par, sub, sub_n):
         """Blend every tile front to back.
 
         means2d [N, 2], conics [N, 3], opacities [N], feats [N, 4] (r, g, b, depth), bounds [N, 3]
@@ -54,9 +37,7 @@ def make(bw: int, bh: int):
         first, in ``slots`` parallel tasks (:func:`._cpu_kernels.task_slots`). Writes out_feats [H, W, 4]
         (accumulated features), out_alpha [H, W] (accumulated opacity), out_T [H, W] (final transmittance) and
         out_last [H, W] int32 (how far the pixel walked through its block's list), and the gathered tiles (par, sub,
-        sub_n) and the records of the blends (rec_v, rec_k, rec_i: :func:`._cpu_kernels.gather_shapes`) that the
-        backward pass reads. Returns the records a table needs to hold every tile (each of the ``slots`` tasks
-        records its tiles in its share of the table while they fit).
+        sub_n: :func:`._cpu_kernels.gather_shapes`) that the backward pass reads.
 
         The pixels of a block advance through the block's list together, branch-free (one SIMD batch); a pixel
         whose compositing has stopped is masked out, and the block stops when all its pixels have. Every
@@ -65,14 +46,8 @@ def make(bw: int, bh: int):
         """
         if crc < 0:  # never (a checksum is >= 0); it makes crc a closure constant of the kernel
             return
-        cap = rec_k.shape[0] - RECORD_SPARE
-        needs = np.zeros(slots, np.int64)
         for task in prange(slots):
-            st = np.empty(11 * NP, np.float32)  # the block's per-pixel state, one array (below)
-            # each task's tiles take records from its own share of the table, while they fit
-            used = cap * task // slots
-            end = cap * (task + 1) // slots
-            spare = cap + task % RECORD_SPARE  # where a tile without records writes (never read)
+            st = np.empty(10 * NP, np.float32)  # the block's per-pixel state, one array (below)
             for i in range(task, order.shape[0], slots):
                 t = order[i]
                 ty = t // tiles_x
@@ -80,9 +55,6 @@ def make(bw: int, bh: int):
                 s = offsets[t]
                 gather_tile(means2d, conics, opacities, feats, bounds, flat_ids, s, offsets[t + 1] - s, tx * TILE,
                             ty * TILE, bw, bh, par, sub, sub_n, t)
-                size, fits = place_tile(sub_n, rec_i, t, used, end)
-                used += size if fits else 0
-                needs[task] += size
                 for sb in range(NB):
                     bx0 = tx * TILE + (sb % NBX) * bw
                     by0 = ty * TILE + (sb // NBX) * bh
@@ -102,15 +74,9 @@ def make(bw: int, bh: int):
                         st[A3 + p] = ZERO
                         st[WSUM + p] = ZERO
                         st[WALKED + p] = ZERO
-                    rec_i[t, NB + sb] = 0
                     if n_live == 0:
                         continue
                     first = NB * s + sb * (offsets[t + 1] - s)
-                    # the block's records: one per list entry where some pixel blends, written whether or not one
-                    # does (the count advances only then), into the task's spare record where the tile has none
-                    recorded = rec_i[t, sb] >= 0
-                    at = rec_i[t, sb] if recorded else spare
-                    n_rec = 0
                     for j in range(sub_n[t, sb]):
                         r = s + sub[first + j]
                         mx, my, ca, cb, cc = par[r, 0], par[r, 1], par[r, 2], par[r, 3], par[r, 4]
@@ -118,18 +84,14 @@ def make(bw: int, bh: int):
                         f0, f1, f2, f3 = par[r, 7], par[r, 8], par[r, 9], par[r, 10]
                         jf = np.float32(j + 1)
                         alive = False
-                        blended = False
-                        v0 = (at + n_rec) * NP
                         for p in range(NP):
-                            _, _, sigma, vis, _, alpha = conic_alpha(st[LX + p], st[LY + p], mx, my, ca, cb, cc, o)
+                            _, _, sigma, _, _, alpha = conic_alpha(st[LX + p], st[LY + p], mx, my, ca, cb, cc, o)
                             Tp = st[TR + p]
                             next_T = Tp * (ONE - alpha)
                             use = (st[LIVE + p] > ZERO) & (sigma >= ZERO) & (sigma <= smax) & (alpha >= ALPHA_MIN)
                             stop = use & (next_T <= T_MIN)  # this Gaussian is not blended, and nothing after it
                             blend = use & (next_T > T_MIN)
                             ab = alpha if blend else ZERO
-                            st[VIS + p] = vis if blend else ZERO  # > 0 where blended (alpha >= 1/255)
-                            blended = blended | blend
                             w = ab * Tp
                             st[A0 + p] += w * f0
                             st[A1 + p] += w * f1
@@ -144,13 +106,8 @@ def make(bw: int, bh: int):
                             lp = st[LIVE + p] - (ONE if stop else ZERO)  # stop implies live = 1
                             st[LIVE + p] = lp
                             alive = alive | (lp > ZERO)
-                        for p in range(NP):  # from the scratch: the pixel loop above writes one array only
-                            rec_v[v0 + p] = st[VIS + p]
-                        rec_k[at + n_rec] = sub[first + j]
-                        n_rec += 1 if blended & recorded else 0
                         if not alive:
                             break
-                    rec_i[t, NB + sb] = n_rec
                     for p in range(NP):
                         x = bx0 + p % bw
                         y = by0 + p // bw
@@ -162,6 +119,5 @@ def make(bw: int, bh: int):
                             out_alpha[y, x] = st[WSUM + p]  # = 1 - T up to rounding; summed like the reference
                             out_T[y, x] = st[TR + p]
                             out_last[y, x] = np.int32(st[WALKED + p])
-        return slots * needs.max()  # a table where every task's tiles fit in its share
 
     return _compile(parallel=True)(composite_forward)

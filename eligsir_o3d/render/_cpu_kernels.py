@@ -14,9 +14,7 @@ it: each tile's list is culled per block by the bounding box of the ellipse wher
 (conservatively, so the result is the same as walking the whole list; on a real scene this cuts the walk from ~540
 to ~80 Gaussians per pixel at 160x120). The forward kernel gathers each tile's Gaussians and block lists into tables
 (:func:`gather_shapes`) that the backward kernel reads, so a training render gathers once (the tables are reused
-from render to render: :mod:`.scratch`); it also records, per block list entry where a pixel blended, the pixels'
-exp(-sigma), so that the backward neither evaluates the conic and exp again nor walks the entries that no pixel
-blended (a bounded table: the tiles beyond it are evaluated again, with the same bits). The pixels of a block are processed together without branches, in float32
+from render to render: :mod:`.scratch`). The pixels of a block are processed together without branches, in float32
 only (int64 or bool lanes would narrow LLVM's vectors; conditional stores become masked stores, slow on AVX2), which
 LLVM turns into SIMD code at the target's width: one AVX-512 register, two AVX2 ones; exp is a branch-free
 polynomial within 2 ulp of float32 exp (the reference's exp differs from it by rounding only, so images agree to
@@ -157,45 +155,28 @@ def cull_bounds(conics, opacities, out):
 
 
 PAR = 11  # per tile intersection in the gathered table: mean x, mean y, conic a, b, c, opacity, sigma bound, features
-# records of the forward's blends that the backward reads (the record table): per (block, list entry) where some
-# pixel blended, the entry's tile-local index and its 16 pixels' exp(-sigma) (0 where the pixel did not blend), in
-# list order per block; the last RECORD_SPARE records are the tasks' scratch for tiles the table cannot hold
-RECORD_SPARE = 64
-RECORD_BYTES = 16 * 4 + 4
-RECORD_MAX_BYTES = 32 << 20  # tiles beyond this many bytes of records are not recorded: the backward recomputes them
 
 
-def record_guess(m: int) -> int:
-    """Records to allocate for a render of ``m`` intersections before its need is known (the forward returns it)."""
-    return 6 * m
+def gather_shapes(m: int, n_tiles: int, block_pixels: int = 16) -> tuple:
+    """Shapes of the tables :func:`gather_tile` fills over a render with ``m`` intersections and ``n_tiles`` tiles:
+    par [m, PAR] float32, sub [blocks * m] int32, sub_n [n_tiles, blocks] int64 (blocks = 256 / block pixels).
 
-
-def gather_shapes(m: int, n_tiles: int, block_pixels: int = 16, records: int | None = None) -> tuple:
-    """Shapes of the tables the forward kernel fills over a render with ``m`` intersections and ``n_tiles`` tiles:
-    par [m, PAR] float32, sub [blocks * m] int32, sub_n [n_tiles, blocks] int64 (blocks = 256 / block pixels), as
-    :func:`gather_tile` fills them; then the record table: values [(R + RECORD_SPARE) * 16] float32, tile-local
-    indices [R + RECORD_SPARE] int32 and per block its first record (-1: not recorded) and count [n_tiles,
-    2 * blocks] int64, for R = ``records`` (default :func:`record_guess`; at most :data:`RECORD_MAX_BYTES`).
-
-    The forward kernel fills them and the backward kernel reads them, so a training render gathers each tile once
-    and the backward takes each blend's exp(-sigma) from the forward. ``sub`` has room for every Gaussian of a tile
-    in every block of it; only the lists' entries are written, so the pages that no list reaches cost address
-    space, not memory."""
+    The forward kernel fills them and the backward kernel reads them, so a training render gathers each tile once.
+    ``sub`` has room for every Gaussian of a tile in every block of it; only the lists' entries are written, so the
+    pages that no list reaches cost address space, not memory."""
     blocks = TILE * TILE // block_pixels
-    r = record_guess(m) if records is None else records
-    r = min(r, RECORD_MAX_BYTES // RECORD_BYTES) + RECORD_SPARE
-    return (m, PAR), (blocks * m,), (n_tiles, blocks), (r * 16,), (r,), (n_tiles, 2 * blocks)
+    return (m, PAR), (blocks * m,), (n_tiles, blocks)
 
 
-GATHER_DTYPES = (np.float32, np.int32, np.int64, np.float32, np.int32, np.int64)
+GATHER_DTYPES = (np.float32, np.int32, np.int64)
 # columns of the backward kernel's gradient row per intersection (v_isect): its 10 channels padded to one 16-float
 # vector, so that a block's pixel sums are added to the row in one vector operation
 ISECT_COLS = 16
 
 
-def gather_buffers(m: int, n_tiles: int, block_pixels: int = 16, records: int | None = None) -> tuple:
+def gather_buffers(m: int, n_tiles: int, block_pixels: int = 16) -> tuple:
     """Fresh (empty) tables of :func:`gather_shapes`."""
-    return tuple(np.empty(s, d) for s, d in zip(gather_shapes(m, n_tiles, block_pixels, records), GATHER_DTYPES))
+    return tuple(np.empty(s, d) for s, d in zip(gather_shapes(m, n_tiles, block_pixels), GATHER_DTYPES))
 
 
 @_jit_serial
@@ -272,12 +253,11 @@ def task_slots(items: int) -> int:
     return max(1, min(items, SLOTS_PER_THREAD * numba.get_num_threads()))
 
 
-def run(kernel, *args):
-    """Call a kernel with chunks of one tile, so that idle cores take the next tile (dynamic load balance); returns
-    what the kernel returns."""
+def run(kernel, *args) -> None:
+    """Call a kernel with chunks of one tile, so that idle cores take the next tile (dynamic load balance)."""
     old = numba.set_parallel_chunksize(1)
     try:
-        return kernel(*args)
+        kernel(*args)
     finally:
         numba.set_parallel_chunksize(old)
 

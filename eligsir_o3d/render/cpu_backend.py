@@ -5,9 +5,8 @@ Three steps, each the reference's twin and each tested against it:
   a hand-written backward pass, as a ``torch.autograd.Function`` (the torch version costs ~40% of a 160x120 render);
 - tile binning (:func:`bin_tiles_csr`): the reference's per-tile, front-to-back lists, compressed instead of padded;
 - compositing (:mod:`._cpu_forward`, :mod:`._cpu_backward`, shared parts in :mod:`._cpu_kernels`): forward and
-  backward kernels, as a ``torch.autograd.Function``; the forward's gathered tiles and records of its blends, which
-  the backward reads, live in tables reused from render to render (:mod:`.scratch`), the record table sized by the
-  previous render's need.
+  backward kernels, as a ``torch.autograd.Function``; the forward's gathered tiles, which the backward reads, live
+  in tables reused from render to render (:mod:`.scratch`).
 The kernels run in parallel on the threads numba may use (``NUMBA_NUM_THREADS`` / ``numba.set_num_threads``).
 Float32 throughout; inputs of other dtypes are cast and the gradients cast back. Background and depth
 normalisation stay in torch (:func:`.base.finish`), shared with every backend, and run when a render's colour or
@@ -54,7 +53,6 @@ def _compositors(block: int | None = None):
 
 
 _pool = None
-_record_ratio = [0.0]  # records the last render needed per intersection (sizes the next one's record table)
 
 
 def _gather_pool():
@@ -146,15 +144,11 @@ class _Composite(torch.autograd.Function):
         out_alpha = torch.empty(height, width, dtype=torch.float32)
         out_T = torch.empty(height, width, dtype=torch.float32)
         out_last = torch.empty(height, width, dtype=torch.int32)
-        n_isect = flat_ids.shape[0]
-        # the record table sized by the last render's need per intersection (the next one is much alike)
-        records = int(n_isect * _record_ratio[0] * 1.25) + 1 if _record_ratio[0] else None
-        gathered = _gather_pool().take(*k.gather_shapes(n_isect, offsets.shape[0] - 1, block or k.default_block(),
-                                                        records))
-        need = k.run(forward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
+        gathered = _gather_pool().take(*k.gather_shapes(flat_ids.shape[0], offsets.shape[0] - 1,
+                                                        block or k.default_block()))
+        k.run(forward, m.numpy(), c.numpy(), o.numpy(), f.numpy(), bounds.numpy(), offsets.numpy(),
               flat_ids.numpy(), order.numpy(), k.task_slots(order.shape[0]), tiles_x, width, height,
               out_feats.numpy(), out_alpha.numpy(), out_T.numpy(), out_last.numpy(), *gathered)
-        _record_ratio[0] = need / max(n_isect, 1)
         ctx.save_for_backward(offsets, flat_ids, order, out_T, out_last)
         ctx.gathered = gathered  # the tiles as the forward kernel gathered them, for the backward kernel
         ctx.meta = (tiles_x, width, height, f.shape, [means2d.dtype, conics.dtype, opacities.dtype, feats.dtype], block)
