@@ -9,8 +9,8 @@ may still prune it (then counted as rejected). After an optimisation, :meth:`Loo
 caller each keyframe whose corrected pose changed, so the map can follow.
 
 Verification (registration, the expensive part) runs on the mapper's thread, one candidate per frame, or, with
-``background``, on one worker thread (Open3D releases the GIL while it registers): a frame then only submits the
-next candidate and takes a finished result, so a real-time stream never waits for a registration, at the price
+``background``, on one worker thread at the lowest CPU priority (Open3D releases the GIL while it registers): a
+frame then only submits the next candidate and takes a finished result, so a real-time stream never waits for a registration, at the price
 of results arriving a few frames later (when depends on the machine, so background verification is for real-time
 runs; replays on a deterministic clock verify on the mapper's thread). :meth:`LoopClosure.finish` waits for the
 last one at the end of the stream.
@@ -168,7 +168,7 @@ class LoopClosure:
         if self._job is None and self.pending and not wait:
             k, j = self.pending.pop(0)
             if self._worker is None:
-                self._worker = ThreadPoolExecutor(1, thread_name_prefix="eligsir-loops")
+                self._worker = ThreadPoolExecutor(1, thread_name_prefix="eligsir-loops", initializer=_lowest_priority)
             # the keyframe list grows by appending and poses are copied: the worker reads a consistent snapshot
             self._job = (k, j, self._worker.submit(_timed_verify, list(self.keys), [T.copy() for T in self.corrected],
                                                    k, j, self.cfg))
@@ -291,6 +291,18 @@ class LoopClosure:
         self.raw = {int(i): np.asarray(T, dtype=np.float64) for i, T in state["raw"].items()}
         self.log = list(state.get("log", []))
         self._moves = {}
+
+
+def _lowest_priority() -> None:
+    """The worker thread (and the threads it starts, which inherit it) runs at the lowest CPU priority, so that
+    verification takes the cycles tracking and mapping leave idle (Linux: a thread's nice value; elsewhere a no-op)."""
+    import os
+    import threading
+
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
+    except (AttributeError, OSError):
+        pass
 
 
 def _timed_verify(keys, poses, k: int, j: int, cfg: LoopConfig) -> tuple[LoopResult, float]:
