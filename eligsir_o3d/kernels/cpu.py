@@ -7,7 +7,8 @@
   gradient with respect to the compositing's accumulations), handed to the renderer's backward; other renders take
   the torch loss;
 - step: one pass over the view's rows (:func:`.cpu_kernels.step_view`): the activations' chain rule, the
-  regulariser's gradient, Adam on every parameter and the position noise, in place on the map's rows.
+  regulariser's gradient, Adam on every parameter and the position noise, in place on the map's rows;
+- the views' feedback: the error map folded into the microcells in one pass (:func:`.cpu_feedback.fold_samples`).
 """
 
 from __future__ import annotations
@@ -45,10 +46,28 @@ def regulariser(view: RowView, terms: StepTerms) -> torch.Tensor | None:
             + terms.scale_reg * torch.exp(lv["scales"]).sum() / 3.0) / view.n_map
 
 
+def fold_cells(plan, error_map: torch.Tensor, error: torch.Tensor, best: torch.Tensor, visits: torch.Tensor,
+               ema: float) -> None:
+    """:func:`..scheduling.cell_feedback.fold_torch` (same arguments) in one compiled pass
+    (:func:`.cpu_feedback.fold_samples`) where the map's statistics are float32 and int64 on the CPU."""
+    if error.dtype != torch.float32 or best.dtype != torch.float32 or visits.dtype != torch.int64 or \
+            error_map.dtype != torch.float32 or error_map.device.type != "cpu":
+        from ..scheduling.cell_feedback import fold_torch
+
+        fold_torch(plan, error_map, error, best, visits, ema)
+        return
+    from .cpu_feedback import fold_samples
+
+    fold_samples(error_map.contiguous().numpy(), plan.pix.numpy(), plan.inv.numpy(), plan.cells.numpy(),
+                 plan.counts.numpy(), plan.scratch.numpy(), float(ema), error.numpy(), best.numpy(),
+                 visits.numpy(), plan.last.numpy())
+
+
 class NumbaKernels(KernelSet):
     """Compiled CPU stages for float32 maps (see the module docstring)."""
 
     name = "numba"
+    fold_cells = staticmethod(fold_cells)
 
     def select(self, gmap, camera: Camera, T_world_cam, low_pass: float = EPS2D, *, cull: bool = True,
                grad: bool = True, capacity: int = 0) -> RowView:
