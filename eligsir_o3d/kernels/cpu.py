@@ -58,9 +58,11 @@ def fold_cells(plan, error_map: torch.Tensor, error: torch.Tensor, best: torch.T
         return
     from .cpu_feedback import fold_samples
 
-    fold_samples(error_map.contiguous().numpy(), plan.pix.numpy(), plan.inv.numpy(), plan.cells.numpy(),
-                 plan.counts.numpy(), plan.scratch.numpy(), float(ema), error.numpy(), best.numpy(),
-                 visits.numpy(), plan.last.numpy())
+    host = plan.__dict__.get("host")  # the plan's tensors as numpy arrays, made once per plan
+    if host is None:
+        host = plan.host = tuple(t.numpy() for t in (plan.pix, plan.inv, plan.cells, plan.counts, plan.scratch))
+    fold_samples(error_map.contiguous().numpy(), *host, float(ema), error.numpy(), best.numpy(), visits.numpy(),
+                 plan.last.numpy())
 
 
 class NumbaKernels(KernelSet):
