@@ -232,13 +232,12 @@ class Reconstructor:
         return time.perf_counter() - self.stats.excluded_s
 
     def warmup(self) -> float:
-        """Pay first-use costs (numba compilation or cache load, the CPU D-SSIM, CUDA kernel loading; an explicit
-        ``gsplat`` whose extension is not built yet compiles it here, logged) before a live stream starts, by one
-        render and backward of a one-Gaussian scene (:func:`.optim.warmup.warm_up`). Returns the seconds; the map is
-        untouched."""
+        """Pay first-use costs (numba compilation or cache load, CUDA kernel loading; an explicit ``gsplat`` not built
+        yet compiles here, logged) before a stream, on a scratch scene (:func:`.optim.warmup.warm_up`): seconds."""
         from ..optim.warmup import warm_up
 
-        return warm_up(self.renderer, self.config.optim.loss, self.device, self._background)
+        return warm_up(self.renderer, self.config.optim.loss, self.device, self._background, self.kernels,
+                       self.config.sh_degree)
 
     def calibrate(self, frames=None, *, cache: bool = True, **kw):
         """Fit the budget's cost model to this machine, device and renderer: time a few updates at each

@@ -26,7 +26,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core.camera import invert_pose, rotation_angle_deg
-from .loops import Keyframe, LoopConfig, LoopResult, candidates, keyframe_cloud, odometry_information, verify
+from ..runtime.threads import lowest_priority
+from .loops import (Keyframe, LoopConfig, LoopResult, candidates, keyframe_cloud, odometry_information, timed_verify,
+                    verify)
 from .pose_graph import Edge, GraphConfig, odometry_edges, optimise
 
 
@@ -168,9 +170,9 @@ class LoopClosure:
         if self._job is None and self.pending and not wait:
             k, j = self.pending.pop(0)
             if self._worker is None:
-                self._worker = ThreadPoolExecutor(1, thread_name_prefix="eligsir-loops", initializer=_lowest_priority)
+                self._worker = ThreadPoolExecutor(1, thread_name_prefix="eligsir-loops", initializer=lowest_priority)
             # the keyframe list grows by appending and poses are copied: the worker reads a consistent snapshot
-            self._job = (k, j, self._worker.submit(_timed_verify, list(self.keys), [T.copy() for T in self.corrected],
+            self._job = (k, j, self._worker.submit(timed_verify, list(self.keys), [T.copy() for T in self.corrected],
                                                    k, j, self.cfg))
         return found
 
@@ -291,23 +293,6 @@ class LoopClosure:
         self.raw = {int(i): np.asarray(T, dtype=np.float64) for i, T in state["raw"].items()}
         self.log = list(state.get("log", []))
         self._moves = {}
-
-
-def _lowest_priority() -> None:
-    """The worker thread (and the threads it starts, which inherit it) runs at the lowest CPU priority, so that
-    verification takes the cycles tracking and mapping leave idle (Linux: a thread's nice value; elsewhere a no-op)."""
-    import os
-    import threading
-
-    try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
-    except (AttributeError, OSError):
-        pass
-
-
-def _timed_verify(keys, poses, k: int, j: int, cfg: LoopConfig) -> tuple[LoopResult, float]:
-    t0 = time.perf_counter()
-    return verify(keys, poses, k, j, cfg), time.perf_counter() - t0
 
 
 def _row(r: LoopResult, keys: list[Keyframe]) -> dict:

@@ -11,6 +11,8 @@ from the estimate (a loop edge that wants to move the camera by more than the dr
 
 from __future__ import annotations
 
+import time
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -168,6 +170,12 @@ def verify(keys: list[Keyframe], poses: list[np.ndarray], k: int, j: int, cfg: L
     if ok:
         info = o3d.pipelines.registration.get_information_matrix_from_point_clouds(src, tgt, cfg.max_dist, T)
     return LoopResult(k, j, np.asarray(T), float(ev.fitness), float(ev.inlier_rmse), shift, turn, bool(ok), info)
+
+
+def timed_verify(keys, poses, k: int, j: int, cfg: LoopConfig) -> tuple[LoopResult, float]:
+    """:func:`verify`, and the seconds it took."""
+    t0 = time.perf_counter()
+    return verify(keys, poses, k, j, cfg), time.perf_counter() - t0
 
 
 def odometry_information(keys: list[Keyframe], k: int, cfg: LoopConfig) -> np.ndarray:
