@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -305,11 +306,9 @@ def track_corrected(rec, frame, T_raw: np.ndarray) -> np.ndarray:
     """A Reconstructor's tracked pose ``T_raw`` of ``frame`` through its loop closure ``rec.loops``: the
     corrected pose; after an optimisation the map follows (anchored Gaussians and retained views move). The time
     is the ``loops`` stage's and counts as tracking; new Gaussians are anchored to the current keyframe."""
-    t0 = time.perf_counter()
-    with rec.timing("loops"):
+    with _loops_stage(rec):
         T = rec.loops.on_frame(frame.index, T_raw, frame.depth, frame.camera)
         _follow(rec)
-    rec.stats.tracking_s += time.perf_counter() - t0
     return T
 
 
@@ -318,11 +317,20 @@ def finish_loops(rec) -> None:
     (:meth:`LoopClosure.finish`) and the map moved where it closed a loop; nothing without loop closure."""
     if rec.loops is None:
         return
-    t0 = time.perf_counter()
-    with rec.timing("loops"):
+    with _loops_stage(rec):
         rec.loops.finish()
         _follow(rec)
-    rec.stats.tracking_s += time.perf_counter() - t0
+
+
+@contextmanager
+def _loops_stage(rec):
+    """Time the block as the ``loops`` stage, counted as tracking time."""
+    t0 = time.perf_counter()
+    try:
+        with rec.timing("loops"):
+            yield
+    finally:
+        rec.stats.tracking_s += time.perf_counter() - t0
 
 
 def _follow(rec) -> None:
