@@ -28,7 +28,7 @@ import numpy as np
 
 from ..core.camera import invert_pose, rotation_angle_deg
 from ..runtime.threads import lowest_priority
-from .loops import (Keyframe, LoopConfig, LoopResult, candidates, keyframe_cloud, odometry_edge, timed_verify,
+from .loops import (Keyframe, LoopConfig, LoopResult, candidates, for_source, keyframe_cloud, odometry_edge, timed_verify,
                     verify)
 from .pose_graph import Edge, GraphConfig, odometry_edges, optimise
 
@@ -59,13 +59,7 @@ def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None, realtim
         raise ValueError(f"loops.background must be auto, on or off, got {cfg.background!r}")
     if mode == "off" or (mode == "auto" and not tracked):
         return None
-    detect, refine = cfg.detect, str(cfg.detect.refine_edges).lower()
-    if refine not in ("auto", "on", "off"):
-        raise ValueError(f"loops.detect.refine_edges must be auto, on or off, got {cfg.detect.refine_edges!r}")
-    if refine == "auto":
-        refine = "on" if source and source in [s.strip() for s in detect.refine_sources.split(",")] else "off"
-        detect = dataclasses.replace(detect, refine_edges=refine)
-    return LoopClosure(detect, cfg.graph, background=background == "on" or (background == "auto" and realtime))
+    return LoopClosure(for_source(cfg.detect, source), cfg.graph, background=background == "on" or (background == "auto" and realtime))
 
 
 class LoopClosure:
@@ -293,9 +287,7 @@ class LoopClosure:
             self.keys.append(Keyframe(int(k["index"]), np.asarray(k["raw_pose"], dtype=np.float64), pcd))
         self.corrected = [np.asarray(T, dtype=np.float64) for T in state["corrected"]]
         self.odo_info = [np.asarray(x, dtype=np.float64) for x in state["odo_info"]]
-        raw = [key.raw_pose for key in self.keys]
-        self.odo_rel = [np.asarray(x, dtype=np.float64) for x in state.get("odo_rel", [])] or (
-            [np.eye(4)] + [invert_pose(raw[k - 1]) @ raw[k] for k in range(1, len(raw))])
+        self.odo_rel = [np.asarray(x, dtype=np.float64) for x in state["odo_rel"]]
         self.loop_edges = [Edge(int(e["source"]), int(e["target"]), np.asarray(e["transform"], dtype=np.float64),
                                 np.asarray(e["information"], dtype=np.float64), True) for e in state["loop_edges"]]
         self.pruned = {tuple(p) for p in state["pruned"]}

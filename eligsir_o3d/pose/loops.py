@@ -11,6 +11,7 @@ from the estimate (a loop edge that wants to move the camera by more than the dr
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 from dataclasses import dataclass, field
@@ -73,6 +74,17 @@ class LoopConfig:
     """The loop edge turns the estimate by at most this (deg)."""
     min_points: int = 500
     """A keyframe cloud with fewer points takes part in no loop."""
+
+
+def for_source(cfg: LoopConfig, source: str) -> LoopConfig:
+    """``cfg`` for the pose source named ``source``: ``refine_edges = auto`` resolved to on (one of the
+    ``refine_sources``) or off."""
+    refine = str(cfg.refine_edges).lower()
+    if refine not in ("auto", "on", "off"):
+        raise ValueError(f"loops.detect.refine_edges must be auto, on or off, got {cfg.refine_edges!r}")
+    if refine == "auto":
+        refine = "on" if source and source in [s.strip() for s in cfg.refine_sources.split(",")] else "off"
+    return dataclasses.replace(cfg, refine_edges=refine)
 
 
 @dataclass
