@@ -63,8 +63,11 @@ ROWS_LIMIT = PARALLEL_MIN_ROWS_TBB if ON_TBB else PARALLEL_MIN_ROWS  # rows from
 def threads_for(work: int, min_work: int):
     """Run the block's kernel calls on one numba thread when ``work`` < ``min_work``, else on numba's threads as
     set; the same bits either way (the kernels' parallel loops write disjoint outputs)."""
+    if work >= min_work or numba.config.NUMBA_NUM_THREADS == 1:  # a pool of one thread: nothing to narrow
+        yield
+        return
     n = numba.get_num_threads()
-    if work >= min_work or n == 1:
+    if n == 1:
         yield
         return
     numba.set_num_threads(1)
