@@ -9,29 +9,24 @@ step of those rows in one pass, written in place on the map.
   position noise on the updated row (:func:`..optim.update_kernels.move_mean`), the formulas of
   :func:`.device_reference.step_rows`. Rows outside ``rows`` are neither read nor written.
 
-Both run their rows in parallel (distinct rows write disjoint memory). Compiled lazily on first use and cached on
-disk like the renderer's kernels (:mod:`..runtime.jit`).
+Both run their rows in parallel (distinct rows write disjoint memory); their activations are
+:mod:`..runtime.fmath`'s, so the bits do not depend on how a loop is vectorised or split over threads. Compiled
+lazily on first use and cached on disk like the renderer's kernels (:mod:`..runtime.jit`).
 """
 
 from __future__ import annotations
-
-import math
 
 import numba
 import numpy as np
 from numba import prange
 
 from ..optim.update_kernels import move_mean, noise_gate
+from ..runtime.fmath import exp32, sigmoid32
 from ..runtime.jit import jit as _jit
 from .device_reference import C0
 
 HYPER = 6  # per stepped parameter: (a, b, 1 - beta1, beta2, 1 - beta2, eps), as base.adam_factors gives them
 MEANS, QUATS, SCALES, OPACITIES, SH0, SHN = range(6)  # the rows of ``hyper`` and ``has`` in step_view
-
-
-@numba.njit(inline="always", fastmath=False)
-def _sigmoid(x):
-    return np.float32(1.0) / (np.float32(1.0) + np.float32(math.exp(-x)))
 
 
 @_jit
@@ -46,10 +41,10 @@ def gather_activated(ps, rows, deg0, o_means, o_quats, o_scales, o_opac, o_color
         g = rows[i]
         for j in range(3):
             o_means[i, j] = pm[3 * g + j]
-            o_scales[i, j] = np.float32(math.exp(ps_[3 * g + j]))
+            o_scales[i, j] = exp32(ps_[3 * g + j])
         for j in range(4):
             o_quats[i, j] = pq[4 * g + j]
-        o_opac[i] = _sigmoid(po[g])
+        o_opac[i] = sigmoid32(po[g])
         if deg0:
             for c in range(3):
                 o_colors[i, c] = max(p0[3 * g + c] * c0 + half, zero)
@@ -100,11 +95,11 @@ def step_view(ps, ms, vs, g_means, g_quats, g_scales, g_opac, g_sh0, g_shn, has,
                 _adam(pq, ms[1], vs[1], QUATS, 4 * g + j, g_quats[i, j], hyper)
         if has[SCALES]:
             for j in range(3):
-                e = np.float32(math.exp(ps_[3 * g + j]))
+                e = exp32(ps_[3 * g + j])
                 gs = g_scales[i, j] * e if chain else g_scales[i, j]
                 _adam(ps_, ms[2], vs[2], SCALES, 3 * g + j, gs + f_s * e, hyper)
         if has[OPACITIES]:
-            o = _sigmoid(po[g])
+            o = sigmoid32(po[g])
             d = (np.float32(1.0) - o) * o
             go = g_opac[i] * d if chain else g_opac[i]
             _adam(po, ms[3], vs[3], OPACITIES, g, go + f_o * d, hyper)
@@ -118,9 +113,9 @@ def step_view(ps, ms, vs, g_means, g_quats, g_scales, g_opac, g_sh0, g_shn, has,
             for j in range(wn):
                 _adam(pn, ms[5], vs[5], SHN, wn * g + j, g_shn[i, j], hyper)
         if scaler > 0:
-            o = _sigmoid(po[g])
-            e0 = np.float32(math.exp(ps_[3 * g]))
-            e1 = np.float32(math.exp(ps_[3 * g + 1]))
-            e2 = np.float32(math.exp(ps_[3 * g + 2]))
+            o = sigmoid32(po[g])
+            e0 = exp32(ps_[3 * g])
+            e1 = exp32(ps_[3 * g + 1])
+            e2 = exp32(ps_[3 * g + 2])
             move_mean(means3, g, quats4, e0 * e0, e1 * e1, e2 * e2, z[i, 0], z[i, 1],
                       z[i, 2], noise_gate(o, scaler))
