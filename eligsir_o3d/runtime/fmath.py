@@ -2,12 +2,12 @@
 compositing kernels'), ``exp32`` (exp of any float32) and ``sigmoid32``, and the powers of two they build from
 exponent bits (``exp2``, ``exp2_neg``; the view test's scale bound uses the latter too).
 
-``math.exp`` in a numba kernel is whatever LLVM makes of it: a vector library call where a loop vectorises and
-scalar libm where it does not (a ``prange`` loop's remainder, a serial loop, another machine's libm), which round
-differently. These are branch-free polynomials in float32 and int32 steps only, so a loop of them vectorises to
-the width of its float32 vector and every lane, vectorised or scalar, parallel or serial, on any number of threads,
-gives the same bits. The exps are within 2 ulp of exp over their ranges, the sigmoid within 3 (its three
-roundings, as torch's float32 sigmoid).
+``math.exp`` in a numba kernel is whatever LLVM makes of it: with numba's SVML (the ``icc_rt`` package) a vector
+library call where a loop vectorises and scalar libm where it does not (a ``prange`` loop's remainder, a serial
+loop), which round differently; elsewhere another machine's libm. These are branch-free polynomials in float32 and
+int32 steps only, so a loop of them vectorises to the width of its float32 vector and every lane, vectorised or
+scalar, parallel or serial, on any number of threads, with or without SVML, gives the same bits. The exps are
+within 2 ulp of exp over their ranges, the sigmoid within 3 (its three roundings, as torch's float32 sigmoid).
 
 Method: x = n ln2 + r with n the nearest integer (Cody-Waite: ``LN2_HI`` has 16 significant bits, so n ``LN2_HI`` is
 exact for |n| <= 127), exp(r) on r in [-ln2/2, ln2/2] by its degree-7 Taylor polynomial (truncation < 1e-8
