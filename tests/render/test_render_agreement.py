@@ -242,11 +242,13 @@ def test_cpu_kernels_for_avx2_match_reference():
     import sys
     from pathlib import Path
     root = Path(__file__).resolve().parents[2]
-    code = ("import sys; sys.path.insert(0, 'tests/render'); import test_render_agreement as t; "
+    code = ("import sys; sys.path[:0] = ['tests/render', 'tests/core']; import test_render_agreement as t; "
+            "import test_fmath as f; "
             "from eligsir_o3d.render._cpu_kernels import target_features, default_block; "
             "name, feats = target_features(); assert name == 'haswell' and '+avx512f' not in feats, (name, feats); "
             "[t.test_cpu_matches_reference(t.CAMERAS[1], 0, b) for b in t._blocks()]; "
-            "t.test_cpu_early_termination_and_skip_match_reference(); t.test_cpu_exp_is_within_two_ulp_of_exp(); "
+            "t.test_cpu_early_termination_and_skip_match_reference(); f.test_exp_neg_is_within_two_ulp_of_exp(); "
+            "f.test_exp32_is_within_two_ulp_of_exp_and_clamps(); f.test_a_vectorised_loop_gives_the_scalar_bits(); "
             "print('haswell ok', default_block())")
     env = dict(os.environ, NUMBA_CPU_NAME="haswell", NUMBA_CPU_FEATURES="", PYTHONPATH=str(root))
     res = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True)
