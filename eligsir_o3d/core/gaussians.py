@@ -102,6 +102,7 @@ class GaussianMap:
     def _view(self) -> None:
         """Point ``params`` and the Adam moments at the first N rows of their buffers."""
         n = self._n
+        self._host = None
         for name, (p, m, v) in self._buffers.items():
             self.params[name] = torch.nn.Parameter(p[:n])
             self.adam.exp_avg[name] = m[:n]
@@ -126,6 +127,16 @@ class GaussianMap:
         anchors[:n] = self._anchor_buf[:n]
         self._anchor_buf = anchors
         self._view()
+
+    def host_buffers(self) -> dict:
+        """A CPU map's buffers as flat numpy arrays over the whole capacity, by parameter name: (parameter,
+        exp_avg, exp_avg_sq), row r at r * its width; rows below N are the map's. Compiled kernels read and write
+        the rows in place through them. Kept until the buffers change (growth, removal, reload)."""
+        if self._host is None:
+            if self.device.type != "cpu":
+                raise ValueError(f"host_buffers: the map is on {self.device}, not the CPU")
+            self._host = {n: tuple(t.detach().view(-1).numpy() for t in bufs) for n, bufs in self._buffers.items()}
+        return self._host
 
     # ---- activated views -------------------------------------------------------------------------------
     def __len__(self) -> int:

@@ -102,48 +102,62 @@ def dssim_torch(pred: torch.Tensor, ref: torch.Tensor, win: int = 11, sigma: flo
     return 1.0 - ssim_map.mean()
 
 
+@lru_cache(maxsize=1)
+def _compiled() -> tuple:
+    """(runtime.jit, the D-SSIM kernels, the fused loss's kernels), imported (numba with them) on first use."""
+    from ..runtime import jit
+    from . import dssim_kernels, loss_kernels
+
+    return jit, dssim_kernels, loss_kernels
+
+
+def _host32(t: torch.Tensor) -> np.ndarray:
+    """``t`` as a contiguous float32 numpy array (no operator where it already is one)."""
+    t = t.detach()
+    if t.dtype != torch.float32:
+        t = t.to(torch.float32)
+    return (t if t.is_contiguous() else t.contiguous()).numpy()
+
+
+def fused_loss_cpu(acc, alpha, background, color, depth, cfg: LossConfig):
+    """:func:`supervision_loss` from a ``cpu`` render's accumulations (acc [H, W, 4], alpha [H, W], the background
+    or None) in compiled passes (:mod:`.loss_kernels` around the D-SSIM kernel), without autograd: (value, a host
+    float; error [H, W]; the loss's gradients with respect to acc and alpha)."""
+    jit, dssim_kernels, loss_kernels = _compiled()
+    h, w = alpha.shape
+    f32 = np.float32
+    a_np, acc_np, ref_depth = _host32(alpha), _host32(acc), _host32(depth)
+    has_bg = background is not None
+    bg = _host32(background.reshape(3)) if has_bg else np.zeros(3, f32)
+    x, y = np.empty((3, h, w), f32), np.empty((3, h, w), f32)
+    error, rows = np.empty((h, w), f32), np.empty((h, 3), np.float64)
+    alpha_min = f32(cfg.depth_alpha_min)
+    win = _dssim_window(h, w)
+    use_dssim = cfg.lambda_dssim > 0 and win >= 3
+    grad_acc, grad_alpha = np.empty((h, w, 4), f32), np.empty((h, w), f32)
+    with jit.pixels_threads(h * w):
+        loss_kernels.loss_terms(acc_np, a_np, bg, has_bg, _host32(color), ref_depth, alpha_min, x, y, error, rows)
+        l1_sum, depth_sum, n_valid = rows.sum(0)
+        w_l1 = (1.0 - cfg.lambda_dssim) / (3 * h * w)
+        value = w_l1 * l1_sum
+        d_grad = np.empty_like(x)  # D-SSIM's gradient; not read when D-SSIM is off (its weight 0 below)
+        if use_dssim:
+            value += cfg.lambda_dssim * dssim_kernels.dssim_value_and_grad(x, y, _window(win, 1.5), d_grad)
+        w_depth = 0.0
+        if cfg.lambda_depth > 0 and n_valid > 0:
+            w_depth = cfg.lambda_depth / n_valid
+            value += w_depth * depth_sum
+        loss_kernels.loss_grad(acc_np, a_np, bg, has_bg, x, y, ref_depth, alpha_min, f32(w_l1),
+                               f32(cfg.lambda_dssim if use_dssim else 0.0), d_grad, f32(w_depth), grad_acc, grad_alpha)
+    return value, torch.from_numpy(error), torch.from_numpy(grad_acc), torch.from_numpy(grad_alpha)
+
+
 class _FusedLossCPU(torch.autograd.Function):
-    """:func:`supervision_loss` from a ``cpu`` render's accumulations (:mod:`.loss_kernels`): value, error map and
-    gradient in two compiled passes around the D-SSIM kernel."""
+    """:func:`fused_loss_cpu` as an autograd function: its backward scales the stored gradient."""
 
     @staticmethod
     def forward(ctx, acc, alpha, background, color, depth, cfg: LossConfig):
-        from ..runtime.jit import pixels_threads
-        from .dssim_kernels import dssim_value_and_grad
-        from .loss_kernels import loss_grad, loss_terms
-
-        h, w = alpha.shape
-        f32 = np.float32
-        a_np = alpha.detach().contiguous().numpy()
-        acc_np = acc.detach().contiguous().numpy()
-        has_bg = background is not None
-        bg = (background.detach().to(torch.float32).reshape(3).contiguous().numpy() if has_bg
-              else np.zeros(3, f32))
-        ref_depth = depth.detach().to(torch.float32).contiguous().numpy()
-        x, y = np.empty((3, h, w), f32), np.empty((3, h, w), f32)
-        error = torch.empty(h, w, dtype=torch.float32)
-        rows = np.empty((h, 3), np.float64)
-        alpha_min = f32(cfg.depth_alpha_min)
-        win = _dssim_window(h, w)
-        use_dssim = cfg.lambda_dssim > 0 and win >= 3
-        grad_acc = torch.empty(h, w, 4, dtype=torch.float32)
-        grad_alpha = torch.empty(h, w, dtype=torch.float32)
-        with pixels_threads(h * w):
-            loss_terms(acc_np, a_np, bg, has_bg, color.detach().contiguous().numpy(), ref_depth, alpha_min, x, y,
-                       error.numpy(), rows)
-            l1_sum, depth_sum, n_valid = rows.sum(0)
-            w_l1 = (1.0 - cfg.lambda_dssim) / (3 * h * w)
-            value = w_l1 * l1_sum
-            d_grad = np.empty_like(x)  # D-SSIM's gradient; not read when D-SSIM is off (its weight 0 below)
-            if use_dssim:
-                value += cfg.lambda_dssim * dssim_value_and_grad(x, y, _window(win, 1.5), d_grad)
-            w_depth = 0.0
-            if cfg.lambda_depth > 0 and n_valid > 0:
-                w_depth = cfg.lambda_depth / n_valid
-                value += w_depth * depth_sum
-            loss_grad(acc_np, a_np, bg, has_bg, x, y, ref_depth, alpha_min, f32(w_l1),
-                      f32(cfg.lambda_dssim if use_dssim else 0.0), d_grad, f32(w_depth), grad_acc.numpy(),
-                      grad_alpha.numpy())
+        value, error, grad_acc, grad_alpha = fused_loss_cpu(acc, alpha, background, color, depth, cfg)
         ctx.save_for_backward(grad_acc, grad_alpha)
         ctx.mark_non_differentiable(error)
         return torch.tensor(value, dtype=torch.float32), error
@@ -154,7 +168,7 @@ class _FusedLossCPU(torch.autograd.Function):
         return grad_out * grad_acc, grad_out * grad_alpha, None, None, None, None
 
 
-def _fused(out: RenderOutput, color: torch.Tensor) -> bool:
+def fused_applies(out: RenderOutput, color: torch.Tensor) -> bool:
     """Whether :class:`_FusedLossCPU` computes this loss: a render with its accumulations (``cpu`` renderer), all
     float32 on the CPU."""
     if out.raw is None:
@@ -172,7 +186,7 @@ def supervision_loss(out: RenderOutput, color: torch.Tensor, depth: torch.Tensor
     fused path (:class:`_FusedLossCPU`: the same loss and gradient, differentiated into the compositing's
     accumulations ``out.raw``); every other render the torch formulation below.
     """
-    if _fused(out, color):
+    if fused_applies(out, color):
         acc, alpha, background = out.raw
         return _FusedLossCPU.apply(acc, alpha, background, color, depth, cfg)
     return torch_loss(out, color, depth, cfg)

@@ -23,12 +23,13 @@ import numba
 import numpy as np
 from numba import prange
 
+from ..runtime.fmath import exp32, sigmoid32
 from ..runtime.jit import jit as _jit
 from ..runtime.jit import rows_threads
 
 
 @numba.njit(inline="always", fastmath=False)
-def _move(means, g, quats, s0, s1, s2, z0, z1, z2, k):
+def move_mean(means, g, quats, s0, s1, s2, z0, z1, z2, k):
     """means[g] += (R diag(s0, s1, s2) R^T (z0, z1, z2)) * k, R the rotation of quats[g] (unnormalised wxyz)."""
     w, x, y, zq = quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]
     nq = max(np.float32(math.sqrt(w * w + x * x + y * y + zq * zq)), np.float32(1e-12))
@@ -46,10 +47,9 @@ def _move(means, g, quats, s0, s1, s2, z0, z1, z2, k):
 
 
 @numba.njit(inline="always", fastmath=False)
-def _gate(o, scaler):
+def noise_gate(o, scaler):
     """sigmoid(100 ((1 - o) - 0.995)) * scaler: MCMC's gate to (nearly) transparent Gaussians."""
-    return np.float32(1.0) / (np.float32(1.0) + np.float32(math.exp(-np.float32(100.0) * (
-        (np.float32(1.0) - o) - np.float32(0.995))))) * scaler
+    return sigmoid32(np.float32(100.0) * ((np.float32(1.0) - o) - np.float32(0.995))) * scaler
 
 
 @_jit
@@ -58,21 +58,21 @@ def _noise_rows(means, quats, scales, opacities, z, scaler):
     scales in metres, opacities in (0, 1)."""
     for g in prange(means.shape[0]):
         s0, s1, s2 = scales[g, 0] * scales[g, 0], scales[g, 1] * scales[g, 1], scales[g, 2] * scales[g, 2]
-        _move(means, g, quats, s0, s1, s2, z[g, 0], z[g, 1], z[g, 2], _gate(opacities[g], scaler))
+        move_mean(means, g, quats, s0, s1, s2, z[g, 0], z[g, 1], z[g, 2], noise_gate(opacities[g], scaler))
 
 
 @_jit
 def _noise_view(means, quats, log_scales, logit_opacities, rows, z, scaler):
     """:func:`_noise_rows` on the map's rows ``rows`` [M], read from its raw parameters (log scales, opacity
     logits) and moved in place: z[i] is row rows[i]'s normal triple. The activations are computed here in float32
-    (``math.exp``), so a moved mean may differ from the gathered torch path's in the last bit."""
+    (:mod:`..runtime.fmath`), so a moved mean may differ from the gathered torch path's in the last bit."""
     for i in prange(rows.shape[0]):
         g = rows[i]
-        o = np.float32(1.0) / (np.float32(1.0) + np.float32(math.exp(-logit_opacities[g])))
-        e0 = np.float32(math.exp(log_scales[g, 0]))
-        e1 = np.float32(math.exp(log_scales[g, 1]))
-        e2 = np.float32(math.exp(log_scales[g, 2]))
-        _move(means, g, quats, e0 * e0, e1 * e1, e2 * e2, z[i, 0], z[i, 1], z[i, 2], _gate(o, scaler))
+        o = sigmoid32(logit_opacities[g])
+        e0 = exp32(log_scales[g, 0])
+        e1 = exp32(log_scales[g, 1])
+        e2 = exp32(log_scales[g, 2])
+        move_mean(means, g, quats, e0 * e0, e1 * e1, e2 * e2, z[i, 0], z[i, 1], z[i, 2], noise_gate(o, scaler))
 
 
 def mcmc_noise_rows(params: dict, rows, z, scaler: float) -> None:

@@ -1,5 +1,5 @@
 """Numba kernels of the ``cpu`` renderer, shared part: per-Gaussian culling bounds, tile gathering, the conic/alpha
-evaluation and exp that the compositing kernels (:mod:`._cpu_forward`, :mod:`._cpu_backward`) inline, and the choice
+evaluation (its exp is :func:`..runtime.fmath.exp_neg`) that the compositing kernels (:mod:`._cpu_forward`, :mod:`._cpu_backward`) inline, and the choice
 of their pixel-block shape (the tile binning is :mod:`._cpu_binning`).
 
 The math is the reference's (``torch_backend.TorchRenderer._tiles``) written per pixel, in float32, in the same
@@ -39,10 +39,9 @@ import zlib
 
 import numba
 import numpy as np
-from llvmlite import ir
-from numba import prange, types
-from numba.extending import intrinsic
+from numba import prange
 
+from ..runtime.fmath import exp_neg
 from ..runtime.jit import jit as _jit
 from ..runtime.jit import jit_serial as _jit_serial
 
@@ -59,41 +58,6 @@ ZERO = np.float32(0.0)
 # closure constant, which numba hashes into their cache key: an edit here recompiles them.
 with open(__file__, "rb") as _f:
     SOURCE_CRC = zlib.crc32(_f.read())
-
-
-# exp(-s), float32, branch-free so that loops over a block's pixels vectorise: s = n ln2 + r with n the nearest
-# integer (Cody-Waite, r in [-ln2/2, ln2/2]), exp(-r) by its degree-7 Taylor polynomial (truncation < 1e-8), and
-# 2^-n built from its exponent bits. Within 2 ulp of float32 exp over [0, 16]; beyond 16 (alpha below 1/255 for any
-# opacity up to 3e4) the value is not used. Every step is float32 or int32, so a vector of it is as wide as the
-# pixel block's float32 vector (int64 steps would halve the vector width on AVX2).
-SIG_CLAMP = np.float32(16.0)
-LOG2E = np.float32(1.4426950408889634)
-LN2_HI = np.float32(0.693145751953125)
-LN2_LO = np.float32(1.4286068203094173e-06)
-E0, E1, E2, E3, E4, E5, E6, E7 = (np.float32((-1.0) ** i / math.factorial(i)) for i in range(8))
-
-
-
-@intrinsic
-def _exp2_neg(typingctx, n):
-    """2^-n for an integer-valued float32 n in [0, 126]: the float32 whose exponent field is 127 - n."""
-    sig = types.float32(types.float32)
-
-    def codegen(context, builder, signature, args):
-        i32 = ir.IntType(32)
-        k = builder.fptosi(args[0], i32)
-        bits = builder.shl(builder.sub(ir.Constant(i32, 127), k), ir.Constant(i32, 23))
-        return builder.bitcast(bits, ir.FloatType())
-    return sig, codegen
-
-
-@numba.njit(inline="always", fastmath=False)
-def exp_neg(s):
-    s = min(max(s, ZERO), SIG_CLAMP)
-    fn = np.float32(np.int32(s * LOG2E + HALF))  # round to nearest: s >= 0
-    r = (s - fn * LN2_HI) - fn * LN2_LO
-    p = ((((((E7 * r + E6) * r + E5) * r + E4) * r + E3) * r + E2) * r + E1) * r + E0
-    return p * _exp2_neg(fn)
 
 
 @numba.njit(inline="always", fastmath=False)

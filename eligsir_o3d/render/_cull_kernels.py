@@ -13,26 +13,21 @@ cached on disk like the renderer's kernels.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import prange
 
-import math
-
-import numba
-
-from ._cpu_kernels import HALF, LOG2E, ONE, SIG_CLAMP, ZERO, _exp2_neg, _jit, _jit_serial
+from ..runtime.fmath import LOG2E, SIG_CLAMP, exp2_neg
+from ..runtime.jit import compile_kernel
+from ._cpu_kernels import HALF, ONE, ZERO, _jit, _jit_serial
 
 CHUNK = 16384  # rows per task of frustum_rows
 
 
-def _jit_fast(fn):
-    """``njit(parallel, fastmath, cache)``: the view test is a bound with slack, so reassociation is harmless and
-    lets LLVM vectorise its loop; without a writable cache location, an uncached kernel."""
-    opts = dict(parallel=True, fastmath=True, nogil=True)
-    try:
-        return numba.njit(cache=True, **opts)(fn)
-    except RuntimeError:
-        return numba.njit(cache=False, **opts)(fn)
+# ``njit(parallel, fastmath, cache)``: the view test is a bound with slack, so reassociation is harmless and lets
+# LLVM vectorise its loop.
+_jit_fast = compile_kernel(parallel=True, fastmath=True)
 
 
 def _make_counts(listed: bool):
@@ -66,7 +61,7 @@ def _make_counts(listed: bool):
                 # the power of two from exponent bits (no exp); beyond 2^16 m: always in
                 t = min(max(ls * LOG2E, -np.float32(125.0)), SIG_CLAMP)
                 e = np.float32(math.floor(t))
-                s = _exp2_neg(max(-e, ZERO)) / _exp2_neg(max(e, ZERO)) * (ONE + (t - e))
+                s = exp2_neg(max(-e, ZERO)) / exp2_neg(max(e, ZERO)) * (ONE + (t - e))
                 zs = max(z, near)
                 iz = ONE / zs
                 # ||J||_F^2 s^2 bounds the largest eigenvalue of J Sigma J^T; + the low-pass + 0.32 of the radius

@@ -25,7 +25,7 @@ import torch
 
 from ..core.camera import Camera
 from .base import DeferredRenderOutput, RenderOutput, TileRenderer, mask_culled, view_colors
-from .projection import EPS2D, NEAR, TILE, Projection, TileBins, world_to_cam
+from .projection import EPS2D, NEAR, TILE, Projection, TileBins, world_to_cam_np
 
 _warm_seconds: float | None = None
 
@@ -125,7 +125,15 @@ def warmup() -> float:
 
 
 def _f32(x: torch.Tensor) -> torch.Tensor:
-    return x.detach().to(torch.float32).contiguous()
+    x = x.detach()
+    if x.dtype != torch.float32:
+        x = x.to(torch.float32)
+    return x if x.is_contiguous() else x.contiguous()
+
+
+def _as(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``x.to(dtype)`` without the operator where it is already of that dtype."""
+    return x if x.dtype == dtype else x.to(dtype)
 
 
 class _Composite(torch.autograd.Function):
@@ -152,7 +160,7 @@ class _Composite(torch.autograd.Function):
         ctx.save_for_backward(offsets, flat_ids, order, out_T, out_last)
         ctx.gathered = gathered  # the tiles as the forward kernel gathered them, for the backward kernel
         ctx.meta = (tiles_x, width, height, f.shape, [means2d.dtype, conics.dtype, opacities.dtype, feats.dtype], block)
-        return out_feats.to(feats.dtype), out_alpha.to(feats.dtype)
+        return _as(out_feats, feats.dtype), _as(out_alpha, feats.dtype)
 
     @staticmethod
     def backward(ctx, grad_feats, grad_alpha):
@@ -169,7 +177,7 @@ class _Composite(torch.autograd.Function):
               k.task_slots(order.shape[0]), tiles_x, width, height, out_T.numpy(), out_last.numpy(),
               _f32(grad_feats).numpy(), _f32(grad_alpha).numpy(), v_isect.numpy(), v.numpy())
         grads = (v[:, 0:2], v[:, 2:5], v[:, 5], v[:, 6:])
-        grads = tuple(g.to(dt) for g, dt in zip(grads, dtypes))
+        grads = tuple(_as(g, dt) for g, dt in zip(grads, dtypes))
         return grads + (None,) * 7
 
 
@@ -190,7 +198,7 @@ class _Project(torch.autograd.Function):
         ctx.V, ctx.cam, ctx.dtypes = V, cam, (means.dtype, quats.dtype, scales.dtype)
         ctx.mark_non_differentiable(radii)
         dt = means.dtype
-        return means2d.to(dt), conics.to(dt), depths.to(dt), radii
+        return _as(means2d, dt), _as(conics, dt), _as(depths, dt), radii
 
     @staticmethod
     def backward(ctx, g_means2d, g_conics, g_depths, _g_radii):
@@ -203,13 +211,13 @@ class _Project(torch.autograd.Function):
         with _rows_threads(n):
             pk.project_backward(m.numpy(), q.numpy(), s.numpy(), ctx.V, ctx.cam, *(_f32(g).numpy() for g in grads),
                                 v_means.numpy(), v_quats.numpy(), v_scales.numpy())
-        return tuple(v.to(dt) for v, dt in zip((v_means, v_quats, v_scales), ctx.dtypes)) + (None, None)
+        return tuple(_as(v, dt) for v, dt in zip((v_means, v_quats, v_scales), ctx.dtypes)) + (None, None)
 
 
 def project_cpu(means, quats, scales, camera: Camera, T_world_cam, low_pass: float = EPS2D) -> Projection:
     """:func:`.projection.project` in compiled code (forward and backward); same values up to float32 rounding."""
     # the reference rounds the world-to-camera matrix to the parameters' dtype: do the same
-    V = world_to_cam(T_world_cam, "cpu", torch.float32).double().numpy()
+    V = world_to_cam_np(T_world_cam, rounded=True)
     cam = np.array([camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height, NEAR, low_pass],
                    np.float64)
     means2d, conics, depths, radii = _Project.apply(means, quats, scales, V, cam)
@@ -228,7 +236,7 @@ def tile_lists(bins: TileBins) -> tuple[torch.Tensor, torch.Tensor]:
 def bin_tiles_csr(proj: Projection, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor, int]:
     """:func:`.projection.bin_tiles` in compiled code, as (offsets [T + 1], flat ids [M], tiles_x); same lists."""
     tiles_x, tiles_y = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    radii = proj.radii.to(torch.int32).contiguous().numpy()
+    radii = _as(proj.radii, torch.int32).numpy()
     depths = _f32(proj.depths).numpy()
     vis = np.flatnonzero(radii > 0)
     # Front to back with ties by index, as the reference's stable sorts, from one fast unstable sort of unique
@@ -282,8 +290,9 @@ class CpuRenderer(TileRenderer):
                                           camera.height, self.block)
         if background is not None:
             background = torch.as_tensor(background, dtype=acc.dtype, device=acc.device)
-        return DeferredRenderOutput(alpha_acc, proj.radii, mask_culled(proj.means2d, proj.radii),
-                                    (acc, alpha_acc, background))
+        radii, means2d = proj.radii, proj.means2d  # the culled rows' NaN mask made when first read
+        return DeferredRenderOutput(alpha_acc, None, None, (acc, alpha_acc, background),
+                                    screen=lambda: (radii, mask_culled(means2d, radii)))
 
     def composite(self, proj: Projection, opacities, colors, bins: TileBins, width: int, height: int):
         warmup()
@@ -295,6 +304,6 @@ class CpuRenderer(TileRenderer):
     def _accumulate(proj, opacities, colors, offsets, flat, tiles_x, width, height, block=None):
         """(accumulated colour and depth [H, W, 4], alpha [H, W])."""
         order = torch.argsort(offsets[1:] - offsets[:-1], descending=True, stable=True)  # heaviest tiles first
-        feats = torch.cat([colors, proj.depths[:, None].to(colors.dtype)], -1)  # [N, 4]
+        feats = torch.cat([colors, _as(proj.depths[:, None], colors.dtype)], -1)  # [N, 4]
         return _Composite.apply(proj.means2d, proj.conics, opacities, feats, offsets, flat, order, tiles_x, width,
                                 height, block)

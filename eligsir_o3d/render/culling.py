@@ -21,7 +21,7 @@ import torch
 
 from ..core.camera import Camera
 from ..core.gaussians import PARAM_NAMES
-from .projection import EPS2D, NEAR, world_to_cam
+from .projection import EPS2D, NEAR, world_to_cam_np
 
 
 def camera_bounds(camera: Camera, low_pass: float = EPS2D) -> np.ndarray:
@@ -55,7 +55,7 @@ def in_view(means: torch.Tensor, log_scales: torch.Tensor, camera: Camera, T_wor
     from ..runtime.jit import rows_threads
     from ._cull_kernels import frustum_rows
 
-    V = world_to_cam(T_world_cam, "cpu", torch.float64).numpy()
+    V = world_to_cam_np(T_world_cam)
     with rows_threads(means.shape[0]):
         rows = frustum_rows(means.detach().contiguous().numpy(), log_scales.detach().contiguous().numpy(), V,
                             camera_bounds(camera, low_pass))
@@ -95,7 +95,7 @@ def map_in_view(gmap, camera: Camera, T_world_cam, low_pass: float = EPS2D) -> t
         return in_view(means, log_scales, camera, T_world_cam, low_pass)
     if gmap.row_index is None:
         gmap.row_index = CellIndex(gmap)
-    V = world_to_cam(T_world_cam, "cpu", torch.float64).numpy()
+    V = world_to_cam_np(T_world_cam)
     return torch.from_numpy(gmap.row_index.rows(V, camera_bounds(camera, low_pass)))
 
 

@@ -9,7 +9,9 @@ radius, 16x16 tiles, front-to-back order by view depth.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
+import numpy as np
 import torch
 
 from ..core.camera import Camera
@@ -60,6 +62,23 @@ def world_to_cam(T_world_cam, device, dtype=torch.float32) -> torch.Tensor:
     V[:3, :3] = R.T
     V[:3, 3] = -R.T @ t
     return V.to(device=device, dtype=dtype)
+
+
+def world_to_cam_np(T_world_cam, rounded: bool = False) -> np.ndarray:
+    """:func:`world_to_cam` in float64 numpy (host arithmetic, no tensor operator): the same numbers; ``rounded``:
+    rounded to float32 (as ``world_to_cam(T, dtype=float32)``). The last poses' matrices are kept: the result is
+    shared, not to be written."""
+    T = np.asarray(T_world_cam, dtype=np.float64)
+    return _world_to_cam_np(T.tobytes(), T.shape, rounded)
+
+
+@lru_cache(maxsize=8)
+def _world_to_cam_np(T_bytes: bytes, shape: tuple, rounded: bool) -> np.ndarray:
+    T = np.frombuffer(T_bytes, np.float64).reshape(shape)
+    V = np.eye(4)
+    V[:3, :3] = R = T[:3, :3].T
+    V[:3, 3] = -R @ T[:3, 3]
+    return V.astype(np.float32).astype(np.float64) if rounded else V
 
 
 def project(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, camera: Camera,

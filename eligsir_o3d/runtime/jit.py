@@ -1,7 +1,9 @@
 """The numba decorators every compiled CPU kernel uses (the renderer's, the optimiser's update and D-SSIM kernels).
 
 ``jit`` compiles a parallel kernel (``prange``), ``jit_serial`` a serial one; both are ``njit(cache=True)`` without
-fast-math (every target computes the same bits). Where numba finds no writable cache location the kernel still
+fast-math (every target computes the same bits). numba's disk cache checks only the source file of the cached
+function itself, so every kernel's cache key also carries the checksum of :mod:`.fmath` (the scalar helpers that
+kernels inline): an edit there recompiles them. Where numba finds no writable cache location the kernel still
 works, compiled once per process, after one warning. Importing this module runs the process-level set-up
 (:func:`eligsir_o3d.runtime.prepare`), imports numba and picks the threading layer, so only kernel modules import
 it (``import eligsir_o3d`` stays free of numba)."""
@@ -10,6 +12,7 @@ from __future__ import annotations
 
 import os
 import warnings
+import zlib
 from contextlib import contextmanager
 
 from . import prepare, tbb
@@ -18,7 +21,19 @@ prepare()  # the tbb wheel's library before Open3D's: numba's TBB layer needs th
 
 import numba  # noqa: E402
 
+from numba.core.caching import FunctionCache  # noqa: E402
+
 uncached: list[str] = []  # names of the kernels that compile in every process (no writable cache)
+
+with open(os.path.join(os.path.dirname(__file__), "fmath.py"), "rb") as _f:
+    HELPERS_CRC = zlib.crc32(_f.read())
+
+
+class _HelpersKeyedCache(FunctionCache):
+    """numba's per-function disk cache with :data:`HELPERS_CRC` in every entry's key."""
+
+    def _index_key(self, sig, codegen):
+        return (*super()._index_key(sig, codegen), HELPERS_CRC)
 
 
 def _select_threading_layer() -> bool:
@@ -35,12 +50,14 @@ def _select_threading_layer() -> bool:
 ON_TBB = _select_threading_layer()
 
 
-def compile_kernel(parallel: bool):
+def compile_kernel(parallel: bool, fastmath: bool = False):
     """``njit(cache=True)`` decorator; without a writable cache location, fall back to an uncached kernel."""
     def deco(fn):
-        opts = dict(parallel=parallel, fastmath=False, nogil=True)
+        opts = dict(parallel=parallel, fastmath=fastmath, nogil=True)
         try:
-            return numba.njit(cache=True, **opts)(fn)
+            kernel = numba.njit(cache=True, **opts)(fn)
+            kernel._cache = _HelpersKeyedCache(kernel.py_func)
+            return kernel
         except RuntimeError as err:  # numba: "cannot cache function ...: no locator available for file ..."
             if not uncached:
                 warnings.warn(f"numba cannot cache the cpu renderer's kernels ({err}); they compile in every new "
@@ -63,8 +80,11 @@ ROWS_LIMIT = PARALLEL_MIN_ROWS_TBB if ON_TBB else PARALLEL_MIN_ROWS  # rows from
 def threads_for(work: int, min_work: int):
     """Run the block's kernel calls on one numba thread when ``work`` < ``min_work``, else on numba's threads as
     set; the same bits either way (the kernels' parallel loops write disjoint outputs)."""
+    if work >= min_work or numba.config.NUMBA_NUM_THREADS == 1:  # a pool of one thread: nothing to narrow
+        yield
+        return
     n = numba.get_num_threads()
-    if work >= min_work or n == 1:
+    if n == 1:
         yield
         return
     numba.set_num_threads(1)

@@ -1,6 +1,6 @@
 """The torch references of the device step (eligsir_o3d.kernels.device_reference*) against today's code: the rows
 of ``in_view`` gathered and activated as ``RowView.render_args`` does, the loss of ``supervision_loss`` with its
-gradient, and the numba kernel set's step (autograd, regulariser, Adam) followed by ``mcmc_noise_rows``."""
+gradient, and the numba kernel set's step (chain rule, regulariser, Adam) followed by ``mcmc_noise_rows``."""
 
 import dataclasses
 import inspect
@@ -19,7 +19,7 @@ from eligsir_o3d.render.base import RenderOutput, finish
 from eligsir_o3d.render.culling import in_view
 from eligsir_o3d.kernels import StepTerms
 from eligsir_o3d.kernels.base import RowView, moments
-from eligsir_o3d.kernels.cpu import NumbaKernels, gather_raw, regulariser
+from eligsir_o3d.kernels.cpu import NumbaKernels, gather_activated_rows, gather_raw
 
 
 def _select(gm, T, capacity):
@@ -98,13 +98,12 @@ def test_fused_loss_is_supervision_loss(hw, background, change):
 
 
 def _step_today(gm, ids, grads, regs, z, scaler):
-    """Today's step of the rows ``ids``: autograd through render_args and the regulariser, adam_step, noise."""
-    view = RowView(gm, ids, gather_raw(gm, ids, True), activated=False)
-    args = view.render_args()
-    total = sum((a * g).sum() for a, g in zip(args, grads))
-    reg = regulariser(view, StepTerms(*regs))
-    (total if reg is None else total + reg).backward()
-    NumbaKernels().step(gm, view, StepTerms())
+    """The numba set's step of the rows ``ids`` from the activated leaves' gradients ``grads`` (chain rule,
+    regulariser, Adam in one pass), then the noise of ``z`` by ``mcmc_noise_rows`` (the fused pass draws its own)."""
+    view = RowView(gm, ids, gather_activated_rows(gm, ids, True), activated=True)
+    for t, g in zip(view.render_args(), grads):
+        t.grad = g
+    NumbaKernels().step(gm, view, StepTerms(*regs))
     mcmc_noise_rows(gm.params, ids, z, scaler)
 
 

@@ -232,25 +232,6 @@ def test_cpu_rejects_bad_shapes_with_a_clear_error():
         CpuRenderer().render(**params, camera=CAMERAS[0], T_world_cam=T)
 
 
-def test_cpu_exp_is_within_two_ulp_of_exp():
-    """The kernels' branch-free exp(-s) against float64 exp, on [0, 16] where its values are used."""
-    import numba
-    from eligsir_o3d.render._cpu_kernels import exp_neg
-
-    @numba.njit
-    def evaluate(s):
-        out = np.empty_like(s)
-        for i in range(s.shape[0]):
-            out[i] = exp_neg(s[i])
-        return out
-
-    s = np.concatenate([np.linspace(0.0, 16.0, 200_001), np.random.default_rng(0).uniform(0, 6, 100_000)])
-    s = s.astype(np.float32)
-    ref = np.exp(-s.astype(np.float64))
-    ulp = np.spacing(ref.astype(np.float32)).astype(np.float64)
-    assert float((np.abs(evaluate(s) - ref) / ulp).max()) < 2.0
-
-
 @pytest.mark.skipif(__import__("platform").machine().lower() not in ("x86_64", "amd64"),
                     reason="haswell is an x86-64 CPU; on this machine the kernels compile for its own ISA only")
 def test_cpu_kernels_for_avx2_match_reference():
@@ -261,11 +242,13 @@ def test_cpu_kernels_for_avx2_match_reference():
     import sys
     from pathlib import Path
     root = Path(__file__).resolve().parents[2]
-    code = ("import sys; sys.path.insert(0, 'tests/render'); import test_render_agreement as t; "
+    code = ("import sys; sys.path[:0] = ['tests/render', 'tests/core']; import test_render_agreement as t; "
+            "import test_fmath as f; "
             "from eligsir_o3d.render._cpu_kernels import target_features, default_block; "
             "name, feats = target_features(); assert name == 'haswell' and '+avx512f' not in feats, (name, feats); "
             "[t.test_cpu_matches_reference(t.CAMERAS[1], 0, b) for b in t._blocks()]; "
-            "t.test_cpu_early_termination_and_skip_match_reference(); t.test_cpu_exp_is_within_two_ulp_of_exp(); "
+            "t.test_cpu_early_termination_and_skip_match_reference(); f.test_exp_neg_is_within_two_ulp_of_exp(); "
+            "f.test_exp32_is_within_two_ulp_of_exp_and_clamps(); f.test_a_vectorised_loop_gives_the_scalar_bits(); "
             "print('haswell ok', default_block())")
     env = dict(os.environ, NUMBA_CPU_NAME="haswell", NUMBA_CPU_FEATURES="", PYTHONPATH=str(root))
     res = subprocess.run([sys.executable, "-c", code], cwd=root, env=env, capture_output=True, text=True)

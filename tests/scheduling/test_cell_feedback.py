@@ -86,3 +86,24 @@ def test_microcells_keep_their_statistics_on_a_device_and_read_them_on_the_host(
     back = Microcells(MicrocellConfig()).to("cpu")
     back.load_state_dict(cells.state_dict())
     assert torch.equal(back.error, cells.error) and torch.equal(back.visits, cells.visits)
+
+
+def test_the_numba_fold_is_the_torch_rule_bit_for_bit():
+    from eligsir_o3d.kernels.cpu import NumbaKernels
+
+    pix, ids, n = _case(seed=4, n_pixels=2500, samples=700, cells=40)
+    plans = [make_plan(pix, ids, 2500, "cpu") for _ in range(2)]
+    state = [(torch.full((n,), 0.15), torch.full((n,), float("inf")), torch.zeros(n, dtype=torch.long))
+             for _ in range(2)]
+    g = torch.Generator().manual_seed(5)
+    for k in range(4):
+        err = torch.rand(2500, generator=g)
+        if k == 2:
+            err[pix[:3]] = float("nan")  # a NaN observation becomes the cell's best, as torch.minimum has it
+        fold_torch(plans[0], err, *state[0], 0.3)
+        NumbaKernels.fold_cells(plans[1], err, *state[1], 0.3)
+        for a, b in zip(*state):
+            assert torch.equal(a, b) or torch.allclose(a, b, equal_nan=True, rtol=0, atol=0)
+        assert plans[1].last.item() == pytest.approx(plans[0].last.item(), rel=1e-6, nan_ok=True)
+        assert not plans[1].scratch.any()  # zeroed for the next fold
+    assert (state[0][2] > 1).any()
