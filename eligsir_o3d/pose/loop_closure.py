@@ -44,8 +44,7 @@ class LoopClosureConfig:
     graph: GraphConfig = field(default_factory=GraphConfig)
     """The pose graph's optimisation."""
     background: str = "auto"
-    """Verify loop candidates in a separate process (pose.loop_worker): auto (on under the real-time clock and in
-    live runs), on, off (on the mapper's thread)."""
+    """Verify loop candidates in a worker process: auto (on under the real-time clock and in live runs), on, off."""
 
 
 def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None, realtime: bool = False) -> "LoopClosure | None":
