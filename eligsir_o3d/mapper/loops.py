@@ -22,7 +22,8 @@ def track_corrected(rec, frame, T_raw: np.ndarray) -> np.ndarray:
 
 def finish_loops(rec) -> None:
     """At the end of a Reconstructor's stream: its loop closure's last background verification taken
-    (:meth:`~eligsir_o3d.pose.loop_closure.LoopClosure.finish`) and the map moved where it closed a loop; nothing without loop closure."""
+    (:meth:`~eligsir_o3d.pose.loop_closure.LoopClosure.finish`, which also ends the worker process) and the map
+    moved where it closed a loop; nothing without loop closure."""
     if rec.loops is None:
         return
     with _loops_stage(rec):

@@ -188,7 +188,7 @@ class LoopClosure:
         """Verify on the mapper's thread from now on; the candidate the worker held waits first in line."""
         self.failure = f"{why}; loop candidates are verified on the mapper's thread from now on"
         warnings.warn(self.failure, RuntimeWarning, stacklevel=2)
-        self.close()
+        self.close(kill=True)
 
     def finish(self) -> None:
         """At the end of the stream: wait for a verification still in the worker (verified here should the worker
@@ -207,14 +207,15 @@ class LoopClosure:
             self.seconds += time.perf_counter() - t0
             self.close()
 
-    def close(self) -> None:
-        """End the worker process, if one runs (the candidate it held goes back to the front of the queue)."""
+    def close(self, kill: bool = False) -> None:
+        """End the worker process, if one runs (``kill``: without waiting for it); the candidate it held goes back
+        to the front of the queue."""
         if self._job is not None:
             self.pending.insert(0, self._job)
             self._job = None
         if self._worker is not None:
             self.worker_cpu_seconds = max(self.worker_cpu_seconds, self._worker.cpu_seconds)
-            self._worker.close()
+            self._worker.close(kill)
             self._worker = None
 
     def _take(self, result: LoopResult) -> bool:

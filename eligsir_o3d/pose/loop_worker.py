@@ -60,7 +60,7 @@ def _writer(stream, outbox: queue.Queue) -> None:
     try:
         while (message := outbox.get()) is not None:
             _write(stream, message)
-    except (OSError, ValueError):  # the child is gone: the reader reports it
+    except Exception:  # noqa: BLE001 - the child is gone or a message would not pickle: its input ends
         pass
     finally:
         try:
@@ -73,7 +73,7 @@ def _reader(stream, inbox: queue.Queue) -> None:
     try:
         while (message := _read(stream)) is not None:
             inbox.put(message)
-    except (OSError, ValueError, pickle.UnpicklingError, EOFError):
+    except Exception:  # noqa: BLE001 - a broken pipe or message: reported as the end, the mapper verifies inline
         pass
     inbox.put(_EOF)
 
@@ -160,8 +160,11 @@ class LoopWorker:
                 self._job = None
                 return result, seconds
 
-    def close(self) -> None:
-        """End the child (waits a moment for it to exit); the handle can start a new one afterwards."""
+    def close(self, kill: bool = False) -> None:
+        """End the child (waits a moment for it to exit; ``kill``: at once); the handle can start a new one
+        afterwards."""
+        if kill and self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
         if self._closer is not None:
             self._closer()
         self.proc, self.sent, self._job, self._closer = None, 0, None, None
