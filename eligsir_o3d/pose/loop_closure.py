@@ -29,7 +29,7 @@ import numpy as np
 
 from ..core.camera import invert_pose, rotation_angle_deg
 from .loop_worker import LoopWorker, WorkerFailed
-from .loops import Keyframe, LoopConfig, LoopResult, candidates, keyframe_cloud, odometry_information, verify
+from .loops import Keyframe, LoopConfig, LoopResult, candidates, for_source, keyframe_cloud, odometry_edge, verify
 from .pose_graph import Edge, GraphConfig, odometry_edges, optimise
 
 
@@ -49,8 +49,9 @@ class LoopClosureConfig:
 
 def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None, realtime: bool = False) -> "LoopClosure | None":
     """The loop-closure policy of a run (None where it is off: poses given, or ``enabled = off``); ``source``:
-    the pose source, or its name (one of ``detect.loose_sources`` gets the looser fitness test); ``realtime``: the
-    run is on the real-time clock (``background = auto`` verifies in the worker process then)."""
+    the pose source, or its name (``detect.refine_edges = auto`` refines the odometry edges of the
+    ``refine_sources``); ``realtime``: the run is on the real-time clock (``background = auto`` verifies in the
+    worker process then)."""
     source = getattr(source, "name", source) or ""
     mode, background = str(cfg.enabled).lower(), str(cfg.background).lower()
     if mode not in ("auto", "on", "off"):
@@ -59,10 +60,7 @@ def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None, realtim
         raise ValueError(f"loops.background must be auto, on or off, got {cfg.background!r}")
     if mode == "off" or (mode == "auto" and not tracked):
         return None
-    detect = cfg.detect
-    if source and source in [s.strip() for s in detect.loose_sources.split(",")]:
-        detect = dataclasses.replace(detect, min_fitness=detect.min_fitness_loose)
-    return LoopClosure(detect, cfg.graph, background=background == "on" or (background == "auto" and realtime))
+    return LoopClosure(for_source(cfg.detect, source), cfg.graph, background=background == "on" or (background == "auto" and realtime))
 
 
 class LoopClosure:
@@ -84,6 +82,7 @@ class LoopClosure:
         self.graph_cfg = graph or GraphConfig()
         self.keys: list[Keyframe] = []
         self.corrected: list[np.ndarray] = []  # per keyframe, T_world_cam after the last optimisation
+        self.odo_rel: list[np.ndarray] = []  # per keyframe, its odometry edge T_prev_k (the tracker's, or refined)
         self.odo_info: list[np.ndarray] = []  # per keyframe, the information of its edge from the previous one
         self.loop_edges: list[Edge] = []  # accepted by verification (the graph may prune them)
         self.pruned: set[tuple[int, int]] = set()
@@ -91,7 +90,7 @@ class LoopClosure:
         self.raw: dict[int, np.ndarray] = {}  # frame index -> the tracker's pose
         self.summary: dict = {}  # ATE before and after, where the run has ground truth (run.poses.loop_closed)
         self.counts = {"keyframes": 0, "candidates": 0, "verified": 0, "rejected_registration": 0,
-                       "rejected_graph": 0, "accepted": 0, "optimisations": 0}
+                       "rejected_graph": 0, "accepted": 0, "optimisations": 0, "refined_edges": 0}
         self.seconds = 0.0  # on the mapper's thread
         self.worker_seconds = 0.0  # verification in the worker process
         self.worker_cpu_seconds = 0.0  # the worker process's CPU time (its own report)
@@ -134,10 +133,14 @@ class LoopClosure:
         k = len(self.keys) - 1
         if k == 0:
             self.corrected.append(T_raw.copy())
+            self.odo_rel.append(np.eye(4))
             self.odo_info.append(np.eye(6))
-        else:  # the tracker's relative motion carries the previous keyframe's correction
-            self.corrected.append(self.corrected[k - 1] @ invert_pose(self.keys[k - 1].raw_pose) @ T_raw)
-            self.odo_info.append(odometry_information(self.keys, k, self.cfg))
+        else:  # the odometry edge carries the previous keyframe's correction
+            rel, info, refined = odometry_edge(self.keys, k, self.cfg, str(self.cfg.refine_edges).lower() == "on")
+            self.corrected.append(self.corrected[k - 1] @ rel)
+            self.odo_rel.append(rel)
+            self.odo_info.append(info)
+            self.counts["refined_edges"] += int(refined)
         self.counts["keyframes"] += 1
         self._drop_old_local_maps(k)
         indices = [key.index for key in self.keys]
@@ -237,8 +240,7 @@ class LoopClosure:
         return result
 
     def _optimise(self) -> None:
-        raw = [key.raw_pose for key in self.keys]
-        edges = odometry_edges(raw, self.odo_info) + self.loop_edges
+        edges = odometry_edges(self.odo_rel, self.odo_info) + self.loop_edges
         new, kept = optimise(self.corrected, edges, self.graph_cfg)
         self.counts["optimisations"] += 1
         self.pruned = {(e.source, e.target) for e, ok in zip(self.loop_edges, kept) if not ok}
@@ -283,7 +285,7 @@ class LoopClosure:
         return {"policy": self.name, "keyframes": c["keyframes"], "loops_found": c["verified"],
                 "loops_accepted": c["accepted"], "loops_rejected": c["rejected_registration"] + c["rejected_graph"],
                 "rejected_by_registration": c["rejected_registration"], "rejected_by_graph": c["rejected_graph"],
-                "optimisations": c["optimisations"], "seconds": self.seconds,
+                "optimisations": c["optimisations"], "refined_edges": c["refined_edges"], "seconds": self.seconds,
                 "worker": "process" if self.background and self.failure is None else "inline",
                 "worker_seconds": self.worker_seconds, "worker_cpu_seconds": self.worker_cpu_seconds,
                 "worker_failure": self.failure, **self.summary}
@@ -296,7 +298,8 @@ class LoopClosure:
                  "normals": np.asarray(k.cloud.normals).copy()} for k in self.keys]
         edges = [{"source": e.source, "target": e.target, "transform": e.transform, "information": e.information}
                  for e in self.loop_edges]
-        return {"keys": keys, "corrected": [T.copy() for T in self.corrected], "odo_info": list(self.odo_info),
+        return {"keys": keys, "corrected": [T.copy() for T in self.corrected], "odo_rel": list(self.odo_rel),
+                "odo_info": list(self.odo_info),
                 "loop_edges": edges, "pruned": sorted(self.pruned),
                 "pending": [list(p) for p in ([self._job] if self._job else []) + self.pending],  # running first
                 "counts": dict(self.counts),
@@ -315,6 +318,7 @@ class LoopClosure:
             self.keys.append(Keyframe(int(k["index"]), np.asarray(k["raw_pose"], dtype=np.float64), pcd))
         self.corrected = [np.asarray(T, dtype=np.float64) for T in state["corrected"]]
         self.odo_info = [np.asarray(x, dtype=np.float64) for x in state["odo_info"]]
+        self.odo_rel = [np.asarray(x, dtype=np.float64) for x in state["odo_rel"]]
         self.loop_edges = [Edge(int(e["source"]), int(e["target"]), np.asarray(e["transform"], dtype=np.float64),
                                 np.asarray(e["information"], dtype=np.float64), True) for e in state["loop_edges"]]
         self.pruned = {tuple(p) for p in state["pruned"]}

@@ -4,13 +4,14 @@ A keyframe keeps a small point cloud of its depth (camera axes, voxel-downsample
 candidate for a new keyframe is an earlier keyframe far back in time (``min_gap`` frames) whose camera, at the
 current corrected estimate, is near (``radius`` m) and looks the same way (``max_angle_deg``). A candidate is
 verified by registering two small local maps (each keyframe fused with its ``local`` predecessors) with
-multi-scale point-to-plane ICP started at the current estimate (the pose prior), then tested: the fitness (the
+multi-scale generalized ICP started at the current estimate (the pose prior), then tested: the fitness (the
 share of points with a neighbour within ``max_dist``), the inlier RMSE, and how far the correction moves away
 from the estimate (a loop edge that wants to move the camera by more than the drift can have built is wrong).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 from dataclasses import dataclass, field
@@ -55,10 +56,16 @@ class LoopConfig:
     """The fitness and RMSE test's correspondence distance (m)."""
     min_fitness: float = 0.6
     """Share of the source's points within max_dist after registration, at least."""
-    loose_sources: str = "kiss-icp"
-    """Pose sources (comma-separated names) whose loops pass at ``min_fitness_loose`` instead (larger drift)."""
-    min_fitness_loose: float = 0.45
-    """The fitness test for the ``loose_sources``."""
+    refine_edges: str = "auto"
+    """Odometry edges registered keyframe to keyframe where that fits better: auto (``refine_sources``), on, off."""
+    refine_sources: str = "kiss-icp"
+    """Pose sources (comma-separated names) whose edges ``refine_edges = auto`` refines (depth-only trackers)."""
+    refine_min_gain: float = 0.0
+    """A refined edge replaces the tracker's only where its fitness (at ``max_dist``) is this much higher."""
+    refine_max_shift: float = 0.15
+    """A refined edge moves the tracker's relative pose by at most this (m); larger, the tracker's is kept."""
+    refine_max_turn_deg: float = 5.0
+    """A refined edge turns the tracker's relative pose by at most this (deg)."""
     max_rmse: float = 0.013
     """Inlier RMSE after registration (m)."""
     max_shift: float = 0.3
@@ -67,6 +74,17 @@ class LoopConfig:
     """The loop edge turns the estimate by at most this (deg)."""
     min_points: int = 500
     """A keyframe cloud with fewer points takes part in no loop."""
+
+
+def for_source(cfg: LoopConfig, source: str) -> LoopConfig:
+    """``cfg`` for the pose source named ``source``: ``refine_edges = auto`` resolved to on (one of the
+    ``refine_sources``) or off."""
+    refine = str(cfg.refine_edges).lower()
+    if refine not in ("auto", "on", "off"):
+        raise ValueError(f"loops.detect.refine_edges must be auto, on or off, got {cfg.refine_edges!r}")
+    if refine == "auto":
+        refine = "on" if source and source in [s.strip() for s in cfg.refine_sources.split(",")] else "off"
+    return dataclasses.replace(cfg, refine_edges=refine)
 
 
 @dataclass
@@ -155,12 +173,7 @@ def verify(keys: list[Keyframe], poses: list[np.ndarray], k: int, j: int, cfg: L
     prior = invert_pose(poses[j]) @ poses[k]
     if min(len(src.points), len(tgt.points)) < cfg.min_points:
         return LoopResult(k, j, prior, 0.0, float("inf"), 0.0, 0.0, False)
-    T = prior
-    method = o3d.pipelines.registration.TransformationEstimationPointToPlane()
-    crit = o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6,
-                                                              max_iteration=30)
-    for dist in (cfg.icp_coarse, cfg.icp_coarse / 2.0, cfg.max_dist):
-        T = o3d.pipelines.registration.registration_icp(src, tgt, dist, T, method, crit).transformation
+    T = register(src, tgt, prior, cfg)
     ev = o3d.pipelines.registration.evaluate_registration(src, tgt, cfg.max_dist, T)
     delta = invert_pose(prior) @ T
     shift, turn = float(np.linalg.norm(delta[:3, 3])), rotation_angle_deg(delta[:3, :3])
@@ -172,15 +185,40 @@ def verify(keys: list[Keyframe], poses: list[np.ndarray], k: int, j: int, cfg: L
     return LoopResult(k, j, np.asarray(T), float(ev.fitness), float(ev.inlier_rmse), shift, turn, bool(ok), info)
 
 
+def register(src, tgt, T: np.ndarray, cfg: LoopConfig) -> np.ndarray:
+    """Multi-scale generalized ICP (plane to plane: it does not slide along flat surfaces as point-to-plane
+    does) of ``src`` onto ``tgt`` from ``T``, at correspondence distances ``icp_coarse``, half of it, then
+    ``max_dist``."""
+    reg = o3d.pipelines.registration
+    method = reg.TransformationEstimationForGeneralizedICP()
+    crit = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=30)
+    for dist in (cfg.icp_coarse, cfg.icp_coarse / 2.0, cfg.max_dist):
+        T = reg.registration_generalized_icp(src, tgt, dist, T, method, crit).transformation
+    return np.asarray(T)
+
+
 def timed_verify(keys, poses, k: int, j: int, cfg: LoopConfig) -> tuple[LoopResult, float]:
     """:func:`verify`, and the seconds it took."""
     t0 = time.perf_counter()
     return verify(keys, poses, k, j, cfg), time.perf_counter() - t0
 
 
-def odometry_information(keys: list[Keyframe], k: int, cfg: LoopConfig) -> np.ndarray:
-    """The information matrix of the tracker's edge from keyframe ``k - 1`` to ``k`` (their clouds' overlap at
-    the tracker's relative pose)."""
-    T = invert_pose(keys[k - 1].raw_pose) @ keys[k].raw_pose
-    return o3d.pipelines.registration.get_information_matrix_from_point_clouds(
-        keys[k].cloud, keys[k - 1].cloud, cfg.max_dist, T)
+def odometry_edge(keys: list[Keyframe], k: int, cfg: LoopConfig, refine: bool) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The graph's edge from keyframe ``k - 1`` to ``k``: ``(T_prev_k, information, refined)``. The tracker's
+    relative pose, or with ``refine`` keyframe ``k``'s cloud registered onto ``k - 1``'s from it, kept where its
+    fitness gains ``refine_min_gain`` and it stays within ``refine_max_shift`` / ``refine_max_turn_deg`` of the
+    tracker's. The information matrix is the clouds' overlap at the edge."""
+    src, tgt = keys[k].cloud, keys[k - 1].cloud
+    T = prior = invert_pose(keys[k - 1].raw_pose) @ keys[k].raw_pose
+    refined = False
+    if refine and min(len(src.points), len(tgt.points)) >= cfg.min_points:
+        evaluate = o3d.pipelines.registration.evaluate_registration
+        before = evaluate(src, tgt, cfg.max_dist, prior).fitness
+        R = register(src, tgt, prior, cfg)
+        delta = invert_pose(prior) @ R
+        if (evaluate(src, tgt, cfg.max_dist, R).fitness >= before + cfg.refine_min_gain
+                and np.linalg.norm(delta[:3, 3]) <= cfg.refine_max_shift
+                and rotation_angle_deg(delta[:3, :3]) <= cfg.refine_max_turn_deg):
+            T, refined = R, True
+    info = o3d.pipelines.registration.get_information_matrix_from_point_clouds(src, tgt, cfg.max_dist, T)
+    return T, info, refined

@@ -13,7 +13,6 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from ..core.camera import invert_pose
 
 REG = o3d.pipelines.registration
 
@@ -68,8 +67,7 @@ def optimise(poses: list[np.ndarray], edges: list[Edge], cfg: GraphConfig) -> tu
     return out, [pair in kept for pair in loops]
 
 
-def odometry_edges(raw_poses: list[np.ndarray], information: list[np.ndarray]) -> list[Edge]:
-    """Tracker edges between consecutive keyframes: ``information[k]`` is that of the edge ``k - 1 -> k``
-    (``information[0]`` is unused)."""
-    return [Edge(k, k - 1, invert_pose(raw_poses[k - 1]) @ raw_poses[k], information[k], False)
-            for k in range(1, len(raw_poses))]
+def odometry_edges(relative: list[np.ndarray], information: list[np.ndarray]) -> list[Edge]:
+    """Odometry edges between consecutive keyframes: ``relative[k]`` (``T_prev_k``) and ``information[k]`` are
+    those of the edge ``k - 1 -> k`` (index 0 is unused)."""
+    return [Edge(k, k - 1, relative[k], information[k], False) for k in range(1, len(relative))]

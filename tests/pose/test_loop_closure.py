@@ -16,6 +16,7 @@ import torch
 from eligsir_o3d.core.anchors import move_anchored
 from eligsir_o3d.core.gaussians import GaussianMap
 from eligsir_o3d.pose.loop_closure import LoopClosure, LoopClosureConfig, loop_closure_for
+from eligsir_o3d.pose.loops import LoopConfig
 from eligsir_o3d.scheduling.mcmc import relocate, sample_add
 from helpers.loop_room import LOOP, N, drifted, make_room
 from helpers.loop_room import loop_config as _config
@@ -107,6 +108,30 @@ def test_on_only_for_trackers():
     assert isinstance(loop_closure_for(LoopClosureConfig(enabled="on"), tracked=False), LoopClosure)
     with pytest.raises(ValueError, match="auto, on or off"):
         loop_closure_for(LoopClosureConfig(enabled="maybe"), tracked=True)
+
+
+def test_refined_odometry_edges_remove_the_trackers_drift_without_a_loop(room):
+    """Keyframe-to-keyframe registration replaces the drifting tracker's relative poses (no loop closed here:
+    candidates are out of reach), so the corrected end pose is nearer the truth than the tracker's."""
+    import dataclasses
+
+    poses = room[2]
+    lc = LoopClosure(dataclasses.replace(_config(), min_gap=10**6, refine_edges="on"))
+    raw, final = _run(room, lc)
+    before, after = _err(poses[-1], raw[-1]), _err(poses[-1], final[-1])
+    c = lc.counters()
+    assert c["refined_edges"] >= N // 2 and c["loops_found"] == 0, c
+    assert after[0] < 0.6 * before[0] and after[1] < 0.6 * before[1], (before, after)
+
+
+def test_refined_edges_are_on_for_the_refine_sources_only():
+    cfg = LoopClosureConfig()
+    assert loop_closure_for(cfg, tracked=True, source="kiss-icp").cfg.refine_edges == "on"
+    assert loop_closure_for(cfg, tracked=True, source="odometry").cfg.refine_edges == "off"
+    off = LoopClosureConfig(detect=LoopConfig(refine_edges="off"))
+    assert loop_closure_for(off, tracked=True, source="kiss-icp").cfg.refine_edges == "off"
+    with pytest.raises(ValueError, match="refine_edges"):
+        loop_closure_for(LoopClosureConfig(detect=LoopConfig(refine_edges="maybe")), tracked=True)
 
 
 def test_anchors_follow_every_row_change_and_move_rigidly():

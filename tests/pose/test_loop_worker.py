@@ -196,3 +196,41 @@ def test_the_worker_module_loads_without_torch():
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr
+
+
+class _Drifting:
+    name, causal, drifts = "drifting", True, True
+
+    def __init__(self, poses):
+        self.poses = poses
+
+    def track(self, index, timestamp, color, depth, camera, gt_pose=None):
+        return self.poses[index]
+
+
+def test_a_mapping_run_outlives_its_worker(room):
+    """A tracked Reconstructor verifying in the worker process: the worker is killed mid-run; the run goes on,
+    closes its loop verifying inline, and the map follows; nothing is left running after finalize."""
+    from eligsir_o3d import Reconstructor
+    from eligsir_o3d.config import Config
+
+    seq, _, poses = room
+    cfg = Config()
+    cfg.loops.detect, cfg.loops.background, cfg.clock.updates_per_frame = loop_config(), "on", 1
+    rec = Reconstructor(seq.intrinsic, "cpu", cfg, pose_source=_Drifting(drifted(poses)), depth_scale=seq.depth_scale)
+    killed = []
+    with pytest.warns(RuntimeWarning, match="exited"):
+        for i in range(N):
+            rec.integrate(seq[i % LOOP].rgbd, None, timestamp=i / 30.0)
+            worker = rec.loops._worker
+            if not killed and worker is not None and worker.busy:
+                worker.proc.kill()
+                worker.proc.wait()
+                killed.append(worker.proc)
+            _settle(rec.loops)
+        rec.finalize()
+    c = rec.loops.counters()
+    assert killed and c["worker"] == "inline" and c["loops_accepted"] >= 1 and c["optimisations"] >= 1, c
+    assert rec.loops._worker is None and len(rec.gmap) > 0
+    for view in rec.views.views:  # the retained views took the corrected poses
+        np.testing.assert_allclose(view.T_world_cam, rec.loops.pose_of(view.index, None), atol=1e-9)
