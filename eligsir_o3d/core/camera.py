@@ -10,10 +10,13 @@ Conventions (shared by the whole package):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import open3d as o3d
-import torch
+
+if TYPE_CHECKING:  # torch loads on first use: the loop-verification process (pose.loop_worker) runs without it
+    import torch
 
 
 @dataclass(frozen=True)
@@ -66,6 +69,8 @@ class Camera:
 
         depth: [H, W] metres (0 = no measurement). Returns points [M, 3] and flat pixel indices [M].
         """
+        import torch
+
         h, w = depth.shape
         vs = torch.arange(0, h, stride, device=depth.device)
         us = torch.arange(0, w, stride, device=depth.device)
@@ -85,6 +90,8 @@ class Camera:
                 return pts
             T = np.asarray(T_world_cam, dtype=np.float64)
             return pts @ T[:3, :3].T + T[:3, 3]
+        import torch
+
         pts = torch.stack([(us.float() - self.cx) * z / self.fx, (vs.float() - self.cy) * z / self.fy, z], -1)
         if T_world_cam is None:
             return pts
@@ -94,7 +101,7 @@ class Camera:
 
 def check_pose(T: np.ndarray | torch.Tensor, what: str = "pose", tol: float = 1e-3) -> np.ndarray:
     """Return ``T`` as a float64 [4, 4] array; raise ValueError if it is not a finite rigid transform."""
-    T = np.asarray(T.detach().cpu() if isinstance(T, torch.Tensor) else T, dtype=np.float64)
+    T = np.asarray(T.detach().cpu() if hasattr(T, "detach") else T, dtype=np.float64)
     if T.shape != (4, 4):
         raise ValueError(f"{what}: expected a 4x4 matrix, got shape {T.shape}")
     if not np.all(np.isfinite(T)):

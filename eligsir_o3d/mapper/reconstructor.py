@@ -25,7 +25,7 @@ from ..core.gaussians import EPS2D, GaussianMap
 from ..io.checkpoint import read_checkpoint, save_checkpoint
 from ..io.ply import load_ply, save_ply
 from ..kernels import get_kernels
-from ..pose.loop_closure import finish_loops, loop_closure_for, track_corrected
+from ..pose.loop_closure import loop_closure_for
 from ..render import RenderOutput, get_renderer
 from ..runtime.threads import TORCH_MIN_PIXELS, TORCH_MIN_ROWS, torch_threads
 from ..scheduling import MapContext, get_policies
@@ -34,6 +34,7 @@ from ..scheduling.fixed_work import FULL, LoadScaledChecks
 from ..scheduling.supervision import SupervisionGrid
 from .checkpoints import restore
 from .intake import checked_pose, to_frame
+from .loops import finish_loops, track_corrected
 from .state import MapperState, StatePart
 
 
@@ -324,7 +325,7 @@ class Reconstructor:
             self.timing.add("tracking", time.perf_counter() - t0)
         T = checked_pose(T, frame.index)
         self.stats.frames_tracked += 1
-        return T if self.loops is None else track_corrected(self, frame, T)  # loop closure: pose.loop_closure
+        return T if self.loops is None else track_corrected(self, frame, T)  # loop closure: mapper.loops
 
     def extract_point_cloud(self, min_opacity: float = 0.1, **kw) -> o3d.geometry.PointCloud:
         """Gaussian centres with SH-DC colour and normals (oriented toward the retained views' cameras)."""

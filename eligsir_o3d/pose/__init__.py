@@ -31,18 +31,31 @@ Each source's measured accuracy and time: docs/lab/measurements.md ("Pose source
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 from typing import Any
 
-from .accuracy import plot_trajectories, trajectory_accuracy, umeyama_alignment
-from .base import PoseSource, TrackingLost
-from .trajectory import (GroundTruthSource, TrajectoryError, TrajectoryFileSource, read_tum_trajectory,
-                         write_tum_trajectory)
-
 POSE_SOURCES = ("gt", "odometry", "kiss-icp", "colmap")
+
+_NAMES = {  # name -> the submodule that defines it, loaded on first use (pose.loop_worker's process has no torch)
+    "plot_trajectories": "accuracy", "trajectory_accuracy": "accuracy", "umeyama_alignment": "accuracy",
+    "PoseSource": "base", "TrackingLost": "base", "GroundTruthSource": "trajectory", "TrajectoryError": "trajectory",
+    "TrajectoryFileSource": "trajectory", "read_tum_trajectory": "trajectory", "write_tum_trajectory": "trajectory"}
 
 __all__ = ["PoseSource", "TrackingLost", "TrajectoryError", "get_pose_source", "read_tum_trajectory", "write_tum_trajectory",
            "trajectory_accuracy", "umeyama_alignment", "plot_trajectories", "POSE_SOURCES"]
+
+
+def __getattr__(name: str):
+    if name not in _NAMES:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_NAMES[name]}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_NAMES))
 
 
 def is_colmap_model(path: Path) -> bool:
@@ -80,6 +93,8 @@ def get_pose_source(spec: str | Path, *, sequence: Any = None, **options: Any) -
         print(type(src).__name__)  # GroundTruthSource
         ```
     """
+    from .trajectory import GroundTruthSource, TrajectoryFileSource
+
     key = str(spec).strip()
     low = key.lower()
     if low in ("gt", "groundtruth", "ground-truth", "ground_truth"):

@@ -9,27 +9,27 @@ may still prune it (then counted as rejected). After an optimisation, :meth:`Loo
 caller each keyframe whose corrected pose changed, so the map can follow.
 
 Verification (registration, the expensive part) runs on the mapper's thread, one candidate per frame, or, with
-``background``, on one worker thread at the lowest CPU priority (Open3D releases the GIL while it registers): a
-frame then only submits the next candidate and takes a finished result, so a real-time stream never waits for a registration, at the price
-of results arriving a few frames later (when depends on the machine, so background verification is for real-time
-runs; replays on a deterministic clock verify on the mapper's thread). :meth:`LoopClosure.finish` waits for the
-last one at the end of the stream.
+``background``, in a separate process at the lowest CPU priority (:mod:`.loop_worker`: no GIL shared with the
+mapper): a frame then only submits the next candidate and takes a finished result, so a real-time stream never
+waits for a registration, at the price of results arriving a few frames later (when depends on the machine, so
+background verification is for real-time runs; replays on a deterministic clock verify on the mapper's thread).
+:meth:`LoopClosure.finish` waits for the last one at the end of the stream and ends the process. Should the
+process fail to start, die or fall silent, a ``RuntimeWarning`` says so and verification continues on the mapper's
+thread (the candidate it held is verified there at once; nothing already mapped changes).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
-from contextlib import contextmanager
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..core.camera import invert_pose, rotation_angle_deg
-from ..runtime.threads import lowest_priority
-from .loops import (Keyframe, LoopConfig, LoopResult, candidates, for_source, keyframe_cloud, odometry_edge, timed_verify,
-                    verify)
+from .loop_worker import LoopWorker, WorkerFailed
+from .loops import Keyframe, LoopConfig, LoopResult, candidates, for_source, keyframe_cloud, odometry_edge, verify
 from .pose_graph import Edge, GraphConfig, odometry_edges, optimise
 
 
@@ -44,13 +44,14 @@ class LoopClosureConfig:
     graph: GraphConfig = field(default_factory=GraphConfig)
     """The pose graph's optimisation."""
     background: str = "auto"
-    """Verify loop candidates on a worker thread: auto (on under the real-time clock and in live runs), on, off."""
+    """Verify loop candidates in a worker process: auto (on under the real-time clock and in live runs), on, off."""
 
 
 def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None, realtime: bool = False) -> "LoopClosure | None":
     """The loop-closure policy of a run (None where it is off: poses given, or ``enabled = off``); ``source``:
     the pose source, or its name (``detect.refine_edges = auto`` refines the odometry edges of the
-    ``refine_sources``); ``realtime``: the run is on the real-time clock (``background = auto`` verifies on a worker thread then)."""
+    ``refine_sources``); ``realtime``: the run is on the real-time clock (``background = auto`` verifies in the
+    worker process then)."""
     source = getattr(source, "name", source) or ""
     mode, background = str(cfg.enabled).lower(), str(cfg.background).lower()
     if mode not in ("auto", "on", "off"):
@@ -75,8 +76,9 @@ class LoopClosure:
     def __init__(self, loops: LoopConfig | None = None, graph: GraphConfig | None = None, *, background: bool = False):
         self.cfg = loops or LoopConfig()
         self.background = bool(background)
-        self._job: tuple[int, int, Future] | None = None  # (keyframe, candidate, its verification on the worker)
-        self._worker: ThreadPoolExecutor | None = None  # made on first use
+        self._job: tuple[int, int] | None = None  # (keyframe, candidate) the worker process is verifying
+        self._worker: LoopWorker | None = None  # made on first use
+        self.failure: str | None = None  # why the worker process was given up (then verification is inline)
         self.graph_cfg = graph or GraphConfig()
         self.keys: list[Keyframe] = []
         self.corrected: list[np.ndarray] = []  # per keyframe, T_world_cam after the last optimisation
@@ -90,7 +92,8 @@ class LoopClosure:
         self.counts = {"keyframes": 0, "candidates": 0, "verified": 0, "rejected_registration": 0,
                        "rejected_graph": 0, "accepted": 0, "optimisations": 0, "refined_edges": 0}
         self.seconds = 0.0  # on the mapper's thread
-        self.worker_seconds = 0.0  # verification on the worker thread
+        self.worker_seconds = 0.0  # verification in the worker process
+        self.worker_cpu_seconds = 0.0  # the worker process's CPU time (its own report)
         self.injected: list[tuple[int, np.ndarray]] = []  # test hook: (frame index, wrong T_target_source)
         self.pending: list[tuple[int, int]] = []  # (keyframe, candidate) pairs waiting for verification
         self._moves: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -153,44 +156,70 @@ class LoopClosure:
 
     def _verify_pending(self) -> bool:
         """Verify up to ``per_frame`` waiting candidates (a bounded slice of work per frame), or with
-        ``background`` take the worker's finished result and hand it the next; True when one was accepted as a
-        loop edge."""
-        if self.background:
-            return self._verify_in_background()
+        ``background`` take the worker's finished result and hand it the next (should the worker fail, the
+        candidate it held is verified here at once); True when one was accepted as a loop edge."""
         found = False
+        if self.background and self.failure is None:
+            found = self._verify_in_background()
+            if self.failure is None:
+                return found
         for _ in range(min(self.cfg.per_frame, len(self.pending))):
             k, j = self.pending.pop(0)
             found |= self._take(verify(self.keys, self.corrected, k, j, self.cfg))
         return found
 
     def _verify_in_background(self, wait: bool = False) -> bool:
+        """Take the worker's finished result (``wait``: block for it) and, unless waiting, hand it the next
+        candidate; a failed worker is given up (:attr:`failure`). True when a loop edge was accepted."""
         found = False
-        if self._job is not None and (wait or self._job[2].done()):
-            result, seconds = self._job[2].result()
-            self.worker_seconds += seconds
-            self._job = None
-            found = self._take(result)
-        if self._job is None and self.pending and not wait:
-            k, j = self.pending.pop(0)
-            if self._worker is None:
-                self._worker = ThreadPoolExecutor(1, thread_name_prefix="eligsir-loops", initializer=lowest_priority)
-            # the keyframe list grows by appending and poses are copied: the worker reads a consistent snapshot
-            self._job = (k, j, self._worker.submit(timed_verify, list(self.keys), [T.copy() for T in self.corrected],
-                                                   k, j, self.cfg))
+        try:
+            if self._job is not None and (done := self._worker.result(wait)) is not None:
+                self.worker_seconds += done[1]
+                self.worker_cpu_seconds = self._worker.cpu_seconds
+                self._job = None
+                found = self._take(done[0])
+            if self._job is None and self.pending and not wait:
+                if self._worker is None:
+                    self._worker = LoopWorker(self.cfg)
+                self._job = self.pending.pop(0)
+                self._worker.submit(self.keys, self.corrected, *self._job)
+        except WorkerFailed as e:
+            self._give_up_worker(str(e))
         return found
 
+    def _give_up_worker(self, why: str) -> None:
+        """Verify on the mapper's thread from now on; the candidate the worker held waits first in line."""
+        self.failure = f"{why}; loop candidates are verified on the mapper's thread from now on"
+        warnings.warn(self.failure, RuntimeWarning, stacklevel=2)
+        self.close(kill=True)
+
     def finish(self) -> None:
-        """At the end of the stream: wait for a verification still on the worker and, if it closed a loop,
-        optimise (:meth:`take_moves` then has the moves)."""
+        """At the end of the stream: wait for a verification still in the worker (verified here should the worker
+        fail) and, if it closed a loop, optimise (:meth:`take_moves` then has the moves); the worker ends."""
         t0 = time.perf_counter()
         try:
-            if self._job is not None and self._verify_in_background(wait=True):
+            found = False
+            if self._job is not None:
+                running = self._job
+                found = self._verify_in_background(wait=True)
+                if self.failure is not None and self.pending[:1] == [running]:
+                    found |= self._take(verify(self.keys, self.corrected, *self.pending.pop(0), self.cfg))
+            if found:
                 self._optimise()
         finally:
             self.seconds += time.perf_counter() - t0
-            if self._worker is not None:
-                self._worker.shutdown(wait=False)
-                self._worker = None
+            self.close()
+
+    def close(self, kill: bool = False) -> None:
+        """End the worker process, if one runs (``kill``: without waiting for it); the candidate it held goes back
+        to the front of the queue."""
+        if self._job is not None:
+            self.pending.insert(0, self._job)
+            self._job = None
+        if self._worker is not None:
+            self.worker_cpu_seconds = max(self.worker_cpu_seconds, self._worker.cpu_seconds)
+            self._worker.close(kill)
+            self._worker = None
 
     def _take(self, result: LoopResult) -> bool:
         """Count and log one verification; an accepted one becomes a loop edge (True)."""
@@ -257,8 +286,9 @@ class LoopClosure:
                 "loops_accepted": c["accepted"], "loops_rejected": c["rejected_registration"] + c["rejected_graph"],
                 "rejected_by_registration": c["rejected_registration"], "rejected_by_graph": c["rejected_graph"],
                 "optimisations": c["optimisations"], "refined_edges": c["refined_edges"], "seconds": self.seconds,
-                "background": self.background,
-                "worker_seconds": self.worker_seconds, **self.summary}
+                "worker": "process" if self.background and self.failure is None else "inline",
+                "worker_seconds": self.worker_seconds, "worker_cpu_seconds": self.worker_cpu_seconds,
+                "worker_failure": self.failure, **self.summary}
 
     # ---- state -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -271,7 +301,7 @@ class LoopClosure:
         return {"keys": keys, "corrected": [T.copy() for T in self.corrected], "odo_rel": list(self.odo_rel),
                 "odo_info": list(self.odo_info),
                 "loop_edges": edges, "pruned": sorted(self.pruned),
-                "pending": [list(p) for p in ([self._job[:2]] if self._job else []) + self.pending],  # running first
+                "pending": [list(p) for p in ([self._job] if self._job else []) + self.pending],  # running first
                 "counts": dict(self.counts),
                 "seconds": self.seconds, "frames": {int(i): [k, rel.copy()] for i, (k, rel) in self.frames.items()},
                 "raw": {int(i): T.copy() for i, T in self.raw.items()}, "log": list(self.log)}
@@ -280,6 +310,7 @@ class LoopClosure:
         """Restore :meth:`state_dict`'s output."""
         import open3d as o3d
 
+        self.close()  # a worker process holds the keyframes being replaced
         self.keys = []
         for k in state["keys"]:
             pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(k["points"], dtype=np.float64)))
@@ -305,46 +336,3 @@ def _row(r: LoopResult, keys: list[Keyframe]) -> dict:
             "rmse_m": round(r.rmse, 5), "shift_m": round(r.shift, 4), "turn_deg": round(r.turn_deg, 3),
             "accepted": r.accepted, "transform": np.round(r.transform, 6).tolist()}
 
-
-def track_corrected(rec, frame, T_raw: np.ndarray) -> np.ndarray:
-    """A Reconstructor's tracked pose ``T_raw`` of ``frame`` through its loop closure ``rec.loops``: the
-    corrected pose; after an optimisation the map follows (anchored Gaussians and retained views move). The time
-    is the ``loops`` stage's and counts as tracking; new Gaussians are anchored to the current keyframe."""
-    with _loops_stage(rec):
-        T = rec.loops.on_frame(frame.index, T_raw, frame.depth, frame.camera)
-        _follow(rec)
-    return T
-
-
-def finish_loops(rec) -> None:
-    """At the end of a Reconstructor's stream: its loop closure's last background verification taken
-    (:meth:`LoopClosure.finish`) and the map moved where it closed a loop; nothing without loop closure."""
-    if rec.loops is None:
-        return
-    with _loops_stage(rec):
-        rec.loops.finish()
-        _follow(rec)
-
-
-@contextmanager
-def _loops_stage(rec):
-    """Time the block as the ``loops`` stage, counted as tracking time."""
-    t0 = time.perf_counter()
-    try:
-        with rec.timing("loops"):
-            yield
-    finally:
-        rec.stats.tracking_s += time.perf_counter() - t0
-
-
-def _follow(rec) -> None:
-    """The map follows the keyframes the last optimisation moved; new Gaussians anchor to the current keyframe."""
-    from ..core.anchors import move_anchored
-
-    moves = rec.loops.take_moves()
-    if moves:
-        move_anchored(rec.gmap, moves)
-        for view in rec.views.views:
-            view.T_world_cam = rec.loops.pose_of(view.index, view.T_world_cam)
-        rec.views.poses_moved()
-    rec.gmap.anchor_view = rec.loops.anchor

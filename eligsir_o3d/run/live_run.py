@@ -8,8 +8,8 @@ deliver frames at the recording's pace, as a camera would.
 
 :func:`run_live` maps such a stream against the wall clock: a capture thread puts frames in a bounded queue that
 drops its oldest frame when full (as the real-time replay clock does); the mapper takes the oldest waiting
-frame, tracks it (RGB-D odometry by default; loop closure corrects the poses, verifying loops on a worker
-thread), integrates it and optimises until the next frame is due, and keeps
+frame, tracks it (RGB-D odometry by default; loop closure corrects the poses, verifying loops in a worker
+process), integrates it and optimises until the next frame is due, and keeps
 optimising while nothing waits. When the stream ends (or ``max_frames`` / ``seconds`` is reached) it drains for
 a bounded time and writes ``map.ply``, ``trajectory.txt``, ``config.json`` and ``live.json`` to ``out``.
 

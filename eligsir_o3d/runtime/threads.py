@@ -63,14 +63,3 @@ def report() -> dict:
             pass
     return out
 
-
-def lowest_priority() -> None:
-    """The calling thread (and the threads it starts, which inherit it) runs at the lowest CPU priority from now on:
-    background work takes the cycles the mapper leaves idle (Linux: a thread's nice value; elsewhere a no-op)."""
-    import os
-    import threading
-
-    try:
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 19)
-    except (AttributeError, OSError):
-        pass

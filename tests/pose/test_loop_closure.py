@@ -1,8 +1,10 @@
 """Loop closure (pose.loops, pose.pose_graph, pose.loop_closure) and the map that follows it (core.anchors).
 
 The synthetic room's one loop (48 frames at 160x120, each one a keyframe), walked once and then 2 frames more
-along its start, is tracked by a fake tracker whose error grows along the path; loop closure must bring the last frame back to its true pose (1 cm / 0.5 deg). A wrong loop
-edge injected on purpose must be pruned by the graph's line process and leave the result as good.
+along its start, is tracked by a fake tracker whose error grows along the path (tests/helpers/loop_room.py); loop
+closure must bring the last frame back to its true pose (1 cm / 0.5 deg). A wrong loop edge injected on purpose
+must be pruned by the graph's line process and leave the result as good. Verification in the worker process:
+tests/pose/test_loop_worker.py.
 """
 
 from __future__ import annotations
@@ -12,49 +14,19 @@ import pytest
 import torch
 
 from eligsir_o3d.core.anchors import move_anchored
-from eligsir_o3d.core.camera import invert_pose, rotation_angle_deg
 from eligsir_o3d.core.gaussians import GaussianMap
-from eligsir_o3d.datasets import open_sequence
 from eligsir_o3d.pose.loop_closure import LoopClosure, LoopClosureConfig, loop_closure_for
 from eligsir_o3d.pose.loops import LoopConfig
 from eligsir_o3d.scheduling.mcmc import relocate, sample_add
-
-LOOP, N = 48, 50  # frames of one loop, frames walked
-
-
-def _rot(axis, deg):
-    a = np.radians(deg)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]], dtype=np.float64)
-    T = np.eye(4)
-    T[:3, :3] = np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
-    return T
+from helpers.loop_room import LOOP, N, drifted, make_room
+from helpers.loop_room import loop_config as _config
+from helpers.loop_room import pose_error as _err
+from helpers.loop_room import rot as _rot
 
 
 @pytest.fixture(scope="module")
 def room():
-    seq = open_sequence("synthetic", n_frames=LOOP, width=160, height=120)
-    depths = [seq.frame(i).depth.numpy() for i in range(LOOP)]
-    return seq, [depths[i % LOOP] for i in range(N)], [seq.poses[i % LOOP] for i in range(N)]
-
-
-def drifted(poses):
-    """A tracker's poses: the true relative motions, each with a small rotation and translation error."""
-    E = _rot(np.array([0.0, 1.0, 0.0]), 0.05)
-    E[:3, 3] = [0.0005, 0.0, 0.0]
-    out = [poses[0].copy()]
-    for k in range(1, len(poses)):
-        out.append(out[-1] @ invert_pose(poses[k - 1]) @ poses[k] @ E)
-    return out
-
-
-def _config():
-    return LoopConfig(keyframe_dist=0.0, cloud_stride=2, min_gap=30, radius=0.6, max_candidates=2, per_frame=2,
-                      local=1)
-
-
-def _err(A, B):
-    E = invert_pose(A) @ B
-    return float(np.linalg.norm(E[:3, 3])), rotation_angle_deg(E[:3, :3])
+    return make_room()
 
 
 def _run(room, lc):
@@ -102,40 +74,6 @@ def test_state_round_trip(room):
         a, b = lc.on_frame(i, raw[i], depths[i], seq.camera), other.on_frame(i, raw[i], depths[i], seq.camera)
         np.testing.assert_allclose(a, b, atol=1e-9)
     assert lc.counters() == {**other.counters(), "seconds": lc.counters()["seconds"]}
-
-
-def test_background_verification_closes_the_loop_as_well(room):
-    """With ``background`` the registrations run on a worker thread and a frame takes the result the next frame
-    finds finished; after :meth:`finish` (the end of the stream) the last frame is as close to the truth as with
-    verification inline. (Here each frame lets the worker finish first, so that the run does not depend on the
-    machine's speed: the results arrive one frame late.)"""
-    seq, depths, poses = room
-    lc = LoopClosure(_config(), background=True)
-    raw = drifted(poses)
-    for i in range(N):
-        lc.on_frame(i, raw[i], depths[i], seq.camera)
-        if lc._job is not None:
-            lc._job[2].result()  # a frame period long enough for one registration
-    lc.finish()
-    assert lc._job is None and lc._worker is None
-    after = _err(poses[-1], lc.pose_of(N - 1, raw[-1]))
-    c = lc.counters()
-    assert c["background"] and c["worker_seconds"] > 0 and c["loops_accepted"] >= 1, c
-    assert after[0] < 0.01 and after[1] < 0.5, after
-
-
-def test_a_checkpoint_keeps_the_candidate_the_worker_is_verifying(room):
-    seq, depths, poses = room
-    lc = LoopClosure(_config(), background=True)
-    raw = drifted(poses)
-    i = 0
-    while lc._job is None:
-        lc.on_frame(i, raw[i], depths[i], seq.camera)
-        i += 1
-    running = list(lc._job[:2])
-    state = lc.state_dict()
-    assert state["pending"][0] == running  # re-verified after a resume, not lost
-    lc.finish()
 
 
 def test_background_follows_the_clock_unless_set():
