@@ -60,7 +60,8 @@ def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None, realtim
         raise ValueError(f"loops.background must be auto, on or off, got {cfg.background!r}")
     if mode == "off" or (mode == "auto" and not tracked):
         return None
-    return LoopClosure(for_source(cfg.detect, source), cfg.graph, background=background == "on" or (background == "auto" and realtime))
+    background_on = background == "on" or (background == "auto" and realtime)
+    return LoopClosure(for_source(cfg.detect, source), cfg.graph, background=background_on)
 
 
 class LoopClosure:
@@ -318,7 +319,9 @@ class LoopClosure:
             self.keys.append(Keyframe(int(k["index"]), np.asarray(k["raw_pose"], dtype=np.float64), pcd))
         self.corrected = [np.asarray(T, dtype=np.float64) for T in state["corrected"]]
         self.odo_info = [np.asarray(x, dtype=np.float64) for x in state["odo_info"]]
-        self.odo_rel = [np.asarray(x, dtype=np.float64) for x in state["odo_rel"]]
+        raw = [key.raw_pose for key in self.keys]  # a checkpoint without refined edges: the tracker's
+        self.odo_rel = [np.asarray(x, dtype=np.float64) for x in state.get("odo_rel", [])] or (
+            [np.eye(4)] + [invert_pose(a) @ b for a, b in zip(raw, raw[1:])])
         self.loop_edges = [Edge(int(e["source"]), int(e["target"]), np.asarray(e["transform"], dtype=np.float64),
                                 np.asarray(e["information"], dtype=np.float64), True) for e in state["loop_edges"]]
         self.pruned = {tuple(p) for p in state["pruned"]}

@@ -76,6 +76,22 @@ def test_state_round_trip(room):
     assert lc.counters() == {**other.counters(), "seconds": lc.counters()["seconds"]}
 
 
+def test_a_state_without_odometry_edges_takes_the_trackers(room):
+    """A checkpoint written before edges could be refined has no ``odo_rel``: the tracker's relative poses."""
+    seq, depths, poses = room
+    lc = LoopClosure(_config())
+    raw = drifted(poses)
+    for i in range(10):
+        lc.on_frame(i, raw[i], depths[i], seq.camera)
+    state = lc.state_dict()
+    del state["odo_rel"]
+    other = LoopClosure(_config())
+    other.load_state_dict(state)
+    assert len(other.odo_rel) == len(lc.odo_rel)
+    for a, b in zip(other.odo_rel, lc.odo_rel):
+        np.testing.assert_allclose(a, b, atol=1e-9)
+
+
 def test_background_follows_the_clock_unless_set():
     cfg = LoopClosureConfig()
     assert not loop_closure_for(cfg, tracked=True).background  # a deterministic replay verifies inline
