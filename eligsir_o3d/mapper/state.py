@@ -46,7 +46,9 @@ class MapperState:
     Args:
         config: the resolved Config; camera: the stream's; device: the map's.
         gmap: the Gaussians with their Adam moments.
-        views, fidelity, growth: the three policies (:func:`eligsir_o3d.scheduling.get_policies`).
+        views: the view-scheduling policy (:func:`eligsir_o3d.scheduling.get_policies` makes all three).
+        fidelity: the fidelity policy.
+        growth: the growth policy.
         supervision: the supervision sampler (:class:`~eligsir_o3d.scheduling.supervision.SupervisionGrid`).
         fixed_work: the per-frame fixed-work chooser (:class:`~eligsir_o3d.scheduling.fixed_work.LoadScaledChecks`).
         rng: the mapper's own generator (view choice, supervision samples).
