@@ -184,7 +184,8 @@ def _time_projection_and_dssim(row: dict, case: tuple, kern, best) -> None:
 
     _, _, params, cam, T0, rgb, _ = case
     cb, pk, f32 = kern.cb, kern.pk, np.float32
-    V = cb.world_to_cam(T0, "cpu", torch.float32).double().numpy()
+    from eligsir_o3d.render.projection import world_to_cam
+    V = world_to_cam(T0, "cpu", torch.float32).double().numpy()
     camv = np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cb.NEAR, cb.EPS2D])
     mq, qq, sq = (params[kk].numpy().astype(f32) for kk in ("means", "quats", "scales"))
     nn = mq.shape[0]
