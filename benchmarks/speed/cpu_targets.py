@@ -42,7 +42,10 @@ def target_env(name: str) -> dict:
     """Environment of a worker: ``target`` or ``target@DIR`` (the package and scene loader of another checkout,
     e.g. the code before a change, timed in the same rounds)."""
     name, _, root = name.partition("@")
+    name, _, features = name.partition("~")
     env = dict(TARGET_ENV.get(name, {"NUMBA_CPU_NAME": name, "NUMBA_CPU_FEATURES": ""}))
+    if features:
+        env.update(NUMBA_CPU_NAME=name if name != "host" else "host", NUMBA_CPU_FEATURES=features)
     env["PYTHONPATH"] = env["ELIGSIR_BENCH_ROOT"] = str(Path(root).resolve()) if root else str(ROOT)
     return env
 
