@@ -42,7 +42,10 @@ def target_env(name: str) -> dict:
     """Environment of a worker: ``target`` or ``target@DIR`` (the package and scene loader of another checkout,
     e.g. the code before a change, timed in the same rounds)."""
     name, _, root = name.partition("@")
+    name, _, features = name.partition("~")
     env = dict(TARGET_ENV.get(name, {"NUMBA_CPU_NAME": name, "NUMBA_CPU_FEATURES": ""}))
+    if features:
+        env.update(NUMBA_CPU_NAME=name if name != "host" else "host", NUMBA_CPU_FEATURES=features)
     env["PYTHONPATH"] = env["ELIGSIR_BENCH_ROOT"] = str(Path(root).resolve()) if root else str(ROOT)
     return env
 
@@ -184,7 +187,8 @@ def _time_projection_and_dssim(row: dict, case: tuple, kern, best) -> None:
 
     _, _, params, cam, T0, rgb, _ = case
     cb, pk, f32 = kern.cb, kern.pk, np.float32
-    V = cb.world_to_cam(T0, "cpu", torch.float32).double().numpy()
+    from eligsir_o3d.render.projection import world_to_cam
+    V = world_to_cam(T0, "cpu", torch.float32).double().numpy()
     camv = np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cb.NEAR, cb.EPS2D])
     mq, qq, sq = (params[kk].numpy().astype(f32) for kk in ("means", "quats", "scales"))
     nn = mq.shape[0]

@@ -20,8 +20,9 @@ import numba
 import numpy as np
 from numba import prange
 
-from ..optim.update_kernels import move_mean, noise_gate
+from ..optim.update_kernels import mean_delta, noise_gate
 from ..runtime.fmath import exp32, sigmoid32
+from ..runtime.jit import full_width_vectors
 from ..runtime.jit import jit as _jit
 from .device_reference import C0
 
@@ -56,16 +57,63 @@ def gather_activated(ps, rows, deg0, o_means, o_quats, o_scales, o_opac, o_color
 
 
 @numba.njit(inline="always", fastmath=False)
-def _adam(p, m, v, t, k, grad, hyper):
-    """torch's Adam on element k of parameter p (moments m, v), parameter number t of ``hyper``, in float32."""
-    a, b = np.float32(hyper[t, 0]), np.float32(hyper[t, 1])
-    w, b2, w2, eps = np.float32(hyper[t, 2]), np.float32(hyper[t, 3]), np.float32(hyper[t, 4]), \
-        np.float32(hyper[t, 5])
-    mi = m[k] + w * (grad - m[k])
-    vi = v[k] * b2 + w2 * grad * grad
-    m[k] = mi
-    v[k] = vi
-    p[k] = p[k] + a * (mi / (np.sqrt(vi) / b + eps))
+def _hyper(hyper, t):
+    """Parameter t's Adam factors as float32 values: (a, b, 1 - beta1, beta2, 1 - beta2, eps)."""
+    return (np.float32(hyper[t, 0]), np.float32(hyper[t, 1]), np.float32(hyper[t, 2]), np.float32(hyper[t, 3]),
+            np.float32(hyper[t, 4]), np.float32(hyper[t, 5]))
+
+
+@numba.njit(inline="always", fastmath=False)
+def _adam_value(p, m, v, grad, h):
+    """torch's Adam on one float32 element with factors h (:func:`_hyper`): the new (p, m, v)."""
+    mi = m + h[2] * (grad - m)
+    vi = v * h[3] + h[4] * grad * grad
+    return p + h[0] * (mi / (np.sqrt(vi) / h[1] + h[5])), mi, vi
+
+
+@numba.njit(inline="always", fastmath=False)
+def _adam(p, m, v, k, grad, h):
+    """:func:`_adam_value` on element k of parameter p (moments m, v), in place."""
+    p[k], m[k], v[k] = _adam_value(p[k], m[k], v[k], grad, h)
+
+
+LANES = 16  # rows stepped side by side
+# step_view's scratch: per stepped column (means 3, quats 4, scales 3, opacity 1, sh0 3: 14) four rows (parameter,
+# moment 1, moment 2, gradient), then the noise's normal triple
+COLS = (0, 3, 7, 10, 11, 14)  # first column of means, quats, scales, opacities, sh0; the total
+PAR, M1, M2, GRAD, Z = 0, 14, 28, 42, 56
+
+
+@numba.njit(inline="always", fastmath=False)
+def _gather_lane(st, lane, i, g, t, flat, m, v, grads, width, has):
+    """Column block t of scratch lane ``lane`` from row g of parameter ``flat`` (its moments m, v) and row i of
+    its gradient [M, width] (zeros where the parameter is not stepped)."""
+    for j in range(width):
+        c = COLS[t] + j
+        st[PAR + c, lane] = flat[width * g + j]
+        st[M1 + c, lane] = m[width * g + j] if has else np.float32(0.0)
+        st[M2 + c, lane] = v[width * g + j] if has else np.float32(0.0)
+        st[GRAD + c, lane] = grads[i, j] if has else np.float32(0.0)
+
+
+@numba.njit(inline="always", fastmath=False)
+def _scatter_lane(st, lane, g, t, flat, m, v, width):
+    for j in range(width):
+        c = COLS[t] + j
+        flat[width * g + j] = st[PAR + c, lane]
+        m[width * g + j] = st[M1 + c, lane]
+        v[width * g + j] = st[M2 + c, lane]
+
+
+@numba.njit(inline="always", fastmath=False)
+def _step_lane(st, lane, t, width, has, h):
+    """Adam of column block t in one lane from its gradient row; the parameter moves only where it is stepped."""
+    for j in range(width):
+        c = COLS[t] + j
+        p, mi, vi = _adam_value(st[PAR + c, lane], st[M1 + c, lane], st[M2 + c, lane], st[GRAD + c, lane], h)
+        st[PAR + c, lane] = p if has else st[PAR + c, lane]
+        st[M1 + c, lane] = mi
+        st[M2 + c, lane] = vi
 
 
 @_jit
@@ -79,43 +127,90 @@ def step_view(ps, ms, vs, g_means, g_quats, g_scales, g_opac, g_sh0, g_shn, has,
     ``chain`` False the raw parameters' (no chain rule); ``has[t]``: parameter t is stepped (its gradient given
     and its tensor not empty); ``hyper`` [6, 6] float64 (:data:`HYPER`); ``kr_o``, ``kr_s``: the
     regulariser's gradients per unit opacity and scale (opacity_reg / N, scale_reg / (3 N)); ``z`` [M, 3] normals
-    and ``scaler`` > 0: the position noise of the updated row (0: none)."""
+    and ``scaler`` > 0: the position noise of the updated row (0: none).
+
+    Rows run :data:`LANES` at a time: copied into a scratch column each, stepped in one branch-free loop over the
+    lanes (SIMD at the target's width), copied back; shN's variable-width rows are stepped in place, one by one."""
     pm, pq, ps_, po, p0, pn = ps
     f_o, f_s = np.float32(kr_o), np.float32(kr_s)
-    c0, half, zero = np.float32(C0), np.float32(0.5), np.float32(0.0)
+    c0, half, zero, one = np.float32(C0), np.float32(0.5), np.float32(0.0), np.float32(1.0)
     wn = pn.shape[0] // max(po.shape[0], 1)  # over the capacity: shN's row width
-    means3, quats4 = pm.reshape((pm.shape[0] // 3, 3)), pq.reshape((pq.shape[0] // 4, 4))
-    for i in prange(rows.shape[0]):
-        g = rows[i]
-        if has[MEANS]:
+    h_m = _hyper(hyper, MEANS)
+    h_q = _hyper(hyper, QUATS)
+    h_s = _hyper(hyper, SCALES)
+    h_o = _hyper(hyper, OPACITIES)
+    h_0 = _hyper(hyper, SH0)
+    h_n = _hyper(hyper, SHN)
+    has_m, has_q, has_s, has_o, has_0, has_n = has[MEANS], has[QUATS], has[SCALES], has[OPACITIES], has[SH0], \
+        has[SHN]
+    noise = scaler > 0
+    g_o2 = g_opac.reshape((g_opac.shape[0], 1))
+    n = rows.shape[0]
+    for bi in prange((n + LANES - 1) // LANES):
+        full_width_vectors()
+        st = np.empty((Z + 3, LANES), np.float32)
+        base = bi * LANES
+        count = min(LANES, n - base)
+        for lane in range(LANES):  # the last group repeats its last row in the spare lanes
+            i = base + min(lane, count - 1)
+            g = rows[i]
+            _gather_lane(st, lane, i, g, MEANS, pm, ms[0], vs[0], g_means, 3, has_m)
+            _gather_lane(st, lane, i, g, QUATS, pq, ms[1], vs[1], g_quats, 4, has_q)
+            _gather_lane(st, lane, i, g, SCALES, ps_, ms[2], vs[2], g_scales, 3, has_s)
+            _gather_lane(st, lane, i, g, OPACITIES, po, ms[3], vs[3], g_o2, 1, has_o)
+            _gather_lane(st, lane, i, g, SH0, p0, ms[4], vs[4], g_sh0, 3, has_0)
             for j in range(3):
-                _adam(pm, ms[0], vs[0], MEANS, 3 * g + j, g_means[i, j], hyper)
-        if has[QUATS]:
-            for j in range(4):
-                _adam(pq, ms[1], vs[1], QUATS, 4 * g + j, g_quats[i, j], hyper)
-        if has[SCALES]:
+                st[Z + j, lane] = z[i, j] if noise else zero
+        for lane in range(LANES):
+            for j in range(3):  # the chain rule and the regulariser, before the step
+                c = COLS[SCALES] + j
+                e = exp32(st[PAR + c, lane])
+                gs = st[GRAD + c, lane] * e if chain else st[GRAD + c, lane]
+                st[GRAD + c, lane] = gs + f_s * e
+            c = COLS[OPACITIES]
+            o = sigmoid32(st[PAR + c, lane])
+            d = (one - o) * o
+            go = st[GRAD + c, lane] * d if chain else st[GRAD + c, lane]
+            st[GRAD + c, lane] = go + f_o * d
             for j in range(3):
-                e = exp32(ps_[3 * g + j])
-                gs = g_scales[i, j] * e if chain else g_scales[i, j]
-                _adam(ps_, ms[2], vs[2], SCALES, 3 * g + j, gs + f_s * e, hyper)
-        if has[OPACITIES]:
-            o = sigmoid32(po[g])
-            d = (np.float32(1.0) - o) * o
-            go = g_opac[i] * d if chain else g_opac[i]
-            _adam(po, ms[3], vs[3], OPACITIES, g, go + f_o * d, hyper)
-        if has[SH0]:
-            for c in range(3):
-                gc = g_sh0[i, c]
+                c = COLS[SH0] + j
+                gc = st[GRAD + c, lane]
                 if deg0 and chain:
-                    gc = gc * c0 if p0[3 * g + c] * c0 + half >= zero else zero
-                _adam(p0, ms[4], vs[4], SH0, 3 * g + c, gc, hyper)
-        if has[SHN]:
-            for j in range(wn):
-                _adam(pn, ms[5], vs[5], SHN, wn * g + j, g_shn[i, j], hyper)
-        if scaler > 0:
-            o = sigmoid32(po[g])
-            e0 = exp32(ps_[3 * g])
-            e1 = exp32(ps_[3 * g + 1])
-            e2 = exp32(ps_[3 * g + 2])
-            move_mean(means3, g, quats4, e0 * e0, e1 * e1, e2 * e2, z[i, 0], z[i, 1],
-                      z[i, 2], noise_gate(o, scaler))
+                    gc = gc * c0 if st[PAR + c, lane] * c0 + half >= zero else zero
+                st[GRAD + c, lane] = gc
+            _step_lane(st, lane, MEANS, 3, has_m, h_m)
+            _step_lane(st, lane, QUATS, 4, has_q, h_q)
+            _step_lane(st, lane, SCALES, 3, has_s, h_s)
+            _step_lane(st, lane, OPACITIES, 1, has_o, h_o)
+            _step_lane(st, lane, SH0, 3, has_0, h_0)
+            if noise:
+                o = sigmoid32(st[PAR + COLS[OPACITIES], lane])
+                e0 = exp32(st[PAR + COLS[SCALES], lane])
+                e1 = exp32(st[PAR + COLS[SCALES] + 1, lane])
+                e2 = exp32(st[PAR + COLS[SCALES] + 2, lane])
+                q = COLS[QUATS]
+                d0, d1, d2 = mean_delta(st[PAR + q, lane], st[PAR + q + 1, lane], st[PAR + q + 2, lane],
+                                        st[PAR + q + 3, lane], e0 * e0, e1 * e1, e2 * e2, st[Z, lane],
+                                        st[Z + 1, lane], st[Z + 2, lane], noise_gate(o, scaler))
+                st[PAR, lane] = st[PAR, lane] + d0
+                st[PAR + 1, lane] = st[PAR + 1, lane] + d1
+                st[PAR + 2, lane] = st[PAR + 2, lane] + d2
+        for lane in range(count):
+            i = base + lane
+            g = rows[i]
+            if has_m:
+                _scatter_lane(st, lane, g, MEANS, pm, ms[0], vs[0], 3)
+            elif noise:
+                for j in range(3):
+                    pm[3 * g + j] = st[PAR + j, lane]
+            if has_q:
+                _scatter_lane(st, lane, g, QUATS, pq, ms[1], vs[1], 4)
+            if has_s:
+                _scatter_lane(st, lane, g, SCALES, ps_, ms[2], vs[2], 3)
+            if has_o:
+                _scatter_lane(st, lane, g, OPACITIES, po, ms[3], vs[3], 1)
+            if has_0:
+                _scatter_lane(st, lane, g, SH0, p0, ms[4], vs[4], 3)
+            if has_n:
+                for j in range(wn):
+                    _adam(pn, ms[5], vs[5], wn * g + j, g_shn[i, j], h_n)

@@ -29,9 +29,8 @@ from ..runtime.jit import rows_threads
 
 
 @numba.njit(inline="always", fastmath=False)
-def move_mean(means, g, quats, s0, s1, s2, z0, z1, z2, k):
-    """means[g] += (R diag(s0, s1, s2) R^T (z0, z1, z2)) * k, R the rotation of quats[g] (unnormalised wxyz)."""
-    w, x, y, zq = quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3]
+def mean_delta(w, x, y, zq, s0, s1, s2, z0, z1, z2, k):
+    """(R diag(s0, s1, s2) R^T (z0, z1, z2)) * k, R the rotation of the quaternion (w, x, y, zq) (unnormalised)."""
     nq = max(np.float32(math.sqrt(w * w + x * x + y * y + zq * zq)), np.float32(1e-12))
     w, x, y, zq = w / nq, x / nq, y / nq, zq / nq
     r00, r01, r02 = 1 - 2 * (y * y + zq * zq), 2 * (x * y - w * zq), 2 * (x * zq + w * y)
@@ -41,9 +40,17 @@ def move_mean(means, g, quats, s0, s1, s2, z0, z1, z2, k):
     a0 = (r00 * z0 + r10 * z1 + r20 * z2) * s0
     a1 = (r01 * z0 + r11 * z1 + r21 * z2) * s1
     a2 = (r02 * z0 + r12 * z1 + r22 * z2) * s2
-    means[g, 0] += (r00 * a0 + r01 * a1 + r02 * a2) * k
-    means[g, 1] += (r10 * a0 + r11 * a1 + r12 * a2) * k
-    means[g, 2] += (r20 * a0 + r21 * a1 + r22 * a2) * k
+    return (r00 * a0 + r01 * a1 + r02 * a2) * k, (r10 * a0 + r11 * a1 + r12 * a2) * k, \
+        (r20 * a0 + r21 * a1 + r22 * a2) * k
+
+
+@numba.njit(inline="always", fastmath=False)
+def move_mean(means, g, quats, s0, s1, s2, z0, z1, z2, k):
+    """means[g] += (R diag(s0, s1, s2) R^T (z0, z1, z2)) * k, R the rotation of quats[g] (unnormalised wxyz)."""
+    d0, d1, d2 = mean_delta(quats[g, 0], quats[g, 1], quats[g, 2], quats[g, 3], s0, s1, s2, z0, z1, z2, k)
+    means[g, 0] += d0
+    means[g, 1] += d1
+    means[g, 2] += d2
 
 
 @numba.njit(inline="always", fastmath=False)

@@ -15,6 +15,7 @@ from numba import prange, types
 from numba.extending import intrinsic
 
 from ..runtime.jit import compile_kernel as _compile
+from ..runtime.jit import full_width_vectors
 from ._cpu_kernels import (ALPHA_MAX, ALPHA_MIN, HALF, ISECT_COLS, ONE, SOURCE_CRC, TILE, ZERO, conic_alpha,
                            reaches)
 
@@ -94,6 +95,7 @@ def make(bw: int, bh: int):
         if v_isect.shape[1] != ISECT_COLS or not v_isect.flags.c_contiguous:
             raise ValueError("v_isect must be a C-ordered [M, ISECT_COLS] array")
         for task in prange(slots):
+            full_width_vectors()
             st = np.empty(STATE * NP, np.float32)  # the block's per-pixel state and gradient rows, one array (below)
             for i in range(task, order.shape[0], slots):
                 t = order[i]

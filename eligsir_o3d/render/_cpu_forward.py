@@ -11,6 +11,7 @@ import numpy as np
 from numba import prange
 
 from ..runtime.jit import compile_kernel as _compile
+from ..runtime.jit import full_width_vectors
 from ._cpu_kernels import ALPHA_MIN, ONE, SOURCE_CRC, T_MIN, TILE, ZERO, conic_alpha, gather_tile
 
 
@@ -47,6 +48,7 @@ def make(bw: int, bh: int):
         if crc < 0:  # never (a checksum is >= 0); it makes crc a closure constant of the kernel
             return
         for task in prange(slots):
+            full_width_vectors()
             st = np.empty(10 * NP, np.float32)  # the block's per-pixel state, one array (below)
             for i in range(task, order.shape[0], slots):
                 t = order[i]

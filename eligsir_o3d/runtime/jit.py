@@ -21,7 +21,9 @@ prepare()  # the tbb wheel's library before Open3D's: numba's TBB layer needs th
 
 import numba  # noqa: E402
 
+from numba import types  # noqa: E402
 from numba.core.caching import FunctionCache  # noqa: E402
+from numba.extending import intrinsic  # noqa: E402
 
 uncached: list[str] = []  # names of the kernels that compile in every process (no writable cache)
 
@@ -70,6 +72,21 @@ def compile_kernel(parallel: bool, fastmath: bool = False):
 
 jit = compile_kernel(parallel=True)
 jit_serial = compile_kernel(parallel=False)
+
+
+@intrinsic
+def full_width_vectors(typingctx):
+    """Called in a kernel's loop body: LLVM may vectorise the function it lands in (a ``prange`` body is a function
+    of its own) at the target's full register width. x86 CPUs with AVX-512 default to 256-bit vectors (LLVM's
+    ``prefer-256-bit`` tuning), which splits a 16-pixel block into two halves and the kernels' explicit 16-lane
+    vector steps across them; the ``prefer-vector-width`` function attribute lifts that for this function alone
+    (the process's other code keeps numba's target). No effect on a CPU without 512-bit registers; the same bits
+    at any width (the kernels use no fast-math)."""
+    def codegen(context, builder, signature, args):
+        # llvmlite's FunctionAttributes takes enum attributes only; a string attribute is printed as given
+        set.add(builder.function.attributes, '"prefer-vector-width"="512"')
+        return context.get_dummy_value()
+    return types.void(), codegen
 
 from .threads import PARALLEL_MIN_PIXELS, PARALLEL_MIN_ROWS, PARALLEL_MIN_ROWS_TBB  # noqa: E402
 

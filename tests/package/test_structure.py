@@ -13,7 +13,7 @@ MAX_FUNCTION_LINES = 80
 # numba kernels (and the factories that close over them) are long straight-line loops, kept whole on purpose
 KERNEL_MODULES = {"render/_cpu_forward.py", "render/_cpu_backward.py", "render/_cpu_projection.py",
                   "render/_cpu_kernels.py", "render/_cpu_binning.py", "optim/update_kernels.py",
-                  "optim/dssim_kernels.py"}
+                  "optim/dssim_kernels.py", "kernels/cpu_kernels.py"}
 
 
 def _module_name(path: Path) -> str:
