@@ -243,7 +243,8 @@ class LoopClosure(KeyframeChain):
         return result
 
     def _optimise(self) -> None:
-        """Optimise the settled keyframes' graph; the unsettled ones move rigidly with the last settled one."""
+        """Optimise the settled keyframes' graph; the unsettled ones move rigidly with the last settled one (placed
+        again by their tracker edges from it)."""
         s = self.settled
         edges = odometry_edges(self.odo_rel[:s], self.odo_info[:s]) + self.loop_edges
         new, kept = optimise(self.corrected[:s], edges, self.graph_cfg)
@@ -251,9 +252,9 @@ class LoopClosure(KeyframeChain):
         self.pruned = {(e.source, e.target) for e, ok in zip(self.loop_edges, kept) if not ok}
         self.counts["accepted"] = sum(kept)
         self.counts["rejected_graph"] = len(self.pruned)
-        C = new[s - 1] @ invert_pose(self.corrected[s - 1])
-        for k in range(len(self.keys)):
-            self._record_move(k, self.corrected[k], new[k] if k < s else C @ self.corrected[k])
+        for k in range(s):
+            self._record_move(k, self.corrected[k], new[k])
+        self._chain_tail(s)
 
     # ---- what the map and the trajectory need ----------------------------------------------------------
     @property

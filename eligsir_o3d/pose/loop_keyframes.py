@@ -4,9 +4,9 @@ the mapper's thread) and settled into the pose graph, the tail following rigidly
 A new keyframe is placed by the tracker's relative pose from the previous one, with a provisional odometry edge
 (that relative pose, unit information). Its build (:func:`.loops.keyframe_data`: cloud, information, refined edge)
 runs from its strided depth, kept until it settles. Keyframes settle in order: keyframe ``k``'s edge replaces the
-provisional one, its corrected pose becomes ``corrected[k - 1] @ edge``, and the correction ``C`` that takes it
-there moves every later keyframe too (``corrected[j] = C @ corrected[j]``), so the relative poses among the later
-ones are unchanged and every move is recorded for the map to follow. Only a settled keyframe looks for loops.
+provisional one, its corrected pose becomes ``corrected[k - 1] @ edge``, and the correction that takes it there
+moves every later keyframe too: they are placed again by their tracker edges from it, so the relative poses among
+them are unchanged, and every move is recorded for the map to follow. Only a settled keyframe looks for loops.
 """
 
 from __future__ import annotations
@@ -106,13 +106,18 @@ class KeyframeChain:
         self.pending = kept + [(k, j) for j in found]  # a newer keyframe's candidates replace an older one's
 
     def _move_tail(self, k: int, new: np.ndarray) -> None:
-        """Keyframe ``k`` to ``new``, the keyframes after it by the same correction (moves recorded)."""
-        old = self.corrected[k]
-        if np.array_equal(old, new):
+        """Keyframe ``k`` to ``new``; the (unsettled) keyframes after it follow by their tracker edges, i.e. by
+        the same rigid correction (moves recorded). The tail is chained again from ``new`` rather than multiplied
+        by the correction, so rounding does not compound along it."""
+        if np.array_equal(self.corrected[k], new):
             return
-        C = new @ invert_pose(old)
-        for j in range(k, len(self.keys)):
-            self._record_move(j, self.corrected[j], new if j == k else C @ self.corrected[j])
+        self._record_move(k, self.corrected[k], new)
+        self._chain_tail(k + 1)
+
+    def _chain_tail(self, start: int) -> None:
+        """Keyframes from ``start`` on (unsettled) placed by their provisional edges from the one before."""
+        for j in range(start, len(self.keys)):
+            self._record_move(j, self.corrected[j], self.corrected[j - 1] @ self.odo_rel[j])
 
     def _record_move(self, k: int, old: np.ndarray, T: np.ndarray) -> None:
         if not np.allclose(old, T, atol=1e-9):
