@@ -57,8 +57,7 @@ class LoopClosureConfig:
     background: str = "auto"
     """Verify loop candidates in a worker process: auto (on under the real-time clock and in live runs), on, off."""
     keyframe_work: str = "process"
-    """Where keyframes' clouds and odometry edges are built: process (the worker process), inline (the mapper's
-    thread)."""
+    """Where keyframes' clouds and odometry edges are built: process (the worker process), inline (mapper thread)."""
 
 
 def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None, realtime: bool = False) -> "LoopClosure | None":

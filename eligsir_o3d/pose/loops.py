@@ -51,8 +51,7 @@ class LoopConfig:
     per_frame: int = 1
     """Candidates verified per frame at most (the rest wait for the next frames: a bounded slice of work)."""
     settle_frames: int = 3
-    """A keyframe's cloud and odometry edge enter the graph this many frames after it (built meanwhile, in the
-    worker process where one runs); under the real-time clock, as soon as they are built."""
+    """A keyframe's cloud and odometry edge enter the graph this many frames after it (real-time clock: once built)."""
     icp_coarse: float = 0.08
     """The first ICP round's correspondence distance (m); then half of it, then ``max_dist``."""
     max_dist: float = 0.02
