@@ -8,11 +8,12 @@ by the tracker's relative pose from the previous one; its cloud and its odometry
 process (``keyframe_worker``) or on the mapper's thread, and *settle* ``settle_frames`` frames later: the edge
 enters the graph and the keyframe's correction moves it and every later keyframe rigidly (the tail keeps its
 relative poses), so the map follows. The mapper waits for a build only at its settling frame, so offline runs
-give the same trajectory wherever the build ran; under the real-time clock (``background``) a keyframe settles
-as soon as its build arrives. A settled keyframe looks for loop candidates (:func:`.loops.candidates`) and
-verifies at most ``max_candidates`` of them (:func:`.loops.verify`); an accepted loop edge triggers one
-optimisation of the settled keyframes' graph (:func:`.pose_graph.optimise`; the unsettled tail moves rigidly with
-the last settled keyframe), whose line process may still prune it (then counted as rejected). After an
+give the same trajectory wherever the build ran (the process then runs at the mapper's CPU priority); under the
+real-time clock (``background``) a keyframe settles as soon as its build arrives (the process at the lowest). A
+settled keyframe looks for loop candidates (:func:`.loops.candidates`) and verifies at most ``max_candidates`` of
+them (:func:`.loops.verify`); an accepted loop edge triggers one optimisation of the settled keyframes' graph
+(:func:`.pose_graph.optimise`; the unsettled tail moves rigidly with the last settled keyframe), whose line
+process may still prune it (then counted as rejected). After an
 optimisation or a settling, :meth:`LoopClosure.take_moves` hands the caller each keyframe whose corrected pose
 changed, so the map can follow.
 

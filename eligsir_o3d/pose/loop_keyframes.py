@@ -50,8 +50,10 @@ class KeyframeChain:
             self._give_up_worker(str(e))
 
     def _get_worker(self) -> LoopWorker:
+        """The worker process's handle (made on first use): at the lowest CPU priority under the real-time clock
+        (``background``: it never slows the stream), at the mapper's otherwise (the mapper waits for its builds)."""
         if self._worker is None:
-            self._worker = LoopWorker(self.cfg)
+            self._worker = LoopWorker(self.cfg, nice=19 if self.background else 0)
         return self._worker
 
     def _settle_due(self, index: int | None) -> None:

@@ -1,10 +1,11 @@
-"""The loop-closure worker: a separate process (no GIL shared with the mapper, at the lowest CPU priority) that
+"""The loop-closure worker: a separate process (no GIL shared with the mapper, at a lower CPU priority) that
 builds keyframes and verifies loop candidates.
 
 :class:`LoopWorker` is the mapper's handle. On first use it starts ``python -m eligsir_o3d.pose.loop_worker``
-(this module, which imports neither torch nor the mapper) at nice 19, with one OpenMP/BLAS thread. Messages are
-pickled, length-prefixed, over the child's stdin and stdout; two daemon threads of the mapper's process write and
-read them, so no call blocks on the pipe unless asked to wait. :meth:`~LoopWorker.build` hands the child a
+(this module, which imports neither torch nor the mapper) at the handle's ``nice`` (19 by default: the lowest
+priority), with one OpenMP/BLAS thread. Messages are pickled, length-prefixed, over the child's stdin and stdout;
+two daemon threads of the mapper's process write and read them, so no call blocks on the pipe unless asked to
+wait. :meth:`~LoopWorker.build` hands the child a
 keyframe's strided depth, intrinsics and tracker pose; the child builds its cloud and its odometry edge from the
 previous keyframe (:func:`.loops.keyframe_data`) and answers with them, in order. A verification names its two
 keyframes by position and carries their current pose estimates; the child builds local maps and registers them
@@ -96,8 +97,8 @@ class LoopWorker:
     """The mapper's side of the worker process: keyframe builds (any number in flight, answered in order) and one
     verification in flight at a time."""
 
-    def __init__(self, cfg: LoopConfig, timeout_s: float = 60.0):
-        self.cfg, self.timeout_s = cfg, float(timeout_s)
+    def __init__(self, cfg: LoopConfig, timeout_s: float = 60.0, nice: int = 19):
+        self.cfg, self.timeout_s, self.nice = cfg, float(timeout_s), int(nice)
         self.proc: subprocess.Popen | None = None
         self.sent = 0  # keyframes the child holds or builds (the first ``sent`` of the list)
         self.cpu_seconds = 0.0  # the child's CPU time (user + system), as it last reported
@@ -116,8 +117,8 @@ class LoopWorker:
         root = str(Path(__file__).resolve().parents[2])  # the child imports this very package
         env["PYTHONPATH"] = os.pathsep.join([root] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
         try:
-            self.proc = subprocess.Popen([sys.executable, "-m", "eligsir_o3d.pose.loop_worker"], stdin=subprocess.PIPE,
-                                         stdout=subprocess.PIPE, env=env, close_fds=True)
+            self.proc = subprocess.Popen([sys.executable, "-m", "eligsir_o3d.pose.loop_worker", str(self.nice)],
+                                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, close_fds=True)
         except OSError as e:
             raise WorkerFailed(f"the loop verification process did not start ({e})") from e
         for target, stream, box in ((_writer, self.proc.stdin, self._outbox), (_reader, self.proc.stdout, self._inbox)):
@@ -214,9 +215,9 @@ class LoopWorker:
 
 
 # ---- the child ----------------------------------------------------------------------------------------------
-def _lowest_priority() -> None:
+def _lower_priority(nice: int) -> None:
     try:
-        os.nice(19)
+        os.nice(nice)
     except (AttributeError, OSError):
         pass
 
@@ -277,7 +278,7 @@ def serve(inp, out) -> None:
 
 
 def main() -> None:
-    _lowest_priority()
+    _lower_priority(int(sys.argv[1]) if len(sys.argv) > 1 else 19)
     out = os.fdopen(os.dup(1), "wb")  # the replies' own pipe: C++ code printing to stdout goes to stderr instead
     os.dup2(2, 1)
     serve(sys.stdin.buffer, out)

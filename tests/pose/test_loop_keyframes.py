@@ -204,10 +204,11 @@ class _Drifting:
         return self.poses[index]
 
 
-def test_the_map_follows_keyframes_settling_late(walk, monkeypatch):
+def test_the_map_follows_keyframes_settling_late(walk, monkeypatch, tmp_path):
     """A tracked Reconstructor whose keyframes settle 2 frames late, built in the worker: after every frame the
     retained views sit at the loop-closed poses, and the map is handed each settling keyframe's move (the
-    Gaussians anchored to it move rigidly: tests/pose/test_loop_closure.py)."""
+    Gaussians anchored to it move rigidly: tests/pose/test_loop_closure.py); a checkpoint file written with
+    keyframes unsettled resumes them."""
     import eligsir_o3d.core.anchors as anchors
     from eligsir_o3d import Reconstructor
     from eligsir_o3d.config import Config
@@ -234,6 +235,13 @@ def test_the_map_follows_keyframes_settling_late(walk, monkeypatch):
             np.testing.assert_allclose(handed[0][settling][0], old, atol=1e-12)
             np.testing.assert_allclose(handed[0][settling][1], lc.keyframe_pose(settling), atol=1e-12)
             checked += 1
+    assert lc.settled < len(lc.keys)
+    back = Reconstructor.load(rec.save(tmp_path / "ck.pt"), "cpu", pose_source=_Drifting(raw))
+    assert back.loops.settled == lc.settled and sorted(back.loops.inputs) == sorted(lc.inputs)
+    for k in lc.inputs:
+        np.testing.assert_array_equal(back.loops.inputs[k][0], lc.inputs[k][0])
     rec.finalize()
+    back.loops.finish()
     assert checked >= 5 and lc.counters()["refined_edges"] >= 5, (checked, lc.counters())
+    np.testing.assert_allclose(back.loops.corrected, lc.corrected, atol=1e-6)
     assert lc._worker is None
