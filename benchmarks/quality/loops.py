@@ -42,7 +42,8 @@ def _configs(sets: list[str]) -> tuple[LoopConfig, GraphConfig]:
 
 
 def replay(seq, stamps: np.ndarray, poses: list[np.ndarray], lc: LoopClosure, depth_cache: dict) -> list:
-    """Run ``lc`` over the frames whose timestamps are ``stamps``; returns (frame index, timestamp, T_used)."""
+    """Run ``lc`` over the frames whose timestamps are ``stamps`` and finish it (its last keyframes settle);
+    returns (frame index, timestamp, T_used)."""
     idx, _ = associate_stamps(np.asarray(seq.timestamps), stamps, 0.02)
     used = []
     for i, k in zip(idx, range(len(stamps))):
@@ -52,6 +53,7 @@ def replay(seq, stamps: np.ndarray, poses: list[np.ndarray], lc: LoopClosure, de
             depth_cache[int(i)] = depth
         T = lc.on_frame(int(i), poses[k], depth, seq.camera)
         used.append((int(i), float(stamps[k]), T))
+    lc.finish()
     return used
 
 

@@ -2,20 +2,30 @@
 
 The pose source keeps tracking in its own (drifting) frame; this policy keeps, per keyframe, the tracker's pose
 and the corrected one. A frame's corrected pose is its tracker pose carried by the correction of its keyframe
-(the last keyframe at or before it): ``T = T_corr[k] @ inv(T_raw[k]) @ T_raw``. Every new keyframe looks for loop
-candidates (:func:`.loops.candidates`) and verifies at most ``max_candidates`` of them (:func:`.loops.verify`);
-an accepted loop edge triggers one optimisation of the graph (:func:`.pose_graph.optimise`), whose line process
-may still prune it (then counted as rejected). After an optimisation, :meth:`LoopClosure.take_moves` hands the
-caller each keyframe whose corrected pose changed, so the map can follow.
+(the last keyframe at or before it): ``T = T_corr[k] @ inv(T_raw[k]) @ T_raw``. A new keyframe is placed at once
+by the tracker's relative pose from the previous one; its cloud and its odometry edge (information, and for the
+``refine_sources`` the edge registered onto the previous keyframe) are built from its strided depth, in the worker
+process (``keyframe_worker``) or on the mapper's thread, and *settle* ``settle_frames`` frames later: the edge
+enters the graph and the keyframe's correction moves it and every later keyframe rigidly (the tail keeps its
+relative poses), so the map follows. The mapper waits for a build only at its settling frame, so offline runs
+give the same trajectory wherever the build ran (the process then runs at the mapper's CPU priority); under the
+real-time clock (``background``) a keyframe settles as soon as its build arrives (the process at the lowest). A
+settled keyframe looks for loop candidates (:func:`.loops.candidates`) and verifies at most ``max_candidates`` of
+them (:func:`.loops.verify`); an accepted loop edge triggers one optimisation of the settled keyframes' graph
+(:func:`.pose_graph.optimise`; the unsettled tail moves rigidly with the last settled keyframe), whose line
+process may still prune it (then counted as rejected). After an
+optimisation or a settling, :meth:`LoopClosure.take_moves` hands the caller each keyframe whose corrected pose
+changed, so the map can follow.
 
 Verification (registration, the expensive part) runs on the mapper's thread, one candidate per frame, or, with
-``background``, in a separate process at the lowest CPU priority (:mod:`.loop_worker`: no GIL shared with the
-mapper): a frame then only submits the next candidate and takes a finished result, so a real-time stream never
-waits for a registration, at the price of results arriving a few frames later (when depends on the machine, so
-background verification is for real-time runs; replays on a deterministic clock verify on the mapper's thread).
-:meth:`LoopClosure.finish` waits for the last one at the end of the stream and ends the process. Should the
-process fail to start, die or fall silent, a ``RuntimeWarning`` says so and verification continues on the mapper's
-thread (the candidate it held is verified there at once; nothing already mapped changes).
+``background``, in the worker process (:mod:`.loop_worker`: no GIL shared with the mapper, lowest CPU priority):
+a frame then only submits the next candidate and takes a finished result, so a real-time stream never waits for
+a registration, at the price of results arriving a few frames later (when depends on the machine, so background
+verification is for real-time runs; replays on a deterministic clock verify on the mapper's thread).
+:meth:`LoopClosure.finish` settles the last keyframes, waits for the last verification and ends the process.
+Should the process fail to start, die or fall silent, a ``RuntimeWarning`` says so and its work continues on the
+mapper's thread (keyframes it was building are built there from the inputs kept until they settle, the candidate
+it held is verified there at once; nothing already mapped changes).
 """
 
 from __future__ import annotations
@@ -29,7 +39,9 @@ import numpy as np
 
 from ..core.camera import invert_pose, rotation_angle_deg
 from .loop_worker import LoopWorker, WorkerFailed
-from .loops import Keyframe, LoopConfig, LoopResult, candidates, for_source, keyframe_cloud, odometry_edge, verify
+from .loop_keyframes import KeyframeChain
+from .loop_state import load_state, state_of
+from .loops import Keyframe, LoopConfig, LoopResult, for_source, verify
 from .pose_graph import Edge, GraphConfig, odometry_edges, optimise
 
 
@@ -45,6 +57,8 @@ class LoopClosureConfig:
     """The pose graph's optimisation."""
     background: str = "auto"
     """Verify loop candidates in a worker process: auto (on under the real-time clock and in live runs), on, off."""
+    keyframe_work: str = "process"
+    """Where keyframes' clouds and odometry edges are built: process (the worker process), inline (mapper thread)."""
 
 
 def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None, realtime: bool = False) -> "LoopClosure | None":
@@ -53,7 +67,9 @@ def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None, realtim
     ``refine_sources``); ``realtime``: the run is on the real-time clock (``background = auto`` verifies in the
     worker process then)."""
     source = getattr(source, "name", source) or ""
-    mode, background = str(cfg.enabled).lower(), str(cfg.background).lower()
+    mode, background, work = str(cfg.enabled).lower(), str(cfg.background).lower(), str(cfg.keyframe_work).lower()
+    if work not in ("process", "inline"):
+        raise ValueError(f"loops.keyframe_work must be process or inline, got {cfg.keyframe_work!r}")
     if mode not in ("auto", "on", "off"):
         raise ValueError(f"loops.enabled must be auto, on or off, got {cfg.enabled!r}")
     if background not in ("auto", "on", "off"):
@@ -61,22 +77,30 @@ def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None, realtim
     if mode == "off" or (mode == "auto" and not tracked):
         return None
     background_on = background == "on" or (background == "auto" and realtime)
-    return LoopClosure(for_source(cfg.detect, source), cfg.graph, background=background_on)
+    return LoopClosure(for_source(cfg.detect, source), cfg.graph, background=background_on,
+                       keyframe_worker=work == "process")
 
 
-class LoopClosure:
+class LoopClosure(KeyframeChain):
     """Keyframes, loop edges and the pose graph of one tracked run.
 
     ``on_frame(index, T_raw, depth, camera)`` returns the frame's corrected pose; ``anchor`` is the frame index
     of the current keyframe (the anchor of Gaussians created now); ``take_moves()`` returns ``{keyframe index:
     (old pose, new pose)}`` since the last call; ``pose_of(index, T)`` is the final corrected pose of a frame
-    that was given pose ``T`` when it was integrated."""
+    that was given pose ``T`` when it was integrated. ``background``: verify in the worker process and settle
+    keyframes as their builds arrive; ``keyframe_worker``: build keyframes in the worker process."""
 
     name = "loop-closure"
 
-    def __init__(self, loops: LoopConfig | None = None, graph: GraphConfig | None = None, *, background: bool = False):
+    def __init__(self, loops: LoopConfig | None = None, graph: GraphConfig | None = None, *, background: bool = False,
+                 keyframe_worker: bool = False):
         self.cfg = loops or LoopConfig()
         self.background = bool(background)
+        self.keyframe_worker = bool(keyframe_worker)
+        self.settled = 0  # keyframes whose cloud and odometry edge are in the graph (the first ``settled``)
+        self.inputs: dict[int, tuple] = {}  # unsettled keyframe -> (strided depth, intrinsics), until it settles
+        self._submitted = 0  # keyframes the worker holds or builds
+        self._rescued: tuple[int, int] | None = None  # the candidate a failed worker held (verified next)
         self._job: tuple[int, int] | None = None  # (keyframe, candidate) the worker process is verifying
         self._worker: LoopWorker | None = None  # made on first use
         self.failure: str | None = None  # why the worker process was given up (then verification is inline)
@@ -95,6 +119,8 @@ class LoopClosure:
         self.seconds = 0.0  # on the mapper's thread
         self.worker_seconds = 0.0  # verification in the worker process
         self.worker_cpu_seconds = 0.0  # the worker process's CPU time (its own report)
+        self.wait_seconds = 0.0  # the mapper's thread waiting for a keyframe's build at its settling frame
+        self.keyframe_seconds = 0.0  # building keyframes, wherever it ran
         self.injected: list[tuple[int, np.ndarray]] = []  # test hook: (frame index, wrong T_target_source)
         self.pending: list[tuple[int, int]] = []  # (keyframe, candidate) pairs waiting for verification
         self._moves: dict[int, tuple[np.ndarray, np.ndarray]] = {}
@@ -108,6 +134,7 @@ class LoopClosure:
             T_raw = np.asarray(T_raw, dtype=np.float64)
             if self._is_keyframe(index, T_raw):
                 self._add_keyframe(index, T_raw, depth, camera)
+            self._settle_due(index)
             if self._verify_pending():
                 self._optimise()
             k = len(self.keys) - 1
@@ -128,33 +155,6 @@ class LoopClosure:
         return (np.linalg.norm(delta[:3, 3]) >= c.keyframe_dist or rotation_angle_deg(delta[:3, :3]) >=
                 c.keyframe_angle_deg or index - last.index >= c.keyframe_every)
 
-    def _add_keyframe(self, index: int, T_raw: np.ndarray, depth, camera) -> None:
-        d = depth.detach().cpu().numpy() if hasattr(depth, "detach") else np.asarray(depth)
-        self.keys.append(Keyframe(int(index), T_raw.copy(), keyframe_cloud(d, camera, self.cfg)))
-        k = len(self.keys) - 1
-        if k == 0:
-            self.corrected.append(T_raw.copy())
-            self.odo_rel.append(np.eye(4))
-            self.odo_info.append(np.eye(6))
-        else:  # the odometry edge carries the previous keyframe's correction
-            rel, info, refined = odometry_edge(self.keys, k, self.cfg, str(self.cfg.refine_edges).lower() == "on")
-            self.corrected.append(self.corrected[k - 1] @ rel)
-            self.odo_rel.append(rel)
-            self.odo_info.append(info)
-            self.counts["refined_edges"] += int(refined)
-        self.counts["keyframes"] += 1
-        self._drop_old_local_maps(k)
-        indices = [key.index for key in self.keys]
-        found = candidates(k, indices, self.corrected, self.cfg)
-        self.counts["candidates"] += len(found)
-        self.pending = [(k, j) for j in found]  # a newer keyframe's candidates replace an older one's
-
-    def _drop_old_local_maps(self, k: int) -> None:
-        """Local maps are rebuilt on demand; keep only the recent ones cached (memory stays per keyframe)."""
-        old = k - self.cfg.local - 2
-        if old >= 0 and self.keys[old].local_cloud is not None:
-            self.keys[old].local_cloud = None
-
     def _verify_pending(self) -> bool:
         """Verify up to ``per_frame`` waiting candidates (a bounded slice of work per frame), or with
         ``background`` take the worker's finished result and hand it the next (should the worker fail, the
@@ -166,6 +166,7 @@ class LoopClosure:
                 return found
         for _ in range(min(self.cfg.per_frame, len(self.pending))):
             k, j = self.pending.pop(0)
+            self._rescued = None
             found |= self._take(verify(self.keys, self.corrected, k, j, self.cfg))
         return found
 
@@ -180,25 +181,25 @@ class LoopClosure:
                 self._job = None
                 found = self._take(done[0])
             if self._job is None and self.pending and not wait:
-                if self._worker is None:
-                    self._worker = LoopWorker(self.cfg)
                 self._job = self.pending.pop(0)
-                self._worker.submit(self.keys, self.corrected, *self._job)
+                self._get_worker().submit(self.keys, self.corrected, *self._job)
         except WorkerFailed as e:
             self._give_up_worker(str(e))
         return found
 
     def _give_up_worker(self, why: str) -> None:
         """Verify on the mapper's thread from now on; the candidate the worker held waits first in line."""
-        self.failure = f"{why}; loop candidates are verified on the mapper's thread from now on"
+        self.failure = f"{why}; keyframes are built and loop candidates verified on the mapper's thread from now on"
         warnings.warn(self.failure, RuntimeWarning, stacklevel=2)
         self.close(kill=True)
 
     def finish(self) -> None:
-        """At the end of the stream: wait for a verification still in the worker (verified here should the worker
-        fail) and, if it closed a loop, optimise (:meth:`take_moves` then has the moves); the worker ends."""
+        """At the end of the stream: settle the last keyframes (waiting for their builds), wait for a verification
+        still in the worker (verified here should the worker fail) and, if it closed a loop, optimise
+        (:meth:`take_moves` then has the moves); the worker ends."""
         t0 = time.perf_counter()
         try:
+            self._settle_due(None)
             found = False
             if self._job is not None:
                 running = self._job
@@ -213,10 +214,11 @@ class LoopClosure:
 
     def close(self, kill: bool = False) -> None:
         """End the worker process, if one runs (``kill``: without waiting for it); the candidate it held goes back
-        to the front of the queue."""
+        to the front of the queue, the keyframes it was building are built again (from their kept inputs)."""
         if self._job is not None:
             self.pending.insert(0, self._job)
-            self._job = None
+            self._rescued, self._job = self._job, None
+        self._submitted = self.settled  # a new worker builds the unsettled keyframes again
         if self._worker is not None:
             self.worker_cpu_seconds = max(self.worker_cpu_seconds, self._worker.cpu_seconds)
             self._worker.close(kill)
@@ -241,17 +243,18 @@ class LoopClosure:
         return result
 
     def _optimise(self) -> None:
-        edges = odometry_edges(self.odo_rel, self.odo_info) + self.loop_edges
-        new, kept = optimise(self.corrected, edges, self.graph_cfg)
+        """Optimise the settled keyframes' graph; the unsettled ones move rigidly with the last settled one (placed
+        again by their tracker edges from it)."""
+        s = self.settled
+        edges = odometry_edges(self.odo_rel[:s], self.odo_info[:s]) + self.loop_edges
+        new, kept = optimise(self.corrected[:s], edges, self.graph_cfg)
         self.counts["optimisations"] += 1
         self.pruned = {(e.source, e.target) for e, ok in zip(self.loop_edges, kept) if not ok}
         self.counts["accepted"] = sum(kept)
         self.counts["rejected_graph"] = len(self.pruned)
-        for k, (old, T) in enumerate(zip(self.corrected, new)):
-            if not np.allclose(old, T, atol=1e-9):
-                first = self._moves.get(self.keys[k].index, (old, T))[0]
-                self._moves[self.keys[k].index] = (first, T)
-        self.corrected = new
+        for k in range(s):
+            self._record_move(k, self.corrected[k], new[k])
+        self._chain_tail(s)
 
     # ---- what the map and the trajectory need ----------------------------------------------------------
     @property
@@ -289,49 +292,20 @@ class LoopClosure:
                 "optimisations": c["optimisations"], "refined_edges": c["refined_edges"], "seconds": self.seconds,
                 "worker": "process" if self.background and self.failure is None else "inline",
                 "worker_seconds": self.worker_seconds, "worker_cpu_seconds": self.worker_cpu_seconds,
+                "keyframe_work": "process" if self.keyframe_worker and self.failure is None else "inline",
+                "keyframe_seconds": self.keyframe_seconds, "wait_seconds": self.wait_seconds,
                 "worker_failure": self.failure, **self.summary}
 
     # ---- state -------------------------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        """Plain containers and arrays: keyframes (index, tracker pose, cloud points and normals), corrected
-        poses, edges, frames' offsets, counters."""
-        keys = [{"index": k.index, "raw_pose": k.raw_pose, "points": np.asarray(k.cloud.points).copy(),
-                 "normals": np.asarray(k.cloud.normals).copy()} for k in self.keys]
-        edges = [{"source": e.source, "target": e.target, "transform": e.transform, "information": e.information}
-                 for e in self.loop_edges]
-        return {"keys": keys, "corrected": [T.copy() for T in self.corrected], "odo_rel": list(self.odo_rel),
-                "odo_info": list(self.odo_info),
-                "loop_edges": edges, "pruned": sorted(self.pruned),
-                "pending": [list(p) for p in ([self._job] if self._job else []) + self.pending],  # running first
-                "counts": dict(self.counts),
-                "seconds": self.seconds, "frames": {int(i): [k, rel.copy()] for i, (k, rel) in self.frames.items()},
-                "raw": {int(i): T.copy() for i, T in self.raw.items()}, "log": list(self.log)}
+        """Plain containers and arrays (:func:`.loop_state.state_of`)."""
+        return state_of(self)
 
     def load_state_dict(self, state: dict) -> None:
-        """Restore :meth:`state_dict`'s output."""
-        import open3d as o3d
-
+        """Restore :meth:`state_dict`'s output, or an older one's (:func:`.loop_state.load_state`)."""
         self.close()  # a worker process holds the keyframes being replaced
-        self.keys = []
-        for k in state["keys"]:
-            pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(k["points"], dtype=np.float64)))
-            pcd.normals = o3d.utility.Vector3dVector(np.asarray(k["normals"], dtype=np.float64))
-            self.keys.append(Keyframe(int(k["index"]), np.asarray(k["raw_pose"], dtype=np.float64), pcd))
-        self.corrected = [np.asarray(T, dtype=np.float64) for T in state["corrected"]]
-        self.odo_info = [np.asarray(x, dtype=np.float64) for x in state["odo_info"]]
-        raw = [key.raw_pose for key in self.keys]  # a checkpoint without refined edges: the tracker's
-        self.odo_rel = [np.asarray(x, dtype=np.float64) for x in state.get("odo_rel", [])] or (
-            [np.eye(4)] + [invert_pose(a) @ b for a, b in zip(raw, raw[1:])])
-        self.loop_edges = [Edge(int(e["source"]), int(e["target"]), np.asarray(e["transform"], dtype=np.float64),
-                                np.asarray(e["information"], dtype=np.float64), True) for e in state["loop_edges"]]
-        self.pruned = {tuple(p) for p in state["pruned"]}
-        self.pending = [(int(k), int(j)) for k, j in state.get("pending", [])]
-        self.counts.update(state["counts"])
-        self.seconds = float(state["seconds"])
-        self.frames = {int(i): (int(v[0]), np.asarray(v[1], dtype=np.float64)) for i, v in state["frames"].items()}
-        self.raw = {int(i): np.asarray(T, dtype=np.float64) for i, T in state["raw"].items()}
-        self.log = list(state.get("log", []))
-        self._moves = {}
+        load_state(self, state)
+        self._moves, self._submitted, self._rescued = {}, self.settled, None
 
 
 def _row(r: LoopResult, keys: list[Keyframe]) -> dict:

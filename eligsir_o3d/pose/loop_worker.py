@@ -1,16 +1,21 @@
-"""Loop verification in a separate process: no GIL shared with the mapper, at the lowest CPU priority.
+"""The loop-closure worker: a separate process (no GIL shared with the mapper, at a lower CPU priority) that
+builds keyframes and verifies loop candidates.
 
-:class:`LoopWorker` is the mapper's handle. On its first :meth:`~LoopWorker.submit` it starts
-``python -m eligsir_o3d.pose.loop_worker`` (this module, which imports neither torch nor the mapper) at nice 19,
-with one OpenMP/BLAS thread. Messages are pickled, length-prefixed, over the child's stdin and stdout; two daemon
-threads of the mapper's process write and read them, so :meth:`~LoopWorker.submit` and
-:meth:`~LoopWorker.result` never block on the pipe. Each keyframe's cloud crosses once (points and normals); a
-verification then names its two keyframes by position and carries their current pose estimates. The child builds
-local maps and registers them with :func:`.loops.verify`, exactly as the mapper's thread would.
+:class:`LoopWorker` is the mapper's handle. On first use it starts ``python -m eligsir_o3d.pose.loop_worker``
+(this module, which imports neither torch nor the mapper) at the handle's ``nice`` (19 by default: the lowest
+priority), with one OpenMP/BLAS thread. Messages are pickled, length-prefixed, over the child's stdin and stdout;
+two daemon threads of the mapper's process write and read them, so no call blocks on the pipe unless asked to
+wait. :meth:`~LoopWorker.build` hands the child a
+keyframe's strided depth, intrinsics and tracker pose; the child builds its cloud and its odometry edge from the
+previous keyframe (:func:`.loops.keyframe_data`) and answers with them, in order. A verification names its two
+keyframes by position and carries their current pose estimates; the child builds local maps and registers them
+with :func:`.loops.verify`. Keyframes built on the mapper's side cross once, as clouds (points and normals). The
+child computes exactly what the mapper's thread would.
 
-A worker that cannot start, dies, or leaves a reply more than ``timeout_s`` late raises :class:`WorkerFailed` from
-:meth:`~LoopWorker.result` (the caller then verifies on its own thread). The child exits at end of input: when
-:meth:`~LoopWorker.close` runs (also at garbage collection and at interpreter exit) or when the parent dies.
+A worker that cannot start, dies, fails, or gives no reply for ``timeout_s`` while work is in flight raises
+:class:`WorkerFailed` from :meth:`~LoopWorker.built` and :meth:`~LoopWorker.result` (the caller then works on its
+own thread). The child exits at end of input: when :meth:`~LoopWorker.close` runs (also at garbage collection and
+at interpreter exit) or when the parent dies.
 """
 
 from __future__ import annotations
@@ -28,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .loops import Keyframe, LoopConfig, LoopResult
+from .loops import Keyframe, KeyframeData, LoopConfig, LoopResult
 
 _HEADER = struct.Struct("<Q")  # the byte length of the pickled message that follows
 _ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE"}
@@ -89,17 +94,22 @@ def _stop(proc: subprocess.Popen, outbox: queue.Queue) -> None:
 
 
 class LoopWorker:
-    """The mapper's side of the verification process; one verification in flight at a time."""
+    """The mapper's side of the worker process: keyframe builds (any number in flight, answered in order) and one
+    verification in flight at a time."""
 
-    def __init__(self, cfg: LoopConfig, timeout_s: float = 60.0):
-        self.cfg, self.timeout_s = cfg, float(timeout_s)
+    def __init__(self, cfg: LoopConfig, timeout_s: float = 60.0, nice: int = 19):
+        self.cfg, self.timeout_s, self.nice = cfg, float(timeout_s), int(nice)
         self.proc: subprocess.Popen | None = None
-        self.sent = 0  # keyframes the child holds (the first ``sent`` of the list)
+        self.sent = 0  # keyframes the child holds or builds (the first ``sent`` of the list)
         self.cpu_seconds = 0.0  # the child's CPU time (user + system), as it last reported
         self._outbox: queue.Queue = queue.Queue()
         self._inbox: queue.Queue = queue.Queue()
-        self._job: tuple[int, float] | None = None  # (job number, when it was submitted)
+        self._job: tuple[int, float] | None = None  # the verification in flight: (job number, when submitted)
         self._jobs = 0
+        self._builds: set[int] = set()  # keyframes whose build is in flight
+        self._built: dict[int, KeyframeData] = {}  # finished builds not yet taken
+        self._done: tuple | None = None  # the finished verification: (job number, result, seconds)
+        self._since = 0.0  # the last reply, or the submission that found nothing in flight
         self._closer = None
 
     def _start(self) -> None:
@@ -107,8 +117,8 @@ class LoopWorker:
         root = str(Path(__file__).resolve().parents[2])  # the child imports this very package
         env["PYTHONPATH"] = os.pathsep.join([root] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
         try:
-            self.proc = subprocess.Popen([sys.executable, "-m", "eligsir_o3d.pose.loop_worker"], stdin=subprocess.PIPE,
-                                         stdout=subprocess.PIPE, env=env, close_fds=True)
+            self.proc = subprocess.Popen([sys.executable, "-m", "eligsir_o3d.pose.loop_worker", str(self.nice)],
+                                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, close_fds=True)
         except OSError as e:
             raise WorkerFailed(f"the loop verification process did not start ({e})") from e
         for target, stream, box in ((_writer, self.proc.stdin, self._outbox), (_reader, self.proc.stdout, self._inbox)):
@@ -116,49 +126,81 @@ class LoopWorker:
         self._closer = weakref.finalize(self, _stop, self.proc, self._outbox)  # also runs at interpreter exit
         self._outbox.put(("config", self.cfg))
 
-    def submit(self, keys: list[Keyframe], poses: list[np.ndarray], k: int, j: int) -> None:
-        """Hand the child the verification of keyframe ``k`` against ``j`` at the estimates ``poses`` (it gets
-        the keyframes it has not seen first); returns at once."""
-        if self._job is not None:
-            raise RuntimeError("a verification is already in flight")
+    def _send(self, keys: list[Keyframe], upto: int) -> None:
+        """Start the child if needed and hand it the clouds of ``keys[sent:upto]`` (built on the mapper's side)."""
         if self.proc is None:
             self._start()
-        for key in keys[self.sent:]:
+        if not self.busy:
+            self._since = time.monotonic()
+        for key in keys[self.sent:upto]:
             self._outbox.put(("keyframe", key.index, key.raw_pose, np.asarray(key.cloud.points),
                               np.asarray(key.cloud.normals)))
-        self.sent = len(keys)
+        self.sent = max(self.sent, upto)
+
+    def build(self, keys: list[Keyframe], k: int, strided: np.ndarray, intr: tuple) -> None:
+        """Hand the child keyframe ``k``'s inputs (:func:`.loops.strided_depth`, :func:`.loops.intrinsics`): it
+        builds the cloud and the odometry edge from ``k - 1`` (:func:`.loops.keyframe_data`); returns at once.
+        The keyframes before ``k`` the child lacks are sent first (their clouds must be built)."""
+        if k < self.sent:
+            raise RuntimeError(f"keyframe {k} is already in the worker")
+        self._send(keys, k)
+        key = keys[k]
+        self._outbox.put(("build", k, key.index, key.raw_pose, strided, intr))
+        self._builds.add(k)
+        self.sent = k + 1
+
+    def submit(self, keys: list[Keyframe], poses: list[np.ndarray], k: int, j: int) -> None:
+        """Hand the child the verification of keyframe ``k`` against ``j`` at the estimates ``poses`` (it gets
+        the keyframes up to ``k`` it has not seen first); returns at once."""
+        if self._job is not None:
+            raise RuntimeError("a verification is already in flight")
+        self._send(keys, max(k, j) + 1)
         self._jobs += 1
         self._outbox.put(("verify", self._jobs, k, j, {k: poses[k].copy(), j: poses[j].copy()}))
         self._job = (self._jobs, time.monotonic())
 
     @property
     def busy(self) -> bool:
-        """A verification is in flight."""
-        return self._job is not None
+        """A build or a verification is in flight."""
+        return self._job is not None or bool(self._builds)
 
-    def result(self, wait: bool = False) -> tuple[LoopResult, float] | None:
-        """The finished verification and its seconds in the child, or None while it runs (``wait``: block for
-        it, up to the time limit). Raises :class:`WorkerFailed` when the child died or is over the limit."""
-        if self._job is None:
-            return None
-        job, t0 = self._job
-        while True:
-            left = t0 + self.timeout_s - time.monotonic()
+    def _pump(self, ready, wait: bool) -> None:
+        """File the child's replies until ``ready()`` (``wait``: block for it, up to the time limit) or, without
+        ``wait``, until none is left. Raises :class:`WorkerFailed` when the child died, failed, or gave no reply
+        within ``timeout_s`` while work was in flight."""
+        while not ready() and self.busy:
+            left = self._since + self.timeout_s - time.monotonic()
             try:
                 message = self._inbox.get(timeout=max(left, 0.0)) if wait else self._inbox.get_nowait()
             except queue.Empty:
                 if left > 0 and not wait:
-                    return None
+                    return
                 raise WorkerFailed(f"the loop verification process gave no reply in {self.timeout_s:g} s") from None
             if message[0] == "eof":
                 code = self.proc.poll() if self.proc is not None else None
                 raise WorkerFailed(f"the loop verification process exited (code {code})")
             if message[0] == "error":
                 raise WorkerFailed(f"the loop verification process failed: {message[2]}")
-            _, number, result, seconds, self.cpu_seconds = message
-            if number == job:
-                self._job = None
-                return result, seconds
+            self._since = time.monotonic()
+            kind, number, payload, seconds, self.cpu_seconds = message
+            if kind == "built":
+                self._builds.discard(number)
+                self._built[number] = payload
+            elif self._job is not None and number == self._job[0]:
+                self._job, self._done = None, (number, payload, seconds)
+
+    def built(self, k: int, wait: bool = False) -> KeyframeData | None:
+        """Keyframe ``k``'s finished build (taken: asked again, None), or None while it runs (``wait``: block for
+        it). Raises :class:`WorkerFailed` as :meth:`result` does."""
+        self._pump(lambda: k in self._built or k not in self._builds, wait)
+        return self._built.pop(k, None)
+
+    def result(self, wait: bool = False) -> tuple[LoopResult, float] | None:
+        """The finished verification and its seconds in the child, or None while it runs (``wait``: block for
+        it, up to the time limit). Raises :class:`WorkerFailed` when the child died or is over the limit."""
+        self._pump(lambda: self._done is not None or self._job is None, wait)
+        done, self._done = self._done, None
+        return None if done is None else done[1:]
 
     def close(self, kill: bool = False) -> None:
         """End the child (waits a moment for it to exit; ``kill``: at once); the handle can start a new one
@@ -167,14 +209,15 @@ class LoopWorker:
             self.proc.kill()
         if self._closer is not None:
             self._closer()
-        self.proc, self.sent, self._job, self._closer = None, 0, None, None
+        self.proc, self.sent, self._job, self._closer, self._done = None, 0, None, None, None
+        self._builds, self._built = set(), {}
         self._outbox, self._inbox = queue.Queue(), queue.Queue()
 
 
 # ---- the child ----------------------------------------------------------------------------------------------
-def _lowest_priority() -> None:
+def _lower_priority(nice: int) -> None:
     try:
-        os.nice(19)
+        os.nice(nice)
     except (AttributeError, OSError):
         pass
 
@@ -187,13 +230,14 @@ def _cpu_seconds() -> float:
 
 
 def serve(inp, out) -> None:
-    """The child's loop: keyframes arrive once, verifications reply with their result, seconds and the child's
-    CPU seconds so far; returns at end of input."""
+    """The child's loop: keyframes arrive once (clouds, or inputs to build, answered with what was built),
+    verifications reply with their result; every reply carries its seconds and the child's CPU seconds so far;
+    returns at end of input."""
     import traceback
 
     import open3d as o3d
 
-    from .loops import timed_verify
+    from .loops import keyframe_data, timed_verify
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     keys: list[Keyframe] = []
@@ -202,14 +246,27 @@ def serve(inp, out) -> None:
         kind = message[0]
         if kind == "config":
             cfg = message[1]
-        elif kind == "keyframe":
-            _, index, raw_pose, points, normals = message
-            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-            cloud.normals = o3d.utility.Vector3dVector(normals)
+        elif kind in ("keyframe", "build"):
+            if kind == "keyframe":
+                _, index, raw_pose, points, normals = message
+                cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+                cloud.normals = o3d.utility.Vector3dVector(normals)
+            else:
+                _, k, index, raw_pose, strided, intr = message
+                cloud = None
             keys.append(Keyframe(int(index), raw_pose, cloud))
             old = len(keys) - 1 - cfg.local - 2  # local maps are rebuilt on demand: keep the recent ones cached
             if old >= 0:
                 keys[old].local_cloud = None
+            if kind == "build":
+                try:
+                    if k != len(keys) - 1:
+                        raise IndexError(f"keyframe {k} built as the child's keyframe {len(keys) - 1}")
+                    data = keyframe_data(keys, k, strided, intr, cfg)
+                except Exception:  # noqa: BLE001 - reported to the mapper, which builds on its own thread
+                    _write(out, ("error", k, traceback.format_exc(limit=3)))
+                    continue
+                _write(out, ("built", k, data, data.seconds, _cpu_seconds()))
         elif kind == "verify":
             _, number, k, j, poses = message
             try:
@@ -221,7 +278,7 @@ def serve(inp, out) -> None:
 
 
 def main() -> None:
-    _lowest_priority()
+    _lower_priority(int(sys.argv[1]) if len(sys.argv) > 1 else 19)
     out = os.fdopen(os.dup(1), "wb")  # the replies' own pipe: C++ code printing to stdout goes to stderr instead
     os.dup2(2, 1)
     serve(sys.stdin.buffer, out)

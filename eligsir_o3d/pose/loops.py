@@ -50,6 +50,8 @@ class LoopConfig:
     """Candidates verified per keyframe (nearest first)."""
     per_frame: int = 1
     """Candidates verified per frame at most (the rest wait for the next frames: a bounded slice of work)."""
+    settle_frames: int = 3
+    """A keyframe's cloud and odometry edge enter the graph this many frames after it (real-time clock: once built)."""
     icp_coarse: float = 0.08
     """The first ICP round's correspondence distance (m); then half of it, then ``max_dist``."""
     max_dist: float = 0.02
@@ -89,11 +91,12 @@ def for_source(cfg: LoopConfig, source: str) -> LoopConfig:
 
 @dataclass
 class Keyframe:
-    """One node of the pose graph: the frame index, its tracker pose, its cloud (camera axes)."""
+    """One node of the pose graph: the frame index, its tracker pose, its cloud (camera axes; None until
+    :func:`keyframe_data` built it)."""
 
     index: int
     raw_pose: np.ndarray  # T_world_cam as the tracker gave it
-    cloud: o3d.geometry.PointCloud
+    cloud: o3d.geometry.PointCloud | None
     local_cloud: o3d.geometry.PointCloud | None = field(default=None, repr=False)
 
 
@@ -114,12 +117,33 @@ class LoopResult:
 
 def keyframe_cloud(depth: np.ndarray, camera: Camera, cfg: LoopConfig) -> o3d.geometry.PointCloud:
     """A keyframe's point cloud from its depth [H, W] (metres, 0 = none), camera axes, with normals."""
+    return cloud_from_depth(strided_depth(depth, cfg), intrinsics(camera), cfg)
+
+
+def strided_depth(depth, cfg: LoopConfig) -> np.ndarray:
+    """The depth samples a keyframe's cloud starts from: every ``cloud_stride``-th pixel of ``depth`` [H, W] (a
+    numpy array or a torch tensor on any device; only the samples are copied), in its own dtype."""
     s = cfg.cloud_stride
-    d = np.asarray(depth, dtype=np.float64)[::s, ::s]
+    d = depth[::s, ::s]
+    if hasattr(d, "detach"):
+        d = d.detach().cpu().numpy()
+    return np.ascontiguousarray(d)
+
+
+def intrinsics(camera: Camera) -> tuple[float, float, float, float]:
+    """``(fx, fy, cx, cy)`` of ``camera``."""
+    return float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
+
+
+def cloud_from_depth(strided: np.ndarray, intr: tuple, cfg: LoopConfig) -> o3d.geometry.PointCloud:
+    """A keyframe's cloud from :func:`strided_depth`'s samples and :func:`intrinsics`' ``(fx, fy, cx, cy)``:
+    back-projected (depth within 0.1 m and ``depth_max``), voxel-downsampled, with normals."""
+    s, (fx, fy, cx, cy) = cfg.cloud_stride, intr
+    d = np.asarray(strided, dtype=np.float64)
     v, u = np.nonzero((d > 0.1) & (d < cfg.depth_max))
     z = d[v, u]
-    x = (u * s - camera.cx) * z / camera.fx
-    y = (v * s - camera.cy) * z / camera.fy
+    x = (u * s - cx) * z / fx
+    y = (v * s - cy) * z / fy
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.stack([x, y, z], 1)))
     pcd = pcd.voxel_down_sample(cfg.cloud_voxel)
     with_normals(pcd, cfg.cloud_voxel)
@@ -222,3 +246,37 @@ def odometry_edge(keys: list[Keyframe], k: int, cfg: LoopConfig, refine: bool) -
             T, refined = R, True
     info = o3d.pipelines.registration.get_information_matrix_from_point_clouds(src, tgt, cfg.max_dist, T)
     return T, info, refined
+
+
+@dataclass
+class KeyframeData:
+    """What a keyframe's depth gives the pose graph: its cloud (points and normals, camera axes) and its odometry
+    edge from the previous keyframe (``T_prev_k``, information, whether registration refined it)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    rel: np.ndarray
+    info: np.ndarray
+    refined: bool
+    seconds: float = 0.0  # the time it took to build
+
+    def cloud(self) -> o3d.geometry.PointCloud:
+        """The cloud as an Open3D point cloud."""
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(self.points, dtype=np.float64)))
+        pcd.normals = o3d.utility.Vector3dVector(np.asarray(self.normals, dtype=np.float64))
+        return pcd
+
+
+def keyframe_data(keys: list[Keyframe], k: int, strided: np.ndarray, intr: tuple, cfg: LoopConfig) -> KeyframeData:
+    """Build keyframe ``k``'s cloud from :func:`strided_depth`'s samples (``keys[k].cloud`` is set) and its
+    :func:`odometry_edge` from keyframe ``k - 1`` (whose cloud must be set; refined where ``cfg.refine_edges`` is
+    on); keyframe 0's edge is the identity."""
+    t0 = time.perf_counter()
+    keys[k].cloud = cloud_from_depth(strided, intr, cfg)
+    if k == 0:
+        rel, info, refined = np.eye(4), np.eye(6), False
+    else:
+        rel, info, refined = odometry_edge(keys, k, cfg, str(cfg.refine_edges).lower() == "on")
+    cloud = keys[k].cloud
+    return KeyframeData(np.asarray(cloud.points).copy(), np.asarray(cloud.normals).copy(), np.asarray(rel),
+                        np.asarray(info), bool(refined), time.perf_counter() - t0)

@@ -37,9 +37,10 @@ def drifted(poses):
 
 
 def loop_config():
-    """Every frame a keyframe; loops from 30 frames back."""
+    """Every frame a keyframe; loops from 30 frames back; keyframes settle at once (``settle_frames`` 0: the loop
+    at the walk's end closes before it ends)."""
     return LoopConfig(keyframe_dist=0.0, cloud_stride=2, min_gap=30, radius=0.6, max_candidates=2, per_frame=2,
-                      local=1)
+                      local=1, settle_frames=0)
 
 
 def pose_error(A, B):

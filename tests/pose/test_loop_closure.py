@@ -73,7 +73,9 @@ def test_state_round_trip(room):
     for i in range(LOOP, N):
         a, b = lc.on_frame(i, raw[i], depths[i], seq.camera), other.on_frame(i, raw[i], depths[i], seq.camera)
         np.testing.assert_allclose(a, b, atol=1e-9)
-    assert lc.counters() == {**other.counters(), "seconds": lc.counters()["seconds"]}
+    timing = ("seconds", "keyframe_seconds", "wait_seconds")
+    assert {k: v for k, v in lc.counters().items() if k not in timing} == {
+        k: v for k, v in other.counters().items() if k not in timing}
 
 
 def test_a_state_without_odometry_edges_takes_the_trackers(room):
