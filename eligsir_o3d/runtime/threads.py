@@ -27,7 +27,7 @@ import torch
 
 PARALLEL_MIN_ROWS = 10_000  # Gaussians: compiled kernels over the rows in view (projection, culling, Adam, noise)
 # the same on numba's TBB layer (eligsir_o3d/runtime/tbb.py), whose workers need no wake-up (lab: thread-limits)
-PARALLEL_MIN_ROWS_TBB = 2_000
+PARALLEL_MIN_ROWS_TBB = 8_000
 PARALLEL_MIN_PIXELS = 16_000  # image pixels: the compiled D-SSIM
 TORCH_MIN_ROWS = 50_000  # Gaussians last in view: torch's ops of an update on the caller's threads from here
 TORCH_MIN_PIXELS = 150_000  # image pixels: the same
