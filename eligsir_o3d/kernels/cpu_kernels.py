@@ -98,6 +98,7 @@ def _gather_lane(st, lane, i, g, t, flat, m, v, grads, width, has):
 
 @numba.njit(inline="always", fastmath=False)
 def _scatter_lane(st, lane, g, t, flat, m, v, width):
+    """Column block t of scratch lane ``lane`` back to row g of parameter ``flat`` and its moments m, v."""
     for j in range(width):
         c = COLS[t] + j
         flat[width * g + j] = st[PAR + c, lane]
