@@ -47,3 +47,15 @@ def pose_error(A, B):
     """(metres, degrees) between two poses."""
     E = invert_pose(A) @ B
     return float(np.linalg.norm(E[:3, 3])), rotation_angle_deg(E[:3, :3])
+
+
+class DriftingSource:
+    """A tracker stand-in: the drifted poses of the walk, by frame index (``drifts``: loop closure is on)."""
+
+    name, causal, drifts = "drifting", True, True
+
+    def __init__(self, poses):
+        self.poses = poses
+
+    def track(self, index, timestamp, color, depth, camera, gt_pose=None):
+        return self.poses[index]

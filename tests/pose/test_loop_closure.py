@@ -18,7 +18,7 @@ from eligsir_o3d.core.gaussians import GaussianMap
 from eligsir_o3d.pose.loop_closure import LoopClosure, LoopClosureConfig, loop_closure_for
 from eligsir_o3d.pose.loops import LoopConfig
 from eligsir_o3d.scheduling.mcmc import relocate, sample_add
-from helpers.loop_room import LOOP, N, drifted, make_room
+from helpers.loop_room import LOOP, N, DriftingSource, drifted, make_room
 from helpers.loop_room import loop_config as _config
 from helpers.loop_room import pose_error as _err
 from helpers.loop_room import rot as _rot
@@ -193,17 +193,6 @@ def test_anchors_follow_every_row_change_and_move_rigidly():
     assert torch.equal(h.anchors, g.anchors)
 
 
-class _DriftingSource:
-    """A tracker stand-in: the drifted poses of the walk, by frame index (``drifts``: loop closure is on)."""
-
-    name, causal, drifts = "drifting", True, True
-
-    def __init__(self, poses):
-        self.poses = poses
-
-    def track(self, index, timestamp, color, depth, camera, gt_pose=None):
-        return self.poses[index]
-
 
 def test_reconstructor_map_follows_the_loop(room):
     """A tracked Reconstructor: loop closure on by default, the retained views and the anchored Gaussians move
@@ -215,7 +204,7 @@ def test_reconstructor_map_follows_the_loop(room):
     cfg = Config()
     cfg.loops.detect = _config()
     cfg.clock.updates_per_frame = 1
-    rec = Reconstructor(seq.intrinsic, "cpu", cfg, pose_source=_DriftingSource(drifted(poses)),
+    rec = Reconstructor(seq.intrinsic, "cpu", cfg, pose_source=DriftingSource(drifted(poses)),
                         depth_scale=seq.depth_scale)
     assert rec.loops is not None
     moved = []
@@ -233,7 +222,7 @@ def test_reconstructor_map_follows_the_loop(room):
     for view in rec.views.views:  # the retained views took the corrected poses
         np.testing.assert_allclose(view.T_world_cam, rec.loops.pose_of(view.index, None), atol=1e-9)
     state = rec.state_dict()
-    other = Reconstructor(seq.intrinsic, "cpu", cfg, pose_source=_DriftingSource(drifted(poses)),
+    other = Reconstructor(seq.intrinsic, "cpu", cfg, pose_source=DriftingSource(drifted(poses)),
                           depth_scale=seq.depth_scale)
     other.load_state_dict(state)
     assert other.loops.counters()["loops_accepted"] == rec.loops.counters()["loops_accepted"]

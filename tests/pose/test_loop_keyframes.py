@@ -19,7 +19,7 @@ from eligsir_o3d.core.camera import invert_pose
 from eligsir_o3d.pose.loop_closure import LoopClosure, LoopClosureConfig, loop_closure_for
 from eligsir_o3d.pose.loop_worker import LoopWorker
 from eligsir_o3d.pose.loops import Keyframe, intrinsics, keyframe_data, strided_depth
-from helpers.loop_room import LOOP, drifted, loop_config, make_room, pose_error
+from helpers.loop_room import LOOP, DriftingSource, drifted, loop_config, make_room, pose_error
 
 WALK = LOOP + 8  # the loop, then far enough along its start that the closing keyframes settle before the end
 
@@ -194,15 +194,6 @@ def test_keyframe_work_is_in_the_process_unless_set():
         loop_closure_for(LoopClosureConfig(keyframe_work="maybe"), tracked=True)
 
 
-class _Drifting:
-    name, causal, drifts = "drifting", True, True
-
-    def __init__(self, poses):
-        self.poses = poses
-
-    def track(self, index, timestamp, color, depth, camera, gt_pose=None):
-        return self.poses[index]
-
 
 def test_the_map_follows_keyframes_settling_late(walk, monkeypatch, tmp_path):
     """A tracked Reconstructor whose keyframes settle 2 frames late, built in the worker: after every frame the
@@ -219,7 +210,7 @@ def test_the_map_follows_keyframes_settling_late(walk, monkeypatch, tmp_path):
     seq, _, _, raw = walk
     cfg = Config()
     cfg.loops.detect, cfg.clock.updates_per_frame = _cfg(min_gap=10**6), 1
-    rec = Reconstructor(seq.intrinsic, "cpu", cfg, pose_source=_Drifting(raw), depth_scale=seq.depth_scale)
+    rec = Reconstructor(seq.intrinsic, "cpu", cfg, pose_source=DriftingSource(raw), depth_scale=seq.depth_scale)
     lc = rec.loops
     assert lc.keyframe_worker
     checked = 0
@@ -236,7 +227,7 @@ def test_the_map_follows_keyframes_settling_late(walk, monkeypatch, tmp_path):
             np.testing.assert_allclose(handed[0][settling][1], lc.keyframe_pose(settling), atol=1e-12)
             checked += 1
     assert lc.settled < len(lc.keys)
-    back = Reconstructor.load(rec.save(tmp_path / "ck.pt"), "cpu", pose_source=_Drifting(raw))
+    back = Reconstructor.load(rec.save(tmp_path / "ck.pt"), "cpu", pose_source=DriftingSource(raw))
     assert back.loops.settled == lc.settled and sorted(back.loops.inputs) == sorted(lc.inputs)
     for k in lc.inputs:
         np.testing.assert_array_equal(back.loops.inputs[k][0], lc.inputs[k][0])

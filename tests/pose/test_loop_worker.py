@@ -22,7 +22,7 @@ from eligsir_o3d.pose.loop_closure import LoopClosure
 from eligsir_o3d.pose.loop_worker import LoopWorker
 from eligsir_o3d.pose.loops import Keyframe, keyframe_cloud, verify
 from helpers import ROOT
-from helpers.loop_room import LOOP, N, drifted, loop_config, make_room, pose_error
+from helpers.loop_room import LOOP, N, DriftingSource, drifted, loop_config, make_room, pose_error
 
 
 @pytest.fixture(scope="module")
@@ -198,15 +198,6 @@ def test_the_worker_module_loads_without_torch():
     assert out.returncode == 0, out.stderr
 
 
-class _Drifting:
-    name, causal, drifts = "drifting", True, True
-
-    def __init__(self, poses):
-        self.poses = poses
-
-    def track(self, index, timestamp, color, depth, camera, gt_pose=None):
-        return self.poses[index]
-
 
 def test_a_mapping_run_outlives_its_worker(room):
     """A tracked Reconstructor verifying in the worker process: the worker is killed mid-run; the run goes on,
@@ -217,7 +208,8 @@ def test_a_mapping_run_outlives_its_worker(room):
     seq, _, poses = room
     cfg = Config()
     cfg.loops.detect, cfg.loops.background, cfg.clock.updates_per_frame = loop_config(), "on", 1
-    rec = Reconstructor(seq.intrinsic, "cpu", cfg, pose_source=_Drifting(drifted(poses)), depth_scale=seq.depth_scale)
+    rec = Reconstructor(seq.intrinsic, "cpu", cfg, pose_source=DriftingSource(drifted(poses)),
+                        depth_scale=seq.depth_scale)
     killed = []
     with pytest.warns(RuntimeWarning, match="exited"):
         for i in range(N):
