@@ -28,32 +28,51 @@ from .device_reference import C0
 
 HYPER = 6  # per stepped parameter: (a, b, 1 - beta1, beta2, 1 - beta2, eps), as base.adam_factors gives them
 MEANS, QUATS, SCALES, OPACITIES, SH0, SHN = range(6)  # the rows of ``hyper`` and ``has`` in step_view
+LANES = 16  # rows gathered or stepped side by side
 
 
 @_jit
 def gather_activated(ps, rows, deg0, o_means, o_quats, o_scales, o_opac, o_colors):
     """Rows ``rows`` [M] of the raw map (``ps``: flat means, quats, log scales, logits, sh0, shN as in
     :func:`step_view`) into o_means [M, 3], o_quats [M, 4], o_scales [M, 3] (exp), o_opac [M] (sigmoid) and
-    o_colors: [M, 3] RGB with ``deg0``, else [M, 3 + W] (sh0 then shN, the rows of a [M, K + 1, 3] tensor)."""
+    o_colors: [M, 3] RGB with ``deg0``, else [M, 3 + W] (sh0 then shN, the rows of a [M, K + 1, 3] tensor).
+    The activations run :data:`LANES` rows side by side (a scratch column per row, one lane loop)."""
     pm, pq, ps_, po, p0, pn = ps
     c0, half, zero = np.float32(C0), np.float32(0.5), np.float32(0.0)
     wn = o_colors.shape[1] - 3
-    for i in prange(rows.shape[0]):
-        g = rows[i]
-        for j in range(3):
-            o_means[i, j] = pm[3 * g + j]
-            o_scales[i, j] = exp32(ps_[3 * g + j])
-        for j in range(4):
-            o_quats[i, j] = pq[4 * g + j]
-        o_opac[i] = sigmoid32(po[g])
-        if deg0:
-            for c in range(3):
-                o_colors[i, c] = max(p0[3 * g + c] * c0 + half, zero)
-        else:
-            for c in range(3):
-                o_colors[i, c] = p0[3 * g + c]
-            for j in range(wn):
-                o_colors[i, 3 + j] = pn[wn * g + j]
+    n = rows.shape[0]
+    for bi in prange((n + LANES - 1) // LANES):
+        full_width_vectors()
+        st = np.empty((4, LANES), np.float32)  # log scales, logit
+        base = bi * LANES
+        count = min(LANES, n - base)
+        for lane in range(LANES):  # the last group repeats its last row in the spare lanes
+            i = base + min(lane, count - 1)
+            g = rows[i]
+            for j in range(3):
+                st[j, lane] = ps_[3 * g + j]
+            st[3, lane] = po[g]
+        for lane in range(LANES):
+            for j in range(3):
+                st[j, lane] = exp32(st[j, lane])
+            st[3, lane] = sigmoid32(st[3, lane])
+        for lane in range(count):
+            i = base + lane
+            g = rows[i]
+            for j in range(3):
+                o_means[i, j] = pm[3 * g + j]
+                o_scales[i, j] = st[j, lane]
+            for j in range(4):
+                o_quats[i, j] = pq[4 * g + j]
+            o_opac[i] = st[3, lane]
+            if deg0:
+                for c in range(3):
+                    o_colors[i, c] = max(p0[3 * g + c] * c0 + half, zero)
+            else:
+                for c in range(3):
+                    o_colors[i, c] = p0[3 * g + c]
+                for j in range(wn):
+                    o_colors[i, 3 + j] = pn[wn * g + j]
 
 
 @numba.njit(inline="always", fastmath=False)
@@ -77,7 +96,6 @@ def _adam(p, m, v, k, grad, h):
     p[k], m[k], v[k] = _adam_value(p[k], m[k], v[k], grad, h)
 
 
-LANES = 16  # rows stepped side by side
 # step_view's scratch: per stepped column (means 3, quats 4, scales 3, opacity 1, sh0 3: 14) four rows (parameter,
 # moment 1, moment 2, gradient), then the noise's normal triple
 COLS = (0, 3, 7, 10, 11, 14)  # first column of means, quats, scales, opacities, sh0; the total

@@ -19,7 +19,7 @@ import numpy as np
 from numba import prange
 
 from ..runtime.fmath import LOG2E, SIG_CLAMP, exp2_neg
-from ..runtime.jit import compile_kernel
+from ..runtime.jit import compile_kernel, full_width_vectors
 from ._cpu_kernels import HALF, ONE, ZERO, _jit, _jit_serial
 
 CHUNK = 16384  # rows per task of frustum_rows
@@ -46,6 +46,7 @@ def _make_counts(listed: bool):
         v10, v11, v12, v13 = np.float32(V[1, 0]), np.float32(V[1, 1]), np.float32(V[1, 2]), np.float32(V[1, 3])
         v20, v21, v22, v23 = np.float32(V[2, 0]), np.float32(V[2, 1]), np.float32(V[2, 2]), np.float32(V[2, 3])
         for c in prange(counts.shape[0]):
+            full_width_vectors()
             k = 0
             for i in range(first[c], last[c]):
                 if listed:
