@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import prange
 
+from ..runtime.jit import full_width_vectors
 from ..runtime.jit import jit as _jit
 
 DEPTH_ALPHA_EPS = 1e-4  # finish(): depth = acc_depth / alpha where alpha > this, else 0
@@ -63,25 +64,24 @@ def loss_grad(acc, alpha, bg, has_bg, x, y, ref_depth, alpha_min, w_l1, w_dssim,
     the background blend; ``w_depth * sign(depth - ref_depth)`` on the valid pixels, through the normalisation."""
     h, w = alpha.shape
     for i in prange(h):
+        full_width_vectors()
         for j in range(w):
             a = alpha[i, j]
             ga = np.float32(0.0)
             for c in range(3):
                 d = x[c, i, j] - y[c, i, j]
-                g = w_l1 * (np.float32(1.0) if d > 0 else (np.float32(-1.0) if d < 0 else np.float32(0.0)))
+                g = w_l1 * (np.float32(d > 0) - np.float32(d < 0))
                 if w_dssim != 0:
                     g += w_dssim * dssim_grad[c, i, j]
                 grad_acc[i, j, c] = g
                 if has_bg:
                     ga -= g * bg[c]
-            gd = np.float32(0.0)
+            # the depth term as selects, not branches (their outcome follows the image, not a pattern)
             rd = ref_depth[i, j]
-            if rd > 0 and a > alpha_min and a > DEPTH_ALPHA_EPS:
-                pd = acc[i, j, 3] / a
-                dd = pd - rd
-                s = np.float32(1.0) if dd > 0 else (np.float32(-1.0) if dd < 0 else np.float32(0.0))
-                gp = w_depth * s  # d loss / d depth
-                gd = gp / a
-                ga -= gp * acc[i, j, 3] / (a * a)
-            grad_acc[i, j, 3] = gd
-            grad_alpha[i, j] = ga
+            ok = (rd > 0) & (a > alpha_min) & (a > DEPTH_ALPHA_EPS)
+            dd = acc[i, j, 3] / a - rd
+            gp = w_depth * (np.float32(dd > 0) - np.float32(dd < 0))  # d loss / d depth
+            gd = gp / a
+            gb = ga - gp * acc[i, j, 3] / (a * a)
+            grad_acc[i, j, 3] = gd if ok else np.float32(0.0)
+            grad_alpha[i, j] = gb if ok else ga
