@@ -106,7 +106,7 @@ def gather_activated_rows(gmap, idx: torch.Tensor, grad: bool) -> dict:
     m, deg0, k = idx.numel(), gmap.sh_degree == 0, (gmap.sh_degree + 1) ** 2 - 1
     out = {"means": torch.empty(m, 3), "quats": torch.empty(m, 4), "scales": torch.empty(m, 3),
            "opacities": torch.empty(m), "colors": torch.empty(m, 3) if deg0 else torch.empty(m, 1 + k, 3)}
-    with jit.rows_threads(m):
+    with jit.rows_threads(m, "gather_activated"):
         k_.gather_activated(host_params(gmap), idx.numpy(), deg0, out["means"].numpy(), out["quats"].numpy(),
                          out["scales"].numpy(), out["opacities"].numpy(),
                          out["colors"].view(m, 3 if deg0 else 3 + 3 * k).numpy())
@@ -163,7 +163,7 @@ def step_activated(gmap, view: RowView, terms: StepTerms) -> None:
     if view.activated and gmap.sh_degree > 0 and grads[4] is not None:  # [M, (K + 1) 3]: DC, then the rest
         host[4], host[5] = host[4][:, :3], host[4][:, 3:]
     n_map = max(view.n_map, 1)
-    with jit.rows_threads(m):
+    with jit.rows_threads(m, "step_view"):
         k_.step_view(host_params(gmap), host_params(gmap, 1), host_params(gmap, 2), *host, has, hyper, idx.numpy(),
                      gmap.sh_degree == 0, view.activated, terms.opacity_reg / n_map,
                      terms.scale_reg / (3.0 * n_map), z, terms.noise_scaler if noise else 0.0)

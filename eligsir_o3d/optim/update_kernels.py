@@ -86,7 +86,7 @@ def mcmc_noise_rows(params: dict, rows, z, scaler: float) -> None:
     """In place on ``params["means"]`` (float32 CPU parameters of a map, raw as stored): the noise of
     :func:`mcmc_noise` on rows ``rows`` [M] (ids, distinct) with normals ``z`` [M, 3], without gathering the rows."""
     f = lambda t: t.detach().contiguous().numpy()  # noqa: E731
-    with rows_threads(rows.shape[0]):
+    with rows_threads(rows.shape[0], "noise_view"):
         _noise_view(params["means"].detach().numpy(), f(params["quats"]), f(params["scales"]),
                     f(params["opacities"]), f(rows), f(z), np.float32(scaler))
 
@@ -94,5 +94,5 @@ def mcmc_noise_rows(params: dict, rows, z, scaler: float) -> None:
 def mcmc_noise(means, quats, scales, opacities, z, scaler: float) -> None:
     """In place on ``means`` [N, 3] (a float32 CPU tensor): the covariance-shaped, opacity-gated noise of ``z``."""
     f = lambda t: t.detach().contiguous().numpy()  # noqa: E731
-    with rows_threads(means.shape[0]):
+    with rows_threads(means.shape[0], "noise_rows"):
         _noise_rows(means.detach().numpy(), f(quats), f(scales), f(opacities), f(z), np.float32(scaler))

@@ -96,7 +96,7 @@ class CellIndex:
         p = self.gmap.params
         means = p["means"].detach().contiguous().numpy()
         log_scales = p["scales"].detach().contiguous().numpy()
-        with rows_threads(self.n):
+        with rows_threads(self.n, "cell_index"):
             dirty = np.flatnonzero(self.dirty)
             if dirty.size:
                 group_boxes(means, log_scales, self.order, self.starts, dirty, self.boxes)
@@ -105,7 +105,7 @@ class CellIndex:
             found, tested = listed_rows(means, log_scales, self.order, self.starts, keep, V, cam)
         tail = len(self.gmap) - self.n
         if tail:
-            with rows_threads(tail):
+            with rows_threads(tail, "frustum_rows"):
                 extra = frustum_rows(means[self.n:], log_scales[self.n:], V, cam) + self.n
             found = np.concatenate([found, extra])
         found.sort()

@@ -79,8 +79,8 @@ def _jit():
     return jit
 
 
-def _rows_threads(rows: int):
-    return _jit().rows_threads(rows)
+def _rows_threads(rows: int, key: str):
+    return _jit().rows_threads(rows, key)
 
 
 def warmup() -> float:
@@ -146,7 +146,7 @@ class _Composite(torch.autograd.Function):
         m, c, o, f = _f32(means2d), _f32(conics), _f32(opacities), _f32(feats)
         n_feat = f.shape[1]
         bounds = torch.empty(m.shape[0], 3, dtype=torch.float32)
-        with _rows_threads(m.shape[0]):
+        with _rows_threads(m.shape[0], "cull_bounds"):
             k.cull_bounds(c.numpy(), o.numpy(), bounds.numpy())
         out_feats = torch.empty(height, width, n_feat, dtype=torch.float32)
         out_alpha = torch.empty(height, width, dtype=torch.float32)
@@ -191,7 +191,7 @@ class _Project(torch.autograd.Function):
         n = m.shape[0]
         means2d, conics = torch.empty(n, 2), torch.empty(n, 3)
         depths, radii = torch.empty(n), torch.empty(n, dtype=torch.int32)
-        with _rows_threads(n):
+        with _rows_threads(n, "project_forward"):
             pk.project_forward(m.numpy(), q.numpy(), s.numpy(), V, cam, means2d.numpy(), conics.numpy(),
                                depths.numpy(), radii.numpy())
         ctx.save_for_backward(m, q, s)
@@ -208,7 +208,7 @@ class _Project(torch.autograd.Function):
         grads = [g if g is not None else torch.zeros(shape) for g, shape in
                  ((g_means2d, (n, 2)), (g_conics, (n, 3)), (g_depths, (n,)))]
         v_means, v_quats, v_scales = torch.empty(n, 3), torch.empty(n, 4), torch.empty(n, 3)
-        with _rows_threads(n):
+        with _rows_threads(n, "project_backward"):
             pk.project_backward(m.numpy(), q.numpy(), s.numpy(), ctx.V, ctx.cam, *(_f32(g).numpy() for g in grads),
                                 v_means.numpy(), v_quats.numpy(), v_scales.numpy())
         return tuple(_as(v, dt) for v, dt in zip((v_means, v_quats, v_scales), ctx.dtypes)) + (None, None)
@@ -246,8 +246,8 @@ def bin_tiles_csr(proj: Projection, width: int, height: int) -> tuple[torch.Tens
     by_depth = keys & 0xFFFFFFFF
     k = _kernels()
     # in parallel parts where the per-Gaussian kernels run parallel (77k: 2.8 ms on one thread), else in one
-    chunks = k.task_slots(vis.shape[0]) if _jit().parallel_rows(vis.shape[0]) else 1
-    with _rows_threads(vis.shape[0]):
+    with _rows_threads(vis.shape[0], "bin_tiles") as parallel:
+        chunks = k.task_slots(vis.shape[0]) if parallel else 1
         offsets, flat = _binning().bin_tiles_fill(_f32(proj.means2d).numpy(), radii, by_depth, tiles_x, tiles_y,
                                                   chunks)
     return torch.from_numpy(offsets), torch.from_numpy(flat), tiles_x

@@ -56,7 +56,7 @@ def in_view(means: torch.Tensor, log_scales: torch.Tensor, camera: Camera, T_wor
     from ._cull_kernels import frustum_rows
 
     V = world_to_cam_np(T_world_cam)
-    with rows_threads(means.shape[0]):
+    with rows_threads(means.shape[0], "frustum_rows"):
         rows = frustum_rows(means.detach().contiguous().numpy(), log_scales.detach().contiguous().numpy(), V,
                             camera_bounds(camera, low_pass))
     return torch.from_numpy(rows)
@@ -110,7 +110,7 @@ def gather_rows(gmap, idx: torch.Tensor, grad: bool) -> dict:
 
     outs = [torch.empty((idx.numel(),) + tuple(p.shape[1:]), dtype=torch.float32) for p in params]
     widths = [p[0].numel() if len(p) else 0 for p in params]  # shN of degree 0: width 0
-    with rows_threads(idx.numel()):
+    with rows_threads(idx.numel(), "gather_view"):
         _gather_view(tuple(p.view(len(p), w).numpy() for p, w in zip(params, widths)), idx.numpy(),
                      tuple(o.view(idx.numel(), w).numpy() for o, w in zip(outs, widths)))
     return {n: o.requires_grad_(grad) for n, o in zip(PARAM_NAMES, outs)}

@@ -98,7 +98,7 @@ class _Sh1Cpu(torch.autograd.Function):
 
         sh_c, dirs_c = sh.detach().contiguous(), dirs.detach().contiguous()
         out = torch.empty(dirs_c.shape[0], 3, dtype=torch.float32)
-        with rows_threads(dirs_c.shape[0]):
+        with rows_threads(dirs_c.shape[0], "sh1_forward"):
             sh1_forward(sh_c.numpy(), dirs_c.numpy(), out.numpy())
         ctx.save_for_backward(sh_c, dirs_c)
         return out
@@ -110,7 +110,7 @@ class _Sh1Cpu(torch.autograd.Function):
 
         sh_c, dirs_c = ctx.saved_tensors
         g_sh, g_dirs = torch.empty_like(sh_c), torch.empty_like(dirs_c)
-        with rows_threads(dirs_c.shape[0]):
+        with rows_threads(dirs_c.shape[0], "sh1_backward"):
             sh1_backward(sh_c.numpy(), dirs_c.numpy(), grad.to(torch.float32).contiguous().numpy(), g_sh.numpy(),
                          g_dirs.numpy())
         return g_sh, g_dirs

@@ -11,6 +11,7 @@ it (``import eligsir_o3d`` stays free of numba)."""
 from __future__ import annotations
 
 import os
+import time
 import warnings
 import zlib
 from contextlib import contextmanager
@@ -88,7 +89,9 @@ def full_width_vectors(typingctx):
         return context.get_dummy_value()
     return types.void(), codegen
 
-from .threads import PARALLEL_MIN_PIXELS, PARALLEL_MIN_ROWS, PARALLEL_MIN_ROWS_TBB  # noqa: E402
+from .row_threads import RowThreads  # noqa: E402
+from .threads import PARALLEL_FLOOR_ROWS, PARALLEL_MIN_PIXELS, PARALLEL_MIN_ROWS  # noqa: E402
+from .threads import PARALLEL_MIN_ROWS_TBB  # noqa: E402
 
 ROWS_LIMIT = PARALLEL_MIN_ROWS_TBB if ON_TBB else PARALLEL_MIN_ROWS  # rows from which a per-Gaussian kernel runs parallel
 
@@ -111,14 +114,36 @@ def threads_for(work: int, min_work: int):
         numba.set_num_threads(n)
 
 
-def parallel_rows(rows: int) -> bool:
-    """Whether a per-Gaussian kernel over ``rows`` Gaussians runs on numba's threads (else on one)."""
-    return rows >= ROWS_LIMIT
+ROW_THREADS = RowThreads()  # the process's choice for per-Gaussian kernels between the two limits
 
 
-def rows_threads(rows: int):
-    """:func:`threads_for` a per-Gaussian kernel (projection, culling, Adam) over ``rows`` Gaussians."""
-    return threads_for(rows, ROWS_LIMIT)
+@contextmanager
+def rows_threads(rows: int, key: str = "rows"):
+    """Run the block's per-Gaussian kernel (projection, culling, Adam, ...) over ``rows`` Gaussians on numba's
+    threads as set from :data:`ROWS_LIMIT` rows, on one below :data:`.threads.PARALLEL_FLOOR_ROWS`, and in between
+    as :data:`ROW_THREADS` chooses for ``key`` (a name per kernel); yields whether it runs on more than one
+    thread. The same bits either way."""
+    n = numba.get_num_threads() if numba.config.NUMBA_NUM_THREADS > 1 else 1
+    if n == 1 or rows >= ROWS_LIMIT:
+        yield n > 1
+        return
+    if rows < PARALLEL_FLOOR_ROWS:
+        numba.set_num_threads(1)
+        try:
+            yield False
+        finally:
+            numba.set_num_threads(n)
+        return
+    parallel = ROW_THREADS.choose(key, rows)
+    if not parallel:
+        numba.set_num_threads(1)
+    t0 = time.perf_counter()
+    try:
+        yield parallel
+    finally:
+        ROW_THREADS.record(key, rows, parallel, time.perf_counter() - t0)
+        if not parallel:
+            numba.set_num_threads(n)
 
 
 def pixels_threads(pixels: int):

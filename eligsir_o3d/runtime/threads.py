@@ -9,9 +9,12 @@ the Gaussians in view.
   :class:`~eligsir_o3d.Reconstructor` for frames' admission and growth and for updates on images below
   :data:`TORCH_MIN_PIXELS` with fewer than :data:`TORCH_MIN_ROWS` Gaussians in view (the last update's);
   larger ones keep the caller's count (77k Gaussians in view at 1/4 scale: 0.96 of the time on 2 threads, 16k even);
-- :func:`.jit.threads_for`: one numba thread for a kernel over less than :data:`PARALLEL_MIN_ROWS` Gaussians
-  (:data:`PARALLEL_MIN_ROWS_TBB` on numba's TBB layer, the default where the ``tbb`` wheel installs) or a D-SSIM
-  over less than :data:`PARALLEL_MIN_PIXELS` pixels. The compositing kernels always run on every thread.
+- :func:`.jit.rows_threads`: a per-Gaussian kernel over :data:`PARALLEL_MIN_ROWS` Gaussians or more
+  (:data:`PARALLEL_MIN_ROWS_TBB` on numba's TBB layer, the default where the ``tbb`` wheel installs) runs on every
+  numba thread, one over less than :data:`PARALLEL_FLOOR_ROWS` on one; in between, where a second thread pays on an
+  idle machine and loses beside a busy process, the faster way as measured during the run (:mod:`.row_threads`);
+- :func:`.jit.threads_for`: one numba thread for a D-SSIM over less than :data:`PARALLEL_MIN_PIXELS` pixels. The
+  compositing kernels always run on every thread.
 
 The limits were measured side by side in one process (2 threads, updates of the kitchen map,
 ``benchmarks/speed/update_time.py`` for whole updates; lab: thread-limits): small work on one thread is faster on an
@@ -28,6 +31,7 @@ import torch
 PARALLEL_MIN_ROWS = 10_000  # Gaussians: compiled kernels over the rows in view (projection, culling, Adam, noise)
 # the same on numba's TBB layer (eligsir_o3d/runtime/tbb.py), whose workers need no wake-up (lab: thread-limits)
 PARALLEL_MIN_ROWS_TBB = 8_000
+PARALLEL_FLOOR_ROWS = 1_000  # Gaussians: below this, a per-Gaussian kernel runs on one thread (no choice measured)
 PARALLEL_MIN_PIXELS = 16_000  # image pixels: the compiled D-SSIM
 TORCH_MIN_ROWS = 50_000  # Gaussians last in view: torch's ops of an update on the caller's threads from here
 TORCH_MIN_PIXELS = 150_000  # image pixels: the same
@@ -61,5 +65,8 @@ def report() -> dict:
             out["numba_layer"] = numba.threading_layer()
         except ValueError:  # no parallel kernel has run in this process
             pass
+    jit = sys.modules.get("eligsir_o3d.runtime.jit")
+    if jit is not None:
+        out["row_kernels"] = jit.ROW_THREADS.report()  # calls between the limits on one thread and on all
     return out
 
