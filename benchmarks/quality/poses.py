@@ -13,6 +13,11 @@ times are comparable only on an otherwise idle machine: the 1-minute load averag
     python benchmarks/quality/poses.py --sources odometry kiss-icp --frames 100
     python benchmarks/quality/poses.py --sources colmap --out runs/poses   # also trajectories (TUM) and plots (PNG)
     python benchmarks/quality/poses.py --json
+    python benchmarks/quality/poses.py --sources kiss-icp --frames 1000 --holdout-every 8 --out runs/poses875
+
+``--holdout-every N`` tracks only the frames a mapping run tracks (``eligsir map``'s ``--holdout-every``: every
+N-th frame, offset N // 2, is held out for evaluation and never reaches the tracker), so that
+``benchmarks.quality.loops`` replays the very trajectory a mapping run's loop closure sees.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ ROOT = Path(__file__).resolve().parents[2]
 from eligsir_o3d.datasets import open_sequence  # noqa: E402
 from eligsir_o3d.pose import TrackingLost, get_pose_source, plot_trajectories, trajectory_accuracy  # noqa: E402
 from eligsir_o3d.pose import write_tum_trajectory  # noqa: E402
+from eligsir_o3d.run.pipeline import heldout_indices  # noqa: E402
 
 DATA = ROOT.parent / "shared" / "data"
 KITCHEN = DATA / "7scenes_redkitchen_jpg1000"
@@ -51,15 +57,23 @@ SOURCES = {
 DEFAULT = ["odometry", "odometry-f2f", "kiss-icp", "colmap"]
 
 
-def run_online(name: str, spec: str, options: dict, seq, n: int) -> dict:
+def tracked_frames(n: int, holdout_every: int = 0) -> list[int]:
+    """The frame indices among the first ``n`` that a mapping run with ``--holdout-every holdout_every`` tracks
+    (all of them for 0)."""
+    held = set(heldout_indices(n, holdout_every)) if holdout_every else set()
+    return [i for i in range(n) if i not in held]
+
+
+def run_online(name: str, spec: str, options: dict, seq, n: int, holdout_every: int = 0) -> dict:
     src = get_pose_source(spec, sequence=seq, **options)
     src.prepare(seq)
     stamps, poses, lost = [], [], []
-    for i in range(n):
+    frames = tracked_frames(n, holdout_every)
+    for i in frames:
         frame = seq.frame(i)
         try:
             T = src.track(i, frame.timestamp, frame.color, frame.depth, frame.camera,
-                          gt_pose=seq.poses[i] if i == 0 else None)
+                          gt_pose=seq.poses[i] if i == frames[0] else None)
         except TrackingLost as e:
             lost.append(str(e))
             continue
@@ -67,7 +81,8 @@ def run_online(name: str, spec: str, options: dict, seq, n: int) -> dict:
         poses.append(T)
     acc = trajectory_accuracy((stamps, poses), (seq.timestamps[:n], seq.poses[:n]))
     extra = {k: getattr(src, k) for k in ("frames_on_previous", "lowest_fitness", "model_blocks") if hasattr(src, k)}
-    return {"source": name, "sequence": seq.name, "frames": n, "lost": len(lost), "first_lost": lost[:1], **extra,
+    return {"source": name, "sequence": seq.name, "frames": len(frames), "lost": len(lost), "first_lost": lost[:1],
+            **extra,
             "ms_per_frame": src.ms_per_frame, "cpu_ms_per_frame": src.cpu_ms_per_frame, **{k: acc[k] for k in ("ate_rmse_m", "rpe_trans_m", "rpe_rot_deg")},
             "load1": os.getloadavg()[0], "_traj": (stamps, poses)}
 
@@ -96,6 +111,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sources", nargs="+", default=DEFAULT, choices=list(SOURCES))
     ap.add_argument("--frames", type=int, default=300, help="frames of the 7-Scenes kitchen for online sources")
+    ap.add_argument("--holdout-every", type=int, default=0,
+                    help="track only the frames a mapping run with this --holdout-every tracks (0: every frame)")
     ap.add_argument("--out", type=Path, default=None, help="write trajectories (TUM) and plots (PNG) here")
     ap.add_argument("--json", action="store_true", help="one JSON object per line")
     args = ap.parse_args(argv)
@@ -108,7 +125,7 @@ def main(argv=None) -> int:
         trajs["kitchen"] = {"gt": (kitchen.timestamps[:n], kitchen.poses[:n])}
         for name in online:
             spec, options = SOURCES[name]
-            rows.append(run_online(name, spec, options, kitchen, n))
+            rows.append(run_online(name, spec, options, kitchen, n, args.holdout_every))
             trajs["kitchen"][name] = rows[-1]["_traj"]
             report(rows[-1], args.json)
     if "colmap" in args.sources:

@@ -64,10 +64,10 @@ class LoopConfig:
     """Pose sources (comma-separated names) whose edges ``refine_edges = auto`` refines (depth-only trackers)."""
     refine_min_gain: float = 0.0
     """A refined edge replaces the tracker's only where its fitness (at ``max_dist``) is this much higher."""
-    refine_max_shift: float = 0.15
-    """A refined edge moves the tracker's relative pose by at most this (m); larger, the tracker's is kept."""
-    refine_max_turn_deg: float = 5.0
-    """A refined edge turns the tracker's relative pose by at most this (deg)."""
+    refine_max_shift: float = 0.3
+    """A refined edge moves the tracker's relative pose by at most this (m; the loop test's ``max_shift``)."""
+    refine_max_turn_deg: float = 10.0
+    """A refined edge turns the tracker's relative pose by at most this (deg; the loop test's ``max_turn_deg``)."""
     max_rmse: float = 0.013
     """Inlier RMSE after registration (m)."""
     max_shift: float = 0.3
@@ -231,7 +231,8 @@ def odometry_edge(keys: list[Keyframe], k: int, cfg: LoopConfig, refine: bool) -
     """The graph's edge from keyframe ``k - 1`` to ``k``: ``(T_prev_k, information, refined)``. The tracker's
     relative pose, or with ``refine`` keyframe ``k``'s cloud registered onto ``k - 1``'s from it, kept where its
     fitness gains ``refine_min_gain`` and it stays within ``refine_max_shift`` / ``refine_max_turn_deg`` of the
-    tracker's. The information matrix is the clouds' overlap at the edge."""
+    tracker's: the loop test's bound, which drops only registrations gone astray, since the tracker's worst edges
+    (a jump) are the ones a refinement is for. The information matrix is the clouds' overlap at the edge."""
     src, tgt = keys[k].cloud, keys[k - 1].cloud
     T = prior = invert_pose(keys[k - 1].raw_pose) @ keys[k].raw_pose
     refined = False

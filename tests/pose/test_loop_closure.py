@@ -142,6 +142,28 @@ def test_refined_odometry_edges_remove_the_trackers_drift_without_a_loop(room):
     assert after[0] < 0.6 * before[0] and after[1] < 0.6 * before[1], (before, after)
 
 
+def test_a_refined_edge_may_correct_the_tracker_as_far_as_a_loop_may(room):
+    """A tracker edge 20 cm off (a jump): the registration finds the true relative pose and replaces it, since the
+    refinement's bound is the loop test's (``max_shift``); a tighter bound keeps exactly this worst edge."""
+    import dataclasses
+
+    from eligsir_o3d.core.camera import invert_pose
+    from eligsir_o3d.pose.loops import Keyframe, keyframe_cloud, odometry_edge
+
+    seq, depths, poses = room
+    cfg = dataclasses.replace(_config(), refine_edges="on")
+    assert (cfg.refine_max_shift, cfg.refine_max_turn_deg) == (cfg.max_shift, cfg.max_turn_deg)
+    jump = np.eye(4)
+    jump[0, 3] = 0.2
+    truth = invert_pose(poses[10]) @ poses[12]
+    keys = [Keyframe(10, poses[10], keyframe_cloud(depths[10], seq.camera, cfg)),
+            Keyframe(12, poses[10] @ truth @ jump, keyframe_cloud(depths[12], seq.camera, cfg))]
+    T, _, refined = odometry_edge(keys, 1, cfg, True)
+    assert refined and _err(truth, T)[0] < 0.01, _err(truth, T)
+    T, _, refined = odometry_edge(keys, 1, dataclasses.replace(cfg, refine_max_shift=0.15), True)
+    assert not refined and abs(_err(truth, T)[0] - 0.2) < 1e-9
+
+
 def test_refined_edges_are_on_for_the_refine_sources_only():
     cfg = LoopClosureConfig()
     assert loop_closure_for(cfg, tracked=True, source="kiss-icp").cfg.refine_edges == "on"
