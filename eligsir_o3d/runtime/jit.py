@@ -127,21 +127,16 @@ def rows_threads(rows: int, key: str = "rows"):
     if n == 1 or rows >= ROWS_LIMIT:
         yield n > 1
         return
-    if rows < PARALLEL_FLOOR_ROWS:
-        numba.set_num_threads(1)
-        try:
-            yield False
-        finally:
-            numba.set_num_threads(n)
-        return
-    parallel = ROW_THREADS.choose(key, rows)
+    measured = rows >= PARALLEL_FLOOR_ROWS
+    parallel = measured and ROW_THREADS.choose(key, rows)
     if not parallel:
         numba.set_num_threads(1)
     t0 = time.perf_counter()
     try:
         yield parallel
     finally:
-        ROW_THREADS.record(key, rows, parallel, time.perf_counter() - t0)
+        if measured:
+            ROW_THREADS.record(key, rows, parallel, time.perf_counter() - t0)
         if not parallel:
             numba.set_num_threads(n)
 

@@ -7,8 +7,8 @@ Neither holds for a whole run, nor for every machine, so the choice is measured 
 (a caller's key) and size class (rows within a factor of two), each way's seconds per row are an exponential
 average of its calls. A call takes the faster way; every ``explore``-th call of a class takes the other one, so
 that a change of load shows. The caller (:func:`.jit.rows_threads`) asks only between the limits of
-:mod:`.threads`: fewer rows always run on one thread, more on all. Both ways give the same bits (the kernels write disjoint outputs), so the
-choice changes speed only.
+:mod:`.threads`: fewer rows always run on one thread, more on all. Both ways give the same bits (the kernels
+write disjoint outputs), so the choice changes speed only.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ class RowThreads:
     def record(self, key: str, rows: int, parallel: bool, seconds: float) -> None:
         """What a call that :meth:`choose` decided took."""
         c = self.classes.get((key, rows.bit_length()))
-        if c is None or rows <= 0:
+        if c is None:
             return
         x = seconds / rows
         old = c.per_row[int(parallel)]

@@ -9,10 +9,10 @@ the Gaussians in view.
   :class:`~eligsir_o3d.Reconstructor` for frames' admission and growth and for updates on images below
   :data:`TORCH_MIN_PIXELS` with fewer than :data:`TORCH_MIN_ROWS` Gaussians in view (the last update's);
   larger ones keep the caller's count (77k Gaussians in view at 1/4 scale: 0.96 of the time on 2 threads, 16k even);
-- :func:`.jit.rows_threads`: a per-Gaussian kernel over :data:`PARALLEL_MIN_ROWS` Gaussians or more
-  (:data:`PARALLEL_MIN_ROWS_TBB` on numba's TBB layer, the default where the ``tbb`` wheel installs) runs on every
-  numba thread, one over less than :data:`PARALLEL_FLOOR_ROWS` on one; in between, where a second thread pays on an
-  idle machine and loses beside a busy process, the faster way as measured during the run (:mod:`.row_threads`);
+- :func:`.jit.rows_threads`: a per-Gaussian kernel runs on every numba thread over :data:`PARALLEL_MIN_ROWS`
+  Gaussians or more (:data:`PARALLEL_MIN_ROWS_TBB` on numba's TBB layer, the default where the ``tbb`` wheel
+  installs) and on one below :data:`PARALLEL_FLOOR_ROWS`; in between, where a second thread pays on an idle
+  machine and loses beside a busy process, the way measured faster during the run (:mod:`.row_threads`);
 - :func:`.jit.threads_for`: one numba thread for a D-SSIM over less than :data:`PARALLEL_MIN_PIXELS` pixels. The
   compositing kernels always run on every thread.
 
