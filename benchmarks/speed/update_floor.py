@@ -32,7 +32,9 @@ def worker(warm: int, updates: int) -> None:
     (cpu seconds, wall seconds) per update on stdout."""
     import time
 
-    import eligsir_o3d as eo3d  # first: the package's process set-up (numba's threading layer)
+    import eligsir_o3d as eo3d
+
+    eo3d.Config  # a public name first: the package's process set-up (numba's threading layer) before torch
     import numba
     import torch
     from eligsir_o3d.datasets import open_sequence

@@ -95,7 +95,8 @@ def phase_timer(rec):
 
     timing = StageTimes()
     for path, attr, name in (("views", "select", "select view"), ("supervision", "sample", "supervision"),
-                             ("renderer", "render", "render"), ("growth", "pre_backward", "regulariser"),
+                             ("renderer", "render", "render"), ("renderer", "render_training", "render"),
+                             ("growth", "pre_backward", "regulariser"),
                              ("", "_adam_step", "adam"), ("growth", "post_step", "mcmc"),
                              ("views", "feedback", "feedback"), ("kernels", "select", "rows in view"),
                              ("kernels", "backward", "loss and backward"), ("kernels", "step", "step")):

@@ -5,8 +5,11 @@ supervision, render, loss, regularisers, backward, Adam, MCMC, the views' feedba
 checkout: the driver writes one 3DGS PLY per map size (``--gaussians``) from the kitchen's depth (frames 0..190,
 every 10th, back-projected; ``n`` points at random; scales the nearest-neighbour distance; opacity 0.5, colour of
 the pixel), and every worker loads it into a fresh Reconstructor of its own code whose views are the same 20
-kitchen frames. One worker process per checkout and thread count; the workers take turns round after round so
-that the load of a shared machine falls on all alike. Each round reloads the map, runs ``--warm`` updates untimed
+kitchen frames. ``--workers`` processes per checkout and thread count (a process's speed varies by a few per cent
+from one start to the next, so their updates are pooled); the workers take turns round after round so that the
+load of a shared machine falls on all alike. A worker loads the package's public names first, as the ``eligsir``
+command and a user's script do, so that each checkout runs with its own process set-up (numba's threading layer,
+OpenMP's wait policy; the info lines name them). Each round reloads the map, runs ``--warm`` updates untimed
 and times ``--updates`` one by one; the table gives the median over all timed updates of all rounds and the ratio
 to the first checkout.
 
@@ -64,8 +67,10 @@ def view_frames(in_view: int | None) -> tuple:
 
 def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in_view: int | None,
            phases: bool = False) -> None:
-    # first, as in a mapping run: it picks numba's threading layer (eligsir_o3d/runtime/tbb.py)
-    import eligsir_o3d  # noqa: F401
+    # the package's public names before torch, numba or Open3D, as the eligsir command and a user's script load
+    # them: each checkout runs with its own process set-up (OpenMP's wait policy, numba's threading layer)
+    from eligsir_o3d import Config, Reconstructor
+    from eligsir_o3d.datasets import open_sequence
     import numba
     import numpy as np
     import torch
@@ -75,8 +80,6 @@ def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in
         numba.set_num_threads(min(n, numba.config.NUMBA_NUM_THREADS))
 
     set_threads(threads)
-    from eligsir_o3d import Config, Reconstructor
-    from eligsir_o3d.datasets import open_sequence
 
     clock = time.process_time if threads == 1 else time.perf_counter
     seq = open_sequence(data)
@@ -96,7 +99,8 @@ def worker(threads: int, plys: list[str], warm: int, updates: int, data: str, in
 
     import eligsir_o3d
     print(json.dumps({"info": {"package": str(Path(eligsir_o3d.__file__).parent), "threads": threads,
-                               "views": len(rec.views.views)}}), flush=True)
+                               "views": len(rec.views.views), "numba_layer": numba.threading_layer(),
+                               "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY")}}), flush=True)
     for _line in sys.stdin:
         rows = []
         for ply in plys:
@@ -199,6 +203,9 @@ def main(argv=None) -> int:
     ap.add_argument("--gaussians", type=int, nargs="+", default=[5000, 20000])
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
     ap.add_argument("--rounds", type=int, default=5)
+    ap.add_argument("--workers", type=int, default=2,
+                    help="worker processes per checkout and thread count, pooled (a process's speed varies by a "
+                         "few per cent from one start to the next)")
     ap.add_argument("--updates", type=int, default=5, help="timed updates per map per round")
     ap.add_argument("--warm", type=int, default=2, help="untimed updates after each reload")
     ap.add_argument("--in-view", type=int, help="every map holds this many Gaussians in view, the rest out of view")
@@ -234,40 +241,41 @@ def main(argv=None) -> int:
 
 
 def start_workers(codes, args, plys) -> dict:
-    """One worker process per (checkout, thread count), started and waited for (its info line printed)."""
+    """``--workers`` worker processes per (checkout, thread count), started and waited for (their info lines
+    printed)."""
     procs = {}
     for name, _, d in codes:
-        for th in args.threads:
+        for th, i in ((th, i) for th in args.threads for i in range(args.workers)):
             env = dict(os.environ, PYTHONPATH=str(Path(d).resolve()))
-            env.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # the package's own default (eligsir_o3d/__init__.py)
             cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", "--threads", str(th), "--warm",
                    str(args.warm), "--updates", str(args.updates), "--data", str(args.data),
                    *(["--in-view", str(args.in_view)] if args.in_view is not None else []),
                    *(["--phases"] if args.phases else []),
                    "--plys", *map(str, plys)]
-            procs[(name, th)] = subprocess.Popen(cmd, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+            procs[(name, th, i)] = subprocess.Popen(cmd, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                                  text=True, cwd=str(ROOT))
     for key, p in procs.items():
         line = p.stdout.readline()
         if not line:
             raise SystemExit(f"worker {key} failed to start")
-        print(f"# {key[0]} ({key[1]} thread(s)): {json.loads(line)['info']}")
+        print(f"# {key[0]} ({key[1]} thread(s), worker {key[2]}): {json.loads(line)['info']}")
     return procs
 
 
 def run_rounds(procs: dict, rounds: int) -> dict:
-    """The workers take turns, round after round; returns {(checkout, threads): [rows of each round]}."""
-    print(f"# OMP_WAIT_POLICY {os.environ.get('OMP_WAIT_POLICY', 'PASSIVE (the package default)')}")
+    """The workers take turns, round after round; returns {(checkout, threads): [rows of each round and worker]}."""
+    policy = os.environ.get("OMP_WAIT_POLICY", "each checkout's own default")
+    print(f"# OMP_WAIT_POLICY {policy}")
     print(f"# loadavg at start {' '.join(open('/proc/loadavg').read().split()[:3])}")
-    results = {k: [] for k in procs}
+    results = {k[:2]: [] for k in procs}
     ideal = {}
     for _ in range(rounds):
         for key, p in procs.items():
             p.stdin.write("go\n")
             p.stdin.flush()
             answer = json.loads(p.stdout.readline())
-            results[key].append(answer["rows"])
-            ideal.setdefault(key, []).append(answer["ideal"])
+            results[key[:2]].append(answer["rows"])
+            ideal.setdefault(key[:2], []).append(answer["ideal"])
     for p in procs.values():
         p.stdin.close()
         p.wait()

@@ -113,6 +113,11 @@ class KernelSet(ABC):
         """The rows that can reach ``camera``'s image at ``T_world_cam`` (all rows without ``cull``), gathered as
         leaves (requiring grad with ``grad``); ``capacity``: at least this many rows' room in a fused view."""
 
+    def draw(self, renderer, view: RowView, camera: Camera, T_world_cam, background=None, low_pass: float = EPS2D):
+        """``renderer``'s training render of the view's rows (its leaves, as :meth:`RowView.render_args` gives
+        them), for :meth:`backward` to differentiate."""
+        return renderer.render(*view.render_args(), camera, T_world_cam, background, low_pass=low_pass)
+
     @abstractmethod
     def backward(self, out, color: torch.Tensor, depth: torch.Tensor, loss_cfg, view: RowView,
                  terms: StepTerms) -> torch.Tensor:

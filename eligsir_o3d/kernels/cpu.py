@@ -76,7 +76,25 @@ class NumbaKernels(KernelSet):
         idx = culling.map_in_view(gmap, camera, T_world_cam, low_pass) if cull else torch.arange(len(gmap))
         return RowView(gmap, idx, gather_activated_rows(gmap, idx, grad), activated=True)
 
+    def draw(self, renderer, view: RowView, camera: Camera, T_world_cam, background=None, low_pass: float = EPS2D):
+        """The ``cpu`` renderer's training pass (:meth:`..render.cpu_backend.CpuRenderer.render_training`: no
+        autograd graph; :meth:`backward` sets the leaves' gradients) where the view's colours are RGB; otherwise
+        the renderer's render through autograd."""
+        render_training = getattr(renderer, "render_training", None)
+        if render_training is None or not view.activated or view.leaves["colors"].dim() != 2:
+            return super().draw(renderer, view, camera, T_world_cam, background, low_pass)
+        return render_training(*view.render_args(), camera, T_world_cam, background, low_pass=low_pass)
+
     def backward(self, out, color, depth, loss_cfg, view: RowView, terms: StepTerms) -> torch.Tensor:
+        training_pass = getattr(out, "training_pass", None)
+        if training_pass is not None:
+            acc, alpha, background = out.raw
+            _, error, g_acc, g_alpha = fused_loss_cpu(acc, alpha, background, color, depth, loss_cfg)
+            if len(view):  # an empty view (every row out of it) leaves nothing to differentiate
+                grads = training_pass.backward(g_acc, g_alpha)
+                for name, g in zip(("means", "quats", "scales", "opacities", "colors"), grads):
+                    view.leaves[name].grad = g
+            return error
         if not fused_applies(out, color):
             loss, error = torch_loss(out, color, depth, loss_cfg)
             if loss.requires_grad:

@@ -204,8 +204,7 @@ class Reconstructor:
                 view = self.kernels.select(self.gmap, cam, T_world_cam, low_pass, cull=self.config.optim.cull,
                                            capacity=capacity)
             with self.timing.sub("render"):
-                out = self.renderer.render(*view.render_args(), cam, T_world_cam, self._background,
-                                           low_pass=low_pass)
+                out = self.kernels.draw(self.renderer, view, cam, T_world_cam, self._background, low_pass)
             if not view.overflowed():
                 break
             capacity = view.hits()
