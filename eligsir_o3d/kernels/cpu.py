@@ -3,9 +3,11 @@
 - select: the view test over the raw means and log scales (:func:`..render.culling.map_in_view`: one pass, or the
   spatial index of a large map) and one pass gathering the rows activated, as the renderer takes them
   (:func:`.cpu_kernels.gather_activated`);
+- draw: the ``cpu`` renderer's training pass for RGB rows (:meth:`..render.cpu_backend.CpuRenderer.render_training`:
+  the compiled passes without an autograd graph), other renders through autograd;
 - backward: the fused supervision loss of a ``cpu`` render (:func:`..optim.losses.fused_loss_cpu`: error map and
-  gradient with respect to the compositing's accumulations), handed to the renderer's backward; other renders take
-  the torch loss;
+  gradient with respect to the compositing's accumulations), handed to the training pass's backward, which sets
+  the leaves' gradients (or to autograd's); other renders take the torch loss;
 - step: one pass over the view's rows (:func:`.cpu_kernels.step_view`): the activations' chain rule, the
   regulariser's gradient, Adam on every parameter and the position noise, in place on the map's rows;
 - the views' feedback: the error map folded into the microcells in one pass (:func:`.cpu_feedback.fold_samples`).
