@@ -1,21 +1,21 @@
 """Loop closure of a tracked run: keyframes, loop edges and the pose graph, as one policy with explicit state.
 
-The pose source keeps tracking in its own (drifting) frame; this policy keeps, per keyframe, the tracker's pose
-and the corrected one. A frame's corrected pose is its tracker pose carried by the correction of its keyframe
-(the last keyframe at or before it): ``T = T_corr[k] @ inv(T_raw[k]) @ T_raw``. A new keyframe is placed at once
-by the tracker's relative pose from the previous one; its cloud and its odometry edge (information, and for the
-``refine_sources`` the edge registered onto the previous keyframe) are built from its strided depth, in the worker
-process (``keyframe_worker``) or on the mapper's thread, and *settle* ``settle_frames`` frames later: the edge
-enters the graph and the keyframe's correction moves it and every later keyframe rigidly (the tail keeps its
-relative poses), so the map follows. The mapper waits for a build only at its settling frame, so offline runs
-give the same trajectory wherever the build ran (the process then runs at the mapper's CPU priority); under the
-real-time clock (``background``) a keyframe settles as soon as its build arrives (the process at the lowest). A
-settled keyframe looks for loop candidates (:func:`.loops.candidates`) and verifies at most ``max_candidates`` of
-them (:func:`.loops.verify`); an accepted loop edge triggers one optimisation of the settled keyframes' graph
-(:func:`.pose_graph.optimise`; the unsettled tail moves rigidly with the last settled keyframe), whose line
-process may still prune it (then counted as rejected). After an
-optimisation or a settling, :meth:`LoopClosure.take_moves` hands the caller each keyframe whose corrected pose
-changed, so the map can follow.
+The pose source keeps tracking in its own (drifting) frame; this policy keeps, per keyframe, the tracker's pose and
+the corrected one. A frame's corrected pose is its tracker pose carried by the correction of its keyframe (the last
+keyframe at or before it): ``T = T_corr[k] @ inv(T_raw[k]) @ T_raw``. A new keyframe is placed at once by the
+tracker's relative pose from the previous one; its cloud and its odometry edge (information, and for the
+``refine_sources`` the edge registered onto the previous keyframe, and the skip edge registered onto the keyframe
+two back) are built from its strided depth, in the worker process (``keyframe_worker``) or on the mapper's thread,
+and *settle* ``settle_frames`` frames later: the edges enter the graph and the keyframe's correction moves it and
+every later keyframe rigidly (the tail keeps its relative poses), so the map follows. The mapper waits for a build
+only at its settling frame, so offline runs give the same trajectory wherever the build ran (the process then runs
+at the mapper's CPU priority); under the real-time clock (``background``) a keyframe settles as soon as its build
+arrives (the process at the lowest). A settled keyframe looks for loop candidates (:func:`.loops.candidates`) and
+verifies at most ``max_candidates`` of them (:func:`.loops.verify`); an accepted loop edge triggers one optimisation
+of the settled keyframes' graph (:func:`.pose_graph.optimise`; the unsettled tail moves rigidly with the last
+settled keyframe), whose line process may still prune it (then counted as rejected); skip edges not yet optimised
+get one more optimisation at :meth:`LoopClosure.finish`. After an optimisation or a settling,
+:meth:`LoopClosure.take_moves` hands the caller each keyframe whose corrected pose changed, so the map can follow.
 
 Verification (registration, the expensive part) runs on the mapper's thread, one candidate per frame, or, with
 ``background``, in the worker process (:mod:`.loop_worker`: no GIL shared with the mapper, lowest CPU priority):
