@@ -75,11 +75,13 @@ def odometry_edge_errors(lc: LoopClosure, seq) -> dict:
 
 def graph_edges(lc: LoopClosure, gt_poses) -> list[dict]:
     """Every edge of ``lc``'s graph against the ground truth's relative pose (``gt_poses[frame index]``,
-    camera-to-world): kind (``odometry``, ``loop``, ``pruned`` loop), frame indices, error (cm, degrees), the
-    information's correspondence count (its (5, 5) entry) and the Mahalanobis residual ``e' I e`` of the
-    error (rotation first, as Open3D orders it)."""
+    camera-to-world): kind (``odometry``, ``skip`` (keyframe ``k - 2`` to ``k``), ``loop``, ``pruned`` loop),
+    frame indices, error (cm, degrees), the information's correspondence count (its (5, 5) entry) and the
+    Mahalanobis residual ``e' I e`` of the error (rotation first, as Open3D orders it)."""
     rows = [("odometry", lc.keys[k].index, lc.keys[k - 1].index, lc.odo_rel[k], lc.odo_info[k])
             for k in range(1, lc.settled)]
+    rows += [("skip", lc.keys[e.source].index, lc.keys[e.target].index, e.transform, e.information)
+             for e in getattr(lc, "skip_edges", [])]
     rows += [("pruned" if (e.source, e.target) in lc.pruned else "loop", lc.keys[e.source].index,
               lc.keys[e.target].index, e.transform, e.information) for e in lc.loop_edges]
     out = []
@@ -125,7 +127,7 @@ def edge_summary(lc: LoopClosure, gt_poses) -> dict:
     """Per kind of graph edge (:func:`graph_edges`): how many, the median error (cm, degrees), the median
     correspondence count and Mahalanobis residual; and the median error of :func:`loop_pair_errors`."""
     rows, out = graph_edges(lc, gt_poses), {}
-    for kind in ("odometry", "loop", "pruned"):
+    for kind in ("odometry", "skip", "loop", "pruned"):
         sel = [r for r in rows if r["kind"] == kind]
         if sel:
             out[kind] = {"edges": len(sel), **{f"median_{f}": float(np.median([r[f] for r in sel]))

@@ -1,21 +1,21 @@
 """Loop closure of a tracked run: keyframes, loop edges and the pose graph, as one policy with explicit state.
 
-The pose source keeps tracking in its own (drifting) frame; this policy keeps, per keyframe, the tracker's pose
-and the corrected one. A frame's corrected pose is its tracker pose carried by the correction of its keyframe
-(the last keyframe at or before it): ``T = T_corr[k] @ inv(T_raw[k]) @ T_raw``. A new keyframe is placed at once
-by the tracker's relative pose from the previous one; its cloud and its odometry edge (information, and for the
-``refine_sources`` the edge registered onto the previous keyframe) are built from its strided depth, in the worker
-process (``keyframe_worker``) or on the mapper's thread, and *settle* ``settle_frames`` frames later: the edge
-enters the graph and the keyframe's correction moves it and every later keyframe rigidly (the tail keeps its
-relative poses), so the map follows. The mapper waits for a build only at its settling frame, so offline runs
-give the same trajectory wherever the build ran (the process then runs at the mapper's CPU priority); under the
-real-time clock (``background``) a keyframe settles as soon as its build arrives (the process at the lowest). A
-settled keyframe looks for loop candidates (:func:`.loops.candidates`) and verifies at most ``max_candidates`` of
-them (:func:`.loops.verify`); an accepted loop edge triggers one optimisation of the settled keyframes' graph
-(:func:`.pose_graph.optimise`; the unsettled tail moves rigidly with the last settled keyframe), whose line
-process may still prune it (then counted as rejected). After an
-optimisation or a settling, :meth:`LoopClosure.take_moves` hands the caller each keyframe whose corrected pose
-changed, so the map can follow.
+The pose source keeps tracking in its own (drifting) frame; this policy keeps, per keyframe, the tracker's pose and
+the corrected one. A frame's corrected pose is its tracker pose carried by the correction of its keyframe (the last
+keyframe at or before it): ``T = T_corr[k] @ inv(T_raw[k]) @ T_raw``. A new keyframe is placed at once by the
+tracker's relative pose from the previous one; its cloud and its odometry edge (information, and for the
+``refine_sources`` the edge registered onto the previous keyframe, and the skip edge registered onto the keyframe
+two back) are built from its strided depth, in the worker process (``keyframe_worker``) or on the mapper's thread,
+and *settle* ``settle_frames`` frames later: the edges enter the graph and the keyframe's correction moves it and
+every later keyframe rigidly (the tail keeps its relative poses), so the map follows. The mapper waits for a build
+only at its settling frame, so offline runs give the same trajectory wherever the build ran (the process then runs
+at the mapper's CPU priority); under the real-time clock (``background``) a keyframe settles as soon as its build
+arrives (the process at the lowest). A settled keyframe looks for loop candidates (:func:`.loops.candidates`) and
+verifies at most ``max_candidates`` of them (:func:`.loops.verify`); an accepted loop edge triggers one optimisation
+of the settled keyframes' graph (:func:`.pose_graph.optimise`; the unsettled tail moves rigidly with the last
+settled keyframe), whose line process may still prune it (then counted as rejected); skip edges not yet optimised
+get one more optimisation at :meth:`LoopClosure.finish`. After an optimisation or a settling,
+:meth:`LoopClosure.take_moves` hands the caller each keyframe whose corrected pose changed, so the map can follow.
 
 Verification (registration, the expensive part) runs on the mapper's thread, one candidate per frame, or, with
 ``background``, in the worker process (:mod:`.loop_worker`: no GIL shared with the mapper, lowest CPU priority):
@@ -110,12 +110,15 @@ class LoopClosure(KeyframeChain):
         self.odo_rel: list[np.ndarray] = []  # per keyframe, its odometry edge T_prev_k (the tracker's, or refined)
         self.odo_info: list[np.ndarray] = []  # per keyframe, the information of its edge from the previous one
         self.loop_edges: list[Edge] = []  # accepted by verification (the graph may prune them)
+        self.skip_edges: list[Edge] = []  # keyframe k - 2 -> k registrations (``skip_edges``), certain like odometry
+        self._skips_optimised = 0  # skip edges the last optimisation had
         self.pruned: set[tuple[int, int]] = set()
         self.frames: dict[int, tuple[int, np.ndarray]] = {}  # frame index -> (keyframe position, inv(T_k) @ T)
         self.raw: dict[int, np.ndarray] = {}  # frame index -> the tracker's pose
         self.summary: dict = {}  # ATE before and after, where the run has ground truth (run.poses.loop_closed)
         self.counts = {"keyframes": 0, "candidates": 0, "verified": 0, "rejected_registration": 0,
-                       "rejected_graph": 0, "accepted": 0, "optimisations": 0, "refined_edges": 0}
+                       "rejected_graph": 0, "accepted": 0, "optimisations": 0, "refined_edges": 0,
+                       "skip_edges": 0}
         self.seconds = 0.0  # on the mapper's thread
         self.worker_seconds = 0.0  # verification in the worker process
         self.worker_cpu_seconds = 0.0  # the worker process's CPU time (its own report)
@@ -206,7 +209,7 @@ class LoopClosure(KeyframeChain):
                 found = self._verify_in_background(wait=True)
                 if self.failure is not None and self.pending[:1] == [running]:
                     found |= self._take(verify(self.keys, self.corrected, *self.pending.pop(0), self.cfg))
-            if found:
+            if found or len(self.skip_edges) > self._skips_optimised:
                 self._optimise()
         finally:
             self.seconds += time.perf_counter() - t0
@@ -246,8 +249,10 @@ class LoopClosure(KeyframeChain):
         """Optimise the settled keyframes' graph; the unsettled ones move rigidly with the last settled one (placed
         again by their tracker edges from it)."""
         s = self.settled
-        edges = odometry_edges(self.odo_rel[:s], self.odo_info[:s]) + self.loop_edges
+        skips = [e for e in self.skip_edges if e.source < s]
+        edges = odometry_edges(self.odo_rel[:s], self.odo_info[:s]) + skips + self.loop_edges
         new, kept = optimise(self.corrected[:s], edges, self.graph_cfg)
+        self._skips_optimised = len(skips)
         self.counts["optimisations"] += 1
         self.pruned = {(e.source, e.target) for e, ok in zip(self.loop_edges, kept) if not ok}
         self.counts["accepted"] = sum(kept)
@@ -289,7 +294,8 @@ class LoopClosure(KeyframeChain):
         return {"policy": self.name, "keyframes": c["keyframes"], "loops_found": c["verified"],
                 "loops_accepted": c["accepted"], "loops_rejected": c["rejected_registration"] + c["rejected_graph"],
                 "rejected_by_registration": c["rejected_registration"], "rejected_by_graph": c["rejected_graph"],
-                "optimisations": c["optimisations"], "refined_edges": c["refined_edges"], "seconds": self.seconds,
+                "optimisations": c["optimisations"], "refined_edges": c["refined_edges"],
+                "skip_edges": c.get("skip_edges", 0), "seconds": self.seconds,
                 "worker": "process" if self.background and self.failure is None else "inline",
                 "worker_seconds": self.worker_seconds, "worker_cpu_seconds": self.worker_cpu_seconds,
                 "keyframe_work": "process" if self.keyframe_worker and self.failure is None else "inline",

@@ -18,11 +18,13 @@ import numpy as np
 from ..core.camera import invert_pose
 from .loop_worker import LoopWorker, WorkerFailed
 from .loops import Keyframe, KeyframeData, candidates, intrinsics, keyframe_data, strided_depth
+from .pose_graph import Edge
 
 
 class KeyframeChain:
     """The keyframe side of :class:`.loop_closure.LoopClosure`, which holds the state it uses (``keys``,
-    ``corrected``, ``odo_rel``, ``odo_info``, ``inputs``, ``settled``, ``pending``, the worker and counters)."""
+    ``corrected``, ``odo_rel``, ``odo_info``, ``skip_edges``, ``inputs``, ``settled``, ``pending``, the worker and
+    counters)."""
 
     def _add_keyframe(self, index: int, T_raw: np.ndarray, depth, camera) -> None:
         """Place a new keyframe by the tracker's relative pose from the previous one; its build starts (in the
@@ -90,8 +92,9 @@ class KeyframeChain:
         return data
 
     def _settle(self, k: int, data: KeyframeData) -> None:
-        """Keyframe ``k``'s cloud and odometry edge enter the graph; its correction moves it and the keyframes
-        after it rigidly; its loop candidates replace the waiting ones (not one a failed worker held)."""
+        """Keyframe ``k``'s cloud, odometry edge and skip edge (if built) enter the graph; its correction moves it
+        and the keyframes after it rigidly; its loop candidates replace the waiting ones (not one a failed worker
+        held)."""
         key = self.keys[k]
         if key.cloud is None:
             key.cloud = data.cloud()
@@ -99,6 +102,9 @@ class KeyframeChain:
         self._move_tail(k, new)
         self.odo_rel[k], self.odo_info[k] = np.asarray(data.rel), np.asarray(data.info)
         self.counts["refined_edges"] += int(data.refined)
+        if data.skip is not None:
+            self.skip_edges.append(Edge(k, k - 2, np.asarray(data.skip[0]), np.asarray(data.skip[1]), False))
+            self.counts["skip_edges"] = self.counts.get("skip_edges", 0) + 1
         self.settled = k + 1
         self.inputs.pop(k, None)
         self._drop_old_local_maps(k)

@@ -3,7 +3,7 @@
 A settled keyframe keeps its cloud (points and normals); an unsettled one keeps the inputs of its build (strided
 depth and intrinsics), so a resumed run builds it again and settles it at the same frame. A state written before
 keyframes settled late has every keyframe settled; one written before refined edges has no ``odo_rel`` (then the
-tracker's relative poses).
+tracker's relative poses), and one written before skip edges has none.
 """
 
 from __future__ import annotations
@@ -33,6 +33,9 @@ def state_of(lc) -> dict:
     running = [lc._job] if lc._job else []
     return {"keys": keys, "settled": lc.settled, "corrected": [T.copy() for T in lc.corrected],
             "odo_rel": list(lc.odo_rel), "odo_info": list(lc.odo_info), "loop_edges": edges,
+            "skip_edges": [{"source": e.source, "target": e.target, "transform": e.transform,
+                            "information": e.information} for e in lc.skip_edges],
+            "skips_optimised": lc._skips_optimised,
             "pruned": sorted(lc.pruned), "pending": [list(p) for p in running + lc.pending],  # running first
             "counts": dict(lc.counts), "seconds": lc.seconds, "wait_seconds": lc.wait_seconds,
             "keyframe_seconds": lc.keyframe_seconds,
@@ -61,6 +64,9 @@ def load_state(lc, state: dict) -> None:
         [np.eye(4)] + [invert_pose(a) @ b for a, b in zip(raw, raw[1:])])
     lc.loop_edges = [Edge(int(e["source"]), int(e["target"]), np.asarray(e["transform"], dtype=np.float64),
                           np.asarray(e["information"], dtype=np.float64), True) for e in state["loop_edges"]]
+    lc.skip_edges = [Edge(int(e["source"]), int(e["target"]), np.asarray(e["transform"], dtype=np.float64),
+                          np.asarray(e["information"], dtype=np.float64), False) for e in state.get("skip_edges", [])]
+    lc._skips_optimised = int(state.get("skips_optimised", len(lc.skip_edges)))
     lc.pruned = {tuple(p) for p in state["pruned"]}
     lc.pending = [(int(k), int(j)) for k, j in state.get("pending", [])]
     lc.counts.update(state["counts"])

@@ -68,6 +68,8 @@ class LoopConfig:
     """A refined edge moves the tracker's relative pose by at most this (m; the loop test's ``max_shift``)."""
     refine_max_turn_deg: float = 10.0
     """A refined edge turns the tracker's relative pose by at most this (deg; the loop test's ``max_turn_deg``)."""
+    skip_edges: str = "auto"
+    """Keyframes also registered two back, a second graph edge per keyframe: auto (``refine_sources``), on, off."""
     max_rmse: float = 0.013
     """Inlier RMSE after registration (m)."""
     max_shift: float = 0.3
@@ -79,14 +81,16 @@ class LoopConfig:
 
 
 def for_source(cfg: LoopConfig, source: str) -> LoopConfig:
-    """``cfg`` for the pose source named ``source``: ``refine_edges = auto`` resolved to on (one of the
-    ``refine_sources``) or off."""
-    refine = str(cfg.refine_edges).lower()
-    if refine not in ("auto", "on", "off"):
-        raise ValueError(f"loops.detect.refine_edges must be auto, on or off, got {cfg.refine_edges!r}")
-    if refine == "auto":
-        refine = "on" if source and source in [s.strip() for s in cfg.refine_sources.split(",")] else "off"
-    return dataclasses.replace(cfg, refine_edges=refine)
+    """``cfg`` for the pose source named ``source``: ``refine_edges = auto`` and ``skip_edges = auto`` resolved
+    to on (one of the ``refine_sources``) or off."""
+    listed = bool(source) and source in [s.strip() for s in cfg.refine_sources.split(",")]
+    resolved = {}
+    for name in ("refine_edges", "skip_edges"):
+        mode = str(getattr(cfg, name)).lower()
+        if mode not in ("auto", "on", "off"):
+            raise ValueError(f"loops.detect.{name} must be auto, on or off, got {getattr(cfg, name)!r}")
+        resolved[name] = ("on" if listed else "off") if mode == "auto" else mode
+    return dataclasses.replace(cfg, **resolved)
 
 
 @dataclass
@@ -249,10 +253,29 @@ def odometry_edge(keys: list[Keyframe], k: int, cfg: LoopConfig, refine: bool) -
     return T, info, refined
 
 
+def skip_edge(keys: list[Keyframe], k: int, cfg: LoopConfig) -> tuple[np.ndarray, np.ndarray] | None:
+    """The graph's second edge into keyframe ``k``, from keyframe ``k - 2``: ``(T_k2_k, information)``, keyframe
+    ``k``'s cloud registered onto ``k - 2``'s from the tracker's relative pose, or None where a cloud is too small
+    or the registration leaves the refinement's bound (``refine_max_shift`` / ``refine_max_turn_deg``). With the
+    edge from ``k - 1`` it closes a triangle: a jump of the tracker (or a refinement that slid) in either edge is
+    outvoted in the graph by the two registrations that span it."""
+    src, tgt = keys[k].cloud, keys[k - 2].cloud
+    if min(len(src.points), len(tgt.points)) < cfg.min_points:
+        return None
+    prior = invert_pose(keys[k - 2].raw_pose) @ keys[k].raw_pose
+    T = register(src, tgt, prior, cfg)
+    delta = invert_pose(prior) @ T
+    if (np.linalg.norm(delta[:3, 3]) > cfg.refine_max_shift
+            or rotation_angle_deg(delta[:3, :3]) > cfg.refine_max_turn_deg):
+        return None
+    return T, o3d.pipelines.registration.get_information_matrix_from_point_clouds(src, tgt, cfg.max_dist, T)
+
+
 @dataclass
 class KeyframeData:
-    """What a keyframe's depth gives the pose graph: its cloud (points and normals, camera axes) and its odometry
-    edge from the previous keyframe (``T_prev_k``, information, whether registration refined it)."""
+    """What a keyframe's depth gives the pose graph: its cloud (points and normals, camera axes), its odometry
+    edge from the previous keyframe (``T_prev_k``, information, whether registration refined it) and, with
+    ``skip_edges``, its :func:`skip_edge` from the keyframe before (``(T_k2_k, information)`` or None)."""
 
     points: np.ndarray
     normals: np.ndarray
@@ -260,6 +283,7 @@ class KeyframeData:
     info: np.ndarray
     refined: bool
     seconds: float = 0.0  # the time it took to build
+    skip: tuple | None = None
 
     def cloud(self) -> o3d.geometry.PointCloud:
         """The cloud as an Open3D point cloud."""
@@ -271,13 +295,16 @@ class KeyframeData:
 def keyframe_data(keys: list[Keyframe], k: int, strided: np.ndarray, intr: tuple, cfg: LoopConfig) -> KeyframeData:
     """Build keyframe ``k``'s cloud from :func:`strided_depth`'s samples (``keys[k].cloud`` is set) and its
     :func:`odometry_edge` from keyframe ``k - 1`` (whose cloud must be set; refined where ``cfg.refine_edges`` is
-    on); keyframe 0's edge is the identity."""
+    on) and, where ``cfg.skip_edges`` is on, its :func:`skip_edge` from ``k - 2``; keyframe 0's edge is the
+    identity."""
     t0 = time.perf_counter()
     keys[k].cloud = cloud_from_depth(strided, intr, cfg)
     if k == 0:
         rel, info, refined = np.eye(4), np.eye(6), False
     else:
         rel, info, refined = odometry_edge(keys, k, cfg, str(cfg.refine_edges).lower() == "on")
+    skip = skip_edge(keys, k, cfg) if k >= 2 and str(cfg.skip_edges).lower() == "on" else None
     cloud = keys[k].cloud
     return KeyframeData(np.asarray(cloud.points).copy(), np.asarray(cloud.normals).copy(), np.asarray(rel),
-                        np.asarray(info), bool(refined), time.perf_counter() - t0)
+                        np.asarray(info), bool(refined), time.perf_counter() - t0,
+                        None if skip is None else (np.asarray(skip[0]), np.asarray(skip[1])))

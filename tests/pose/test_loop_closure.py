@@ -164,10 +164,69 @@ def test_a_refined_edge_may_correct_the_tracker_as_far_as_a_loop_may(room):
     assert not refined and abs(_err(truth, T)[0] - 0.2) < 1e-9
 
 
+def _jumping(poses, at: int, jump: np.ndarray) -> list[np.ndarray]:
+    """A tracker with the true relative motions except one, ``at - 1 -> at``, off by ``jump``."""
+    from eligsir_o3d.core.camera import invert_pose
+
+    out = [poses[0].copy()]
+    for k in range(1, len(poses)):
+        rel = invert_pose(poses[k - 1]) @ poses[k]
+        out.append(out[-1] @ (rel @ jump if k == at else rel))
+    return out
+
+
+def test_skip_edges_outvote_a_trackers_jump(room):
+    """One tracker edge 5 cm off, no loop in reach, edges not refined: each keyframe's registration onto the
+    keyframe before its predecessor spans the jump twice, and the graph optimised at the end follows those two
+    rather than the one wrong edge."""
+    import dataclasses
+
+    seq, depths, poses = room
+    jump = np.eye(4)
+    jump[0, 3] = 0.05
+    raw = _jumping(poses, 20, jump)
+    cfg = dataclasses.replace(_config(), min_gap=10**6, refine_edges="off")
+    results = {}
+    for mode in ("off", "on"):
+        lc = LoopClosure(dataclasses.replace(cfg, skip_edges=mode))
+        for i in range(N):
+            lc.on_frame(i, raw[i], depths[i], seq.camera)
+        lc.finish()
+        results[mode] = (_err(poses[-1], lc.pose_of(N - 1, raw[-1])), lc.counters())
+    (off, c_off), (on, c_on) = results["off"], results["on"]
+    assert c_off["skip_edges"] == 0 and c_off["optimisations"] == 0 and abs(off[0] - 0.05) < 0.005, (off, c_off)
+    assert c_on["skip_edges"] >= N - 4 and c_on["optimisations"] == 1 and c_on["loops_found"] == 0, c_on
+    assert on[0] < 0.4 * off[0], (off, on)
+
+
+def test_skip_edges_survive_a_checkpoint(room):
+    import dataclasses
+
+    seq, depths, poses = room
+    cfg = dataclasses.replace(_config(), skip_edges="on")
+    lc, raw = LoopClosure(cfg), drifted(poses)
+    for i in range(10):
+        lc.on_frame(i, raw[i], depths[i], seq.camera)
+    other = LoopClosure(cfg)
+    other.load_state_dict(lc.state_dict())
+    assert len(other.skip_edges) == len(lc.skip_edges) >= 7
+    for a, b in zip(other.skip_edges, lc.skip_edges):
+        assert (a.source, a.target) == (b.source, b.target) and not a.loop
+        np.testing.assert_allclose(a.transform, b.transform, atol=1e-12)
+    state = lc.state_dict()
+    del state["skip_edges"]  # a checkpoint from before skip edges
+    other.load_state_dict(state)
+    assert other.skip_edges == []
+
+
 def test_refined_edges_are_on_for_the_refine_sources_only():
     cfg = LoopClosureConfig()
     assert loop_closure_for(cfg, tracked=True, source="kiss-icp").cfg.refine_edges == "on"
     assert loop_closure_for(cfg, tracked=True, source="odometry").cfg.refine_edges == "off"
+    assert loop_closure_for(cfg, tracked=True, source="kiss-icp").cfg.skip_edges == "on"
+    assert loop_closure_for(cfg, tracked=True, source="odometry").cfg.skip_edges == "off"
+    with pytest.raises(ValueError, match="skip_edges"):
+        loop_closure_for(LoopClosureConfig(detect=LoopConfig(skip_edges="maybe")), tracked=True)
     off = LoopClosureConfig(detect=LoopConfig(refine_edges="off"))
     assert loop_closure_for(off, tracked=True, source="kiss-icp").cfg.refine_edges == "off"
     with pytest.raises(ValueError, match="refine_edges"):
