@@ -89,22 +89,19 @@ class NumbaKernels(KernelSet):
 
     def backward(self, out, color, depth, loss_cfg, view: RowView, terms: StepTerms) -> torch.Tensor:
         training_pass = getattr(out, "training_pass", None)
-        if training_pass is not None:
-            acc, alpha, background = out.raw
-            _, error, g_acc, g_alpha = fused_loss_cpu(acc, alpha, background, color, depth, loss_cfg)
-            if len(view):  # an empty view (every row out of it) leaves nothing to differentiate
-                grads = training_pass.backward(g_acc, g_alpha)
-                for name, g in zip(("means", "quats", "scales", "opacities", "colors"), grads):
-                    view.leaves[name].grad = g
-            return error
-        if not fused_applies(out, color):
+        if training_pass is None and not fused_applies(out, color):
             loss, error = torch_loss(out, color, depth, loss_cfg)
             if loss.requires_grad:
                 loss.backward()
             return error
         acc, alpha, background = out.raw
         _, error, g_acc, g_alpha = fused_loss_cpu(acc, alpha, background, color, depth, loss_cfg)
-        if acc.requires_grad:  # an empty view (every row out of it) leaves nothing to differentiate
+        # an empty view (every row out of it) leaves nothing to differentiate
+        if training_pass is not None and len(view):
+            grads = training_pass.backward(g_acc, g_alpha)
+            for name, g in zip(("means", "quats", "scales", "opacities", "colors"), grads):
+                view.leaves[name].grad = g
+        elif training_pass is None and acc.requires_grad:
             torch.autograd.backward((acc, alpha), (g_acc, g_alpha))
         return error
 

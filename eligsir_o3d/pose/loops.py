@@ -231,6 +231,14 @@ def timed_verify(keys, poses, k: int, j: int, cfg: LoopConfig) -> tuple[LoopResu
     return verify(keys, poses, k, j, cfg), time.perf_counter() - t0
 
 
+def _within_refinement(prior: np.ndarray, T: np.ndarray, cfg: LoopConfig) -> bool:
+    """Whether registration ``T`` stays within ``refine_max_shift`` / ``refine_max_turn_deg`` of the tracker's
+    relative pose ``prior``."""
+    delta = invert_pose(prior) @ T
+    return bool(np.linalg.norm(delta[:3, 3]) <= cfg.refine_max_shift
+                and rotation_angle_deg(delta[:3, :3]) <= cfg.refine_max_turn_deg)
+
+
 def odometry_edge(keys: list[Keyframe], k: int, cfg: LoopConfig, refine: bool) -> tuple[np.ndarray, np.ndarray, bool]:
     """The graph's edge from keyframe ``k - 1`` to ``k``: ``(T_prev_k, information, refined)``. The tracker's
     relative pose, or with ``refine`` keyframe ``k``'s cloud registered onto ``k - 1``'s from it, kept where its
@@ -244,10 +252,8 @@ def odometry_edge(keys: list[Keyframe], k: int, cfg: LoopConfig, refine: bool) -
         evaluate = o3d.pipelines.registration.evaluate_registration
         before = evaluate(src, tgt, cfg.max_dist, prior).fitness
         R = register(src, tgt, prior, cfg)
-        delta = invert_pose(prior) @ R
-        if (evaluate(src, tgt, cfg.max_dist, R).fitness >= before + cfg.refine_min_gain
-                and np.linalg.norm(delta[:3, 3]) <= cfg.refine_max_shift
-                and rotation_angle_deg(delta[:3, :3]) <= cfg.refine_max_turn_deg):
+        if evaluate(src, tgt, cfg.max_dist, R).fitness >= before + cfg.refine_min_gain and _within_refinement(
+                prior, R, cfg):
             T, refined = R, True
     info = o3d.pipelines.registration.get_information_matrix_from_point_clouds(src, tgt, cfg.max_dist, T)
     return T, info, refined
@@ -264,9 +270,7 @@ def skip_edge(keys: list[Keyframe], k: int, cfg: LoopConfig) -> tuple[np.ndarray
         return None
     prior = invert_pose(keys[k - 2].raw_pose) @ keys[k].raw_pose
     T = register(src, tgt, prior, cfg)
-    delta = invert_pose(prior) @ T
-    if (np.linalg.norm(delta[:3, 3]) > cfg.refine_max_shift
-            or rotation_angle_deg(delta[:3, :3]) > cfg.refine_max_turn_deg):
+    if not _within_refinement(prior, T, cfg):
         return None
     return T, o3d.pipelines.registration.get_information_matrix_from_point_clouds(src, tgt, cfg.max_dist, T)
 

@@ -101,6 +101,14 @@ def _check_shapes(means, quats, scales, opacities, colors) -> None:
                              f"{n} (from means), got {list(t.shape)} on {t.device}")
 
 
+def _output(acc, alpha, radii, means2d, background) -> DeferredRenderOutput:
+    """A render's output from its accumulations; the culled rows' NaN mask of ``means2d`` made when first read."""
+    if background is not None:
+        background = torch.as_tensor(background, dtype=acc.dtype, device=acc.device)
+    return DeferredRenderOutput(alpha, None, None, (acc, alpha, background),
+                                screen=lambda: (radii, mask_culled(means2d, radii)))
+
+
 class CpuRenderer(TileRenderer):
     """Compiled CPU tile rasteriser; same images and gradients as :class:`TorchRenderer` up to float32 rounding."""
 
@@ -126,11 +134,7 @@ class CpuRenderer(TileRenderer):
         offsets, flat, tiles_x = bin_tiles_csr(proj, camera.width, camera.height)
         acc, alpha_acc = self._accumulate(proj, opacities, colors, offsets, flat, tiles_x, camera.width,
                                           camera.height, self.block)
-        if background is not None:
-            background = torch.as_tensor(background, dtype=acc.dtype, device=acc.device)
-        radii, means2d = proj.radii, proj.means2d  # the culled rows' NaN mask made when first read
-        return DeferredRenderOutput(alpha_acc, None, None, (acc, alpha_acc, background),
-                                    screen=lambda: (radii, mask_culled(means2d, radii)))
+        return _output(acc, alpha_acc, proj.radii, proj.means2d, background)
 
     def render_training(self, means, quats, scales, opacities, colors, camera: Camera, T_world_cam,
                         background: torch.Tensor | None = None, low_pass: float = EPS2D) -> RenderOutput:
@@ -142,11 +146,7 @@ class CpuRenderer(TileRenderer):
         if any(t.dtype != torch.float32 or not t.is_contiguous() for t in arrays):
             raise ValueError("cpu renderer: a training pass takes contiguous float32 tensors")
         tp = TrainingPass(*(t.numpy() for t in arrays), camera, T_world_cam, low_pass, self.block)
-        acc, alpha_acc, radii, means2d = tp.forward()
-        if background is not None:
-            background = torch.as_tensor(background, dtype=acc.dtype, device=acc.device)
-        out = DeferredRenderOutput(alpha_acc, None, None, (acc, alpha_acc, background),
-                                   screen=lambda: (radii, mask_culled(means2d, radii)))
+        out = _output(*tp.forward(), background)
         out.training_pass = tp
         return out
 

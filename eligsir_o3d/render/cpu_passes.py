@@ -10,6 +10,7 @@ there is none yet (~15 s on a 2-core machine); :func:`warmup` does this explicit
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -127,16 +128,23 @@ def warmup() -> float:
     return _warm_seconds
 
 
+@dataclass(slots=True)
 class Tiles:
     """What the compositing forward leaves for its backward: the tile lists, each pixel's final transmittance and
     last contributor, the tiles as the forward kernel gathered them, and the sizes."""
 
-    __slots__ = ("offsets", "flat_ids", "order", "out_T", "out_last", "gathered", "tiles_x", "width", "height",
-                 "n", "n_feat", "block")
-
-    def __init__(self, **kw):
-        for name, value in kw.items():
-            setattr(self, name, value)
+    offsets: torch.Tensor
+    flat_ids: torch.Tensor
+    order: torch.Tensor
+    out_T: torch.Tensor
+    out_last: torch.Tensor
+    gathered: tuple
+    tiles_x: int
+    width: int
+    height: int
+    n: int
+    n_feat: int
+    block: int | None
 
 
 def composite_forward(m, c, o, f, offsets, flat_ids, order, tiles_x, width, height, block):
@@ -218,7 +226,7 @@ def bin_tiles_csr(proj: Projection, width: int, height: int) -> tuple[torch.Tens
     keys.sort()
     by_depth = keys & 0xFFFFFFFF
     k = _kernels()
-    # in parallel parts where the per-Gaussian kernels run parallel (77k: 2.8 ms on one thread), else in one
+    # in parallel parts where the per-Gaussian kernels run parallel, else in one
     with _rows_threads(vis.shape[0], "bin_tiles") as parallel:
         chunks = k.task_slots(vis.shape[0]) if parallel else 1
         offsets, flat = _binning().bin_tiles_fill(float32(proj.means2d).numpy(), radii, by_depth, tiles_x, tiles_y,
@@ -249,10 +257,10 @@ class TrainingPass:
         w, h = self.camera.width, self.camera.height
         means2d, conics, depths, radii = project_forward(self.m, self.q, self.s, self.V, self.cam)
         offsets, flat, tiles_x = bin_tiles_csr(Projection(means2d, conics, depths, radii), w, h)
-        self.feats = np.empty((self.m.shape[0], 4), np.float32)
-        self.feats[:, :3] = self.colors
-        self.feats[:, 3] = depths.numpy()
-        acc, alpha, self.tiles = composite_forward(means2d.numpy(), conics.numpy(), self.o, self.feats, offsets,
+        feats = np.empty((self.m.shape[0], 4), np.float32)
+        feats[:, :3] = self.colors
+        feats[:, 3] = depths.numpy()
+        acc, alpha, self.tiles = composite_forward(means2d.numpy(), conics.numpy(), self.o, feats, offsets,
                                                     flat, tile_order(offsets), tiles_x, w, h, self.block)
         return acc, alpha, radii, means2d
 
