@@ -10,10 +10,9 @@ into ``plan.last``.
 from __future__ import annotations
 
 import torch
-import triton
 import triton.language as tl
 
-from .triton_launch import kernel, launch
+from .triton_launch import cdiv, kernel, launch
 
 BLOCK = 1024
 
@@ -56,6 +55,6 @@ def fold_cells(plan, error_map: torch.Tensor, error: torch.Tensor, best: torch.T
     """The fold of :func:`eligsir_o3d.scheduling.cell_feedback.fold_torch` (same arguments) in two launches."""
     P, C = plan.n_pixels, int(plan.cells.numel())
     error_map = error_map.contiguous()
-    launch(_splat_kernel, (triton.cdiv(P, BLOCK),), error_map, plan.pixel_cell, plan.scratch, P, C, BLOCK=BLOCK)
-    launch(_fold_kernel, (max(1, triton.cdiv(C, BLOCK)),), plan.scratch, plan.counts, plan.cells, error, best,
+    launch(_splat_kernel, (cdiv(P, BLOCK),), error_map, plan.pixel_cell, plan.scratch, P, C, BLOCK=BLOCK)
+    launch(_fold_kernel, (max(1, cdiv(C, BLOCK)),), plan.scratch, plan.counts, plan.cells, error, best,
            visits, plan.last, C, P, float(ema), BLOCK=BLOCK)

@@ -125,6 +125,16 @@ def launch(k: Kernel, grid, *args, **meta) -> None:
         _DEPTH -= 1
 
 
+def cdiv(a: int, b: int) -> int:
+    """``ceil(a / b)`` for the grid sizes (``triton.cdiv``'s value, without its constexpr wrapping on the host)."""
+    return -(-int(a) // int(b))
+
+
+def pow2(n: int) -> int:
+    """The smallest power of two >= ``n`` (``triton.next_power_of_2``'s value, plain Python)."""
+    return 1 << max(0, int(n) - 1).bit_length()
+
+
 def in_launch() -> bool:
     """Whether a launch of ours is running (under the interpreter its torch operators are the kernel's own work)."""
     return _DEPTH > 0

@@ -8,11 +8,10 @@ program writes the loss. The window's taps are host floats."""
 from __future__ import annotations
 
 import torch
-import triton
 import triton.language as tl
 
 from .device_reference_loss import C1, C2, DEPTH_ALPHA_EPS, dssim_window, window_taps
-from .triton_launch import kernel, launch
+from .triton_launch import cdiv, kernel, launch, pow2
 
 _C1, _C2, _EPS = tl.constexpr(C1), tl.constexpr(C2), tl.constexpr(DEPTH_ALPHA_EPS)
 
@@ -137,7 +136,7 @@ def fused_loss(acc, alpha, background, color, depth, lambda_dssim: float, lambda
     dssim = lambda_dssim > 0 and win >= 3
     ho, wo = (h - win + 1, w - win + 1) if dssim else (1, 1)
     block = 1024 if dev.type == "cpu" else 256
-    nb = max(1, triton.cdiv(h * w, block))
+    nb = max(1, cdiv(h * w, block))
     f32 = dict(dtype=torch.float32, device=dev)
     acc_c, a_c = acc.detach().contiguous(), alpha.detach().contiguous()
     bg = background.detach().reshape(3).to(torch.float32).contiguous() if background is not None else a_c
@@ -152,5 +151,5 @@ def fused_loss(acc, alpha, background, color, depth, lambda_dssim: float, lambda
     loss, grad_acc, grad_alpha = torch.empty((), **f32), torch.empty(h, w, 4, **f32), torch.empty(h, w, **f32)
     launch(_loss_bwd, (nb,), acc_c, a_c, bg, col, dep, dbuf, parts, loss, grad_acc, grad_alpha, h * w, w, ho * wo,
            wo, ho, nb, float(alpha_min), inv_n, (1.0 - lambda_dssim) / (3 * h * w), float(lambda_dssim),
-           float(lambda_depth), taps, DEPTH=lambda_depth > 0, NPB=triton.next_power_of_2(nb), **flags)
+           float(lambda_depth), taps, DEPTH=lambda_depth > 0, NPB=pow2(nb), **flags)
     return loss, error, grad_acc, grad_alpha

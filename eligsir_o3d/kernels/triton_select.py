@@ -9,11 +9,10 @@ from __future__ import annotations
 import struct
 
 import torch
-import triton
 import triton.language as tl
 
 from .device_reference import C0, PAD_SCALE, Selection
-from .triton_launch import device_function, kernel, launch
+from .triton_launch import cdiv, device_function, kernel, launch, pow2
 _C0 = tl.constexpr(C0)
 _PAD_SCALE = tl.constexpr(PAD_SCALE)
 
@@ -87,8 +86,9 @@ def _gather_kernel(mask_ptr, offs_ptr, NB, means, ls, quats, lo, sh0, shN, idx, 
     tl.store(count + tl.arange(0, 1), total + tl.zeros([1], tl.int64), mask=(tl.arange(0, 1) + p) == 0)
 
 
-def _bits(v: float) -> int:
-    return struct.unpack("<q", struct.pack("<d", float(v)))[0]
+def _bits(values) -> tuple[int, ...]:
+    """The float64 ``values``' bit patterns as int64s."""
+    return struct.unpack(f"<{len(values)}q", struct.pack(f"<{len(values)}d", *values))
 
 
 def select_rows(means, log_scales, quats, logit_opac, sh0, shN, V, cam, capacity: int,
@@ -96,19 +96,18 @@ def select_rows(means, log_scales, quats, logit_opac, sh0, shN, V, cam, capacity
     """:func:`.device_reference.select_rows` (same arguments and outputs) in three launches."""
     dev, n, C = means.device, means.shape[0], int(capacity)
     block = 1024 if dev.type == "cpu" else 256
-    nb = max(1, triton.cdiv(n, block))
+    nb = max(1, cdiv(n, block))
     mask = torch.empty(max(n, 1), dtype=torch.int8, device=dev)
     counts = torch.empty(nb, dtype=torch.int64, device=dev)
     f = [t.detach().contiguous() for t in (means, log_scales, quats, logit_opac, sh0, shN)]
-    launch(_hits_kernel, (nb,), f[0], f[1], mask, counts, n, tuple(_bits(v) for v in V),
-           tuple(_bits(c) for c in cam), BLOCK=block)
+    launch(_hits_kernel, (nb,), f[0], f[1], mask, counts, n, _bits(V), _bits(cam), BLOCK=block)
     offsets = torch.cumsum(counts, 0)
     k3 = shN.shape[1] * 3
     f32 = dict(dtype=torch.float32, device=dev)
     idx, count = torch.empty(C, dtype=torch.int64, device=dev), torch.empty(1, dtype=torch.int64, device=dev)
     out = [torch.empty(C, 3, **f32), torch.empty(C, 4, **f32), torch.empty(C, 3, **f32), torch.empty(C, **f32),
            torch.empty((C, 3) if sh_degree == 0 else (C, k3 // 3 + 1, 3), **f32)]
-    grid = max(nb, triton.cdiv(C, block))
+    grid = max(nb, cdiv(C, block))
     launch(_gather_kernel, (grid,), mask, offsets, nb, *f[:1], f[1], f[2], f[3], f[4], f[5], idx, count, *out,
-           n, C, k3, DEG0=sh_degree == 0, BLOCK=block, WSH=triton.next_power_of_2(k3 + 3))
+           n, C, k3, DEG0=sh_degree == 0, BLOCK=block, WSH=pow2(k3 + 3))
     return Selection(idx, count, *out)

@@ -5,11 +5,10 @@ outside the view are neither read nor written."""
 
 from __future__ import annotations
 
-import triton
 import triton.language as tl
 
 from .device_reference import C0, STEPPED, AdamScalars
-from .triton_launch import device_function, kernel, launch
+from .triton_launch import cdiv, device_function, kernel, launch, pow2
 _C0 = tl.constexpr(C0)
 
 
@@ -128,7 +127,7 @@ def step_rows(params: dict, exp_avg: dict, exp_avg_sq: dict, idx, count, grads: 
         return grads[k].contiguous() if grads.get(k) is not None else dummy
 
     block = 1024 if idx.device.type == "cpu" else 128
-    launch(_step_kernel, (triton.cdiv(C, block),), idx, count, C,
+    launch(_step_kernel, (cdiv(C, block),), idx, count, C,
            *pmv("means"), grad("means"), *pmv("quats"), grad("quats"), *pmv("scales"), grad("scales"),
            *pmv("opacities"), grad("opacities"), *pmv("sh0"), *pmv("shN"),
            dummy if gc is None else gc.contiguous(), z.contiguous() if noise else dummy,
@@ -136,4 +135,4 @@ def step_rows(params: dict, exp_avg: dict, exp_avg_sq: dict, idx, count, grads: 
            float(opacity_reg / n_map), float(scale_reg / (3.0 * n_map)),
            float(scaler), k3, HAS_M=has["means"], HAS_Q=has["quats"], HAS_S=has["scales"], HAS_O=has["opacities"],
            HAS_C=gc is not None, DEG0=gc is not None and gc.ndim == 2, NOISE=noise, BLOCK=block,
-           WSH=triton.next_power_of_2(k3 + 3))
+           WSH=pow2(k3 + 3))
