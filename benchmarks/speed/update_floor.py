@@ -91,7 +91,9 @@ def _gsplat_on_standin(device: str):
             def bwd():
                 need = [t for t in ctx.ins if t.requires_grad]
                 grads = iter(torch.autograd.grad(ctx.outs, need, (g_rendered, g_alphas), allow_unused=True))
-                return [next(grads) if t.requires_grad else None for t in ctx.ins]
+                out = [next(grads) if t.requires_grad else None for t in ctx.ins]
+                ctx.ins = ctx.outs = None  # the stand-in's graph is freed here, not in the update's own time
+                return out
             return (*_timed_out(bwd)(), None, None, None, None, None)
 
     def raster(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **kw):
