@@ -9,7 +9,9 @@ Conventions (shared by the whole package):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -33,9 +35,9 @@ class Camera:
     def __post_init__(self) -> None:
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"camera size must be positive, got {self.width}x{self.height}")
-        if not (np.isfinite(self.fx) and np.isfinite(self.fy) and self.fx > 0 and self.fy > 0):
+        if not (math.isfinite(self.fx) and math.isfinite(self.fy) and self.fx > 0 and self.fy > 0):
             raise ValueError(f"camera focal lengths must be positive and finite, got fx={self.fx}, fy={self.fy}")
-        if not (np.isfinite(self.cx) and np.isfinite(self.cy)):
+        if not (math.isfinite(self.cx) and math.isfinite(self.cy)):
             raise ValueError(f"camera principal point must be finite, got cx={self.cx}, cy={self.cy}")
 
     @classmethod
@@ -51,10 +53,7 @@ class Camera:
         """The camera of this image resampled by ``scale`` (sizes rounded to whole pixels)."""
         if scale == 1.0:
             return self
-        w = max(1, int(round(self.width * scale)))
-        h = max(1, int(round(self.height * scale)))
-        sx, sy = w / self.width, h / self.height
-        return Camera(w, h, self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5)
+        return _scaled(self, scale)
 
     @property
     def K(self) -> np.ndarray:  # [3, 3]
@@ -187,3 +186,12 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     """Angle of a rotation matrix in degrees."""
     c = (np.trace(R) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+@lru_cache(maxsize=256)
+def _scaled(camera: Camera, scale: float) -> Camera:
+    """:meth:`Camera.scaled` (cameras are immutable: the few an update uses are made once)."""
+    w = max(1, int(round(camera.width * scale)))
+    h = max(1, int(round(camera.height * scale)))
+    sx, sy = w / camera.width, h / camera.height
+    return Camera(w, h, camera.fx * sx, camera.fy * sy, (camera.cx + 0.5) * sx - 0.5, (camera.cy + 0.5) * sy - 0.5)

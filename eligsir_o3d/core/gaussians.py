@@ -74,7 +74,7 @@ class GaussianMap:
             "means": torch.zeros(0, 3), "scales": torch.zeros(0, 3), "quats": torch.zeros(0, 4),
             "opacities": torch.zeros(0), "sh0": torch.zeros(0, 1, 3), "shN": torch.zeros(0, k, 3),
         }
-        self.params = torch.nn.ParameterDict()
+        self.params: dict[str, torch.nn.Parameter] = {}  # a plain dict: read several times per update
         self._set_rows({n: v.to(self.device) for n, v in empty.items()})
         self.supervision_focal: float | None = None  # the finest focal length [px] an update supervised it at
         self.rows_epoch = 0  # changes whenever row ids change meaning (removal, reload)

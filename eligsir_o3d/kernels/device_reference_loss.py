@@ -28,10 +28,11 @@ def dssim_window(h: int, w: int, win: int = 11) -> int:
     return min(win, (min(h, w) // 2) * 2 - 1)
 
 
-def window_taps(win: int, sigma: float = SIGMA) -> list[float]:
+@lru_cache(maxsize=16)
+def window_taps(win: int, sigma: float = SIGMA) -> tuple[float, ...]:
     """The normalised 1-D Gaussian window (``win`` taps, ``sigma`` px) as host floats."""
     t = [math.exp(-((k - (win - 1) / 2) ** 2) / (2 * sigma * sigma)) for k in range(win)]
-    return [v / sum(t) for v in t]
+    return tuple(v / sum(t) for v in t)
 
 
 @lru_cache(maxsize=32)

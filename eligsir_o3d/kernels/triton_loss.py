@@ -143,7 +143,7 @@ def fused_loss(acc, alpha, background, color, depth, lambda_dssim: float, lambda
     col, dep = color.detach().to(torch.float32).contiguous(), depth.detach().to(torch.float32).contiguous()
     error, dbuf = torch.empty(h, w, **f32), torch.empty(9 * ho * wo if dssim else 1, **f32)
     parts = torch.empty(nb * 4, dtype=torch.float64, device=dev)
-    taps = tuple(window_taps(win)) if dssim else (0.0,)
+    taps = window_taps(win) if dssim else (0.0,)
     inv_n = 1.0 / (3 * ho * wo)
     flags = dict(HAS_BG=background is not None, DSSIM=dssim, WIN=win if dssim else 1, BLOCK=block)
     launch(_loss_fwd, (nb,), acc_c, a_c, bg, col, dep, error, dbuf, parts, h * w, w, ho * wo, wo,

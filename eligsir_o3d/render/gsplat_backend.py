@@ -112,7 +112,8 @@ class GsplatRenderer:
 
         # the accumulations as gsplat wrote them (RGB and depth summed, no background): a fused loss reads these;
         # colour, depth, radii and means2d are made when first read
-        raw = (rendered[0].to(dtype), alphas[0, ..., 0].to(dtype), background)
+        # (views, so that autograd hands their gradients back without a copy)
+        raw = (rendered.squeeze(0).to(dtype), alphas.reshape(alphas.shape[1:3]).to(dtype), background)
         return DeferredRenderOutput(raw[1], None, None, raw, screen=screen)
 
     @staticmethod

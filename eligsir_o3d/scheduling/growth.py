@@ -237,6 +237,9 @@ class TargetedGrowth(GrowthPolicy):
     def post_step(self, frame: Frame, out: RenderOutput, depth: torch.Tensor, camera: Camera, ctx: MapContext) -> None:
         self.pixels = self._budget_pixels(frame.camera) if self.cfg.budget_scale > 0 else camera.pixels
         view = ctx.view
+        if not self.mcmc.refines_next(ctx.gmap):  # no round: the cap and the rows are not needed
+            self.mcmc.post_step(ctx.gmap, len(ctx.gmap))
+            return
         cap = self.cap(ctx, self.pixels, None if view is None else len(view))
         fill = 0
         if self.cfg.budget_updates > 0 and self.cfg.budget_fill > 0:

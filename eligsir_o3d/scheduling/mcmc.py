@@ -195,6 +195,8 @@ class MCMCRefiner:
     def generator(self, device: torch.device) -> torch.Generator:
         """The refiner's generator, moved to ``device`` on first use there (restored from a checkpoint of the same
         device type, else seeded with ``seed``)."""
+        if device == self.rng.device:  # the common case: already there
+            return self.rng
         device = torch.device(device)
         if device.type == "cuda" and device.index is None:
             device = torch.device("cuda", torch.cuda.current_device())

@@ -261,7 +261,7 @@ class MapGuidedViews(ViewPolicy):
                 return self._views[self._stalest(retained)].frame
             pool = retained
         p = torch.tensor([self._views[i].priority for i in pool], dtype=torch.float64)
-        pick = pool[int(torch.multinomial(p / p.sum(), 1, generator=rng))]
+        pick = pool[_draw_one(p / p.sum(), rng)]
         return self._views[pick].frame
 
     def _stalest(self, positions) -> int:
@@ -332,3 +332,11 @@ class MapGuidedViews(ViewPolicy):
             self._since_refresh = int(state["since_refresh"])
         else:
             self.refresh()
+
+
+def _draw_one(p: torch.Tensor, rng: torch.Generator) -> int:
+    """One index drawn with probabilities ``p`` (float64, non-negative, summing to 1): ``torch.multinomial(p, 1,
+    generator=rng)``'s own draw for one sample (the argmax of ``p / q``, ``q`` exponential from ``rng``), the same
+    pick and the same generator state, without its checks of ``p``."""
+    q = torch.empty_like(p).exponential_(1.0, generator=rng)
+    return int(torch.argmax(p / q))

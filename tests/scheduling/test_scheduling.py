@@ -349,3 +349,16 @@ def test_the_drain_replays_every_retained_view_in_turn(replay):
     assert not views.draining  # left on an error too
     with pytest.raises(ValueError, match="drain_replay"):
         MapGuidedViews(ViewConfig(drain_replay="least"))
+
+
+def test_a_view_is_drawn_as_torch_multinomial_draws_it():
+    """The scheduler's draw of one view gives torch.multinomial's pick and leaves its generator where
+    torch.multinomial leaves it (the same runs as before it was written out)."""
+    from eligsir_o3d.scheduling.views import _draw_one
+
+    ours, torchs = torch.Generator().manual_seed(7), torch.Generator().manual_seed(7)
+    for t in range(3000):
+        p = torch.rand(1 + t % 12, generator=torch.Generator().manual_seed(t), dtype=torch.float64) + 1e-4
+        p = p / p.sum()
+        assert _draw_one(p, ours) == int(torch.multinomial(p, 1, generator=torchs))
+    assert torch.equal(ours.get_state(), torchs.get_state())
