@@ -195,9 +195,10 @@ def worker(warm: int, updates: int, path: str) -> None:
         print(json.dumps(times), flush=True)
 
 
-def _spawn(directory: Path, warm: int, updates: int, path: str) -> subprocess.Popen:
+def _spawn(directory: Path, warm: int, updates: int, path: str, copies: list[Path]) -> subprocess.Popen:
     if path == "cuda" and not (directory / "eligsir_o3d" / "kernels" / "device.py").exists():
         directory = _cuda_branches(directory.resolve())
+        copies.append(directory)
     env = dict(os.environ, PYTHONPATH=str(directory.resolve()), OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="1")
     return subprocess.Popen([sys.executable, __file__, "--worker", "--warm", str(warm), "--updates", str(updates),
                              "--path", path],
@@ -206,9 +207,12 @@ def _spawn(directory: Path, warm: int, updates: int, path: str) -> subprocess.Po
 
 def run(codes: dict[str, Path], rounds: int, warm: int, updates: int, path: str = "cpu") -> dict:
     """Per checkout: its worker's info and every timed update, the workers taking turns round after round."""
-    procs = {name: _spawn(d, warm, updates, path) for name, d in codes.items()}
-    out = {name: {"info": json.loads(p.stdout.readline()), "cpu": [], "wall": []} for name, p in procs.items()}
+    import shutil
+
+    copies: list[Path] = []  # rewritten packages (--path cuda), removed at the end
+    procs = {name: _spawn(d, warm, updates, path, copies) for name, d in codes.items()}
     try:
+        out = {name: {"info": json.loads(p.stdout.readline()), "cpu": [], "wall": []} for name, p in procs.items()}
         for _ in range(rounds):
             for name, p in procs.items():
                 p.stdin.write("round\n")
@@ -220,6 +224,8 @@ def run(codes: dict[str, Path], rounds: int, warm: int, updates: int, path: str 
         for p in procs.values():
             p.stdin.close()
             p.wait(timeout=60)
+        for c in copies:
+            shutil.rmtree(c, ignore_errors=True)
     return out
 
 
