@@ -129,6 +129,7 @@ def collect_metrics(r: RunResult) -> dict:
         "policies": rec.policy_counters(),
         "stage_times": rec.timing.summary(max(1, report.integrated)),  # where the mapper's wall time went
         "dropped_frames": report.dropped,
+        "dropped_indices": list(report.dropped_indices),  # the source frames the full queue dropped
         "skipped_frames": list(r.skipped) + list(report.skipped_bad),
         "heldout_skipped": list(r.heldout_skipped),  # unreadable held-out frames: index, file, reason
         "peak_rss_mb": peak_rss_mb(),

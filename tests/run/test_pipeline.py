@@ -184,6 +184,7 @@ def test_progress_is_the_streams_so_a_run_that_drops_frames_still_ends_at_p_1(tm
                                                            progress=False, plots=False, pictures=False),
                     sequence_options={"n_frames": 48, "width": 64, "height": 48})
     assert m["dropped_frames"] > 10 and m["clock"] == "cost"
+    assert len(m["dropped_indices"]) == m["dropped_frames"] and m["dropped_indices"] == sorted(m["dropped_indices"])
     ps = [c["progress"] for c in m["curve"]]
     assert ps[-1] == 1.0 and ps == sorted(ps)
     # few updates (one every 0.2 modelled s), yet checkpoints every ~10 % of the stream
