@@ -21,13 +21,12 @@ stages in torch operators (:mod:`.device_reference`), which is also their test o
 
 from __future__ import annotations
 
-from collections import OrderedDict
-
 import numpy as np
 import torch
 
 from ..core.camera import Camera
 from ..core.gaussians import EPS2D, PARAM_NAMES
+from ..core.per_view import PerView
 from .base import KernelSet, RowView, StepTerms, adam_scalars, moments
 from .device_reference import AdamScalars
 
@@ -66,27 +65,6 @@ def view_args(camera: Camera, T_world_cam, low_pass: float) -> tuple[tuple, tupl
     return V, tuple(float(c) for c in camera_bounds(camera, low_pass))
 
 
-class ViewArgs:
-    """:func:`view_args` of the views seen recently (training revisits the same retained views), keyed by the
-    pose's bytes, the camera and the low-pass, at most ``size`` of them."""
-
-    def __init__(self, size: int = 1024):
-        self.size = int(size)
-        self._cache: OrderedDict = OrderedDict()
-
-    def __call__(self, camera: Camera, T_world_cam, low_pass: float) -> tuple[tuple, tuple]:
-        key = (np.asarray(T_world_cam, dtype=np.float64).tobytes(), camera.width, camera.height, camera.fx,
-               camera.fy, camera.cx, camera.cy, float(low_pass))
-        hit = self._cache.get(key)
-        if hit is None:
-            hit = self._cache[key] = view_args(camera, T_world_cam, low_pass)
-            if len(self._cache) > self.size:
-                self._cache.popitem(last=False)
-        else:
-            self._cache.move_to_end(key)
-        return hit
-
-
 class FusedKernels(KernelSet):
     """The device path (see the module docstring) for a map on ``device``."""
 
@@ -96,7 +74,7 @@ class FusedKernels(KernelSet):
         self.device = torch.device(device)
         self._select, self._loss, self._step, self.fold_cells = stages(use_triton)
         self.capacity = MIN_CAPACITY  # rows of the next view: grows with the views, shrinks when 4x too large
-        self.view_args = ViewArgs()
+        self.view_args = PerView(view_args)  # the view test's host scalars of the views seen recently
 
     def _count_host(self, count: torch.Tensor) -> np.ndarray:
         """The host's view of ``count`` [1]: on a GPU a pinned buffer filled asynchronously, on the CPU the tensor."""
@@ -113,7 +91,7 @@ class FusedKernels(KernelSet):
         if capacity:
             self.capacity = bucket(capacity)
         p = gmap.params
-        V, cam = self.view_args(camera, T_world_cam, low_pass)
+        V, cam = self.view_args(camera, T_world_cam, float(low_pass))
         sel = self._select(p["means"], p["scales"], p["quats"], p["opacities"], p["sh0"], p["shN"], V, cam,
                            self.capacity, gmap.sh_degree)
         leaves = {"means": sel.means, "quats": sel.quats, "scales": sel.scales, "opacities": sel.opacities,

@@ -20,13 +20,13 @@ opacity above ~0.35 can reach a few more or fewer pixels at tile borders (each b
 
 from __future__ import annotations
 
-from collections import OrderedDict
 from typing import Callable
 
 import numpy as np
 import torch
 
 from ..core.camera import Camera
+from ..core.per_view import PerView
 from .availability import gsplat_status, load_gsplat_extension
 from .base import DeferredRenderOutput, RenderOutput, finish, mask_culled
 from .projection import EPS2D, NEAR, TILE, world_to_cam
@@ -51,7 +51,7 @@ class GsplatRenderer:
         self.device = torch.device(device)
         self.compile_s = 0.0  # seconds the first render spent JIT-compiling gsplat's extension (0: none needed)
         self._rasterization = rasterization
-        self._cameras: OrderedDict[tuple, tuple[torch.Tensor, torch.Tensor]] = OrderedDict()
+        self._camera_tensors = PerView(self._make_camera_tensors)  # the views seen recently
         if rasterization is None:
             status = gsplat_status(self.device)
             if not status.usable:
@@ -65,20 +65,11 @@ class GsplatRenderer:
             self._rasterization = rasterization
         return self._rasterization
 
-    def _camera_tensors(self, camera: Camera, T_world_cam, device) -> tuple[torch.Tensor, torch.Tensor]:
-        """viewmats [1, 4, 4] and Ks [1, 3, 3] on ``device``, kept for the views seen recently: a host-to-device copy
-        from pageable memory waits for the GPU, and training revisits the same retained views over and over."""
-        T = np.asarray(T_world_cam, dtype=np.float64)
-        key = (T.tobytes(), camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy, str(device))
-        hit = self._cameras.get(key)
-        if hit is None:
-            hit = (world_to_cam(T, device, torch.float32)[None], gsplat_intrinsics(camera, device)[None])
-            self._cameras[key] = hit
-            if len(self._cameras) > 1024:
-                self._cameras.popitem(last=False)
-        else:
-            self._cameras.move_to_end(key)
-        return hit
+    @staticmethod
+    def _make_camera_tensors(camera: Camera, T: np.ndarray, device: str) -> tuple[torch.Tensor, torch.Tensor]:
+        """viewmats [1, 4, 4] and Ks [1, 3, 3] on ``device``: made once per view (``self._camera_tensors``), as a
+        host-to-device copy from pageable memory waits for the GPU."""
+        return world_to_cam(T, device, torch.float32)[None], gsplat_intrinsics(camera, device)[None]
 
     def render(self, means, quats, scales, opacities, colors, camera: Camera, T_world_cam,
                background: torch.Tensor | None = None, sh_degree: int | None = None,
@@ -95,7 +86,7 @@ class GsplatRenderer:
             sh_degree = sh_degree_of(colors.shape[1])
         if colors.dim() == 2:
             sh_degree = None
-        viewmats, Ks = self._camera_tensors(camera, T_world_cam, device)  # [1, 4, 4], [1, 3, 3]
+        viewmats, Ks = self._camera_tensors(camera, T_world_cam, str(device))  # [1, 4, 4], [1, 3, 3]
         rendered, alphas, meta = rasterization(
             means.float(), quats.float(), scales.float(), opacities.float(), colors.float(), viewmats, Ks,
             camera.width, camera.height, near_plane=NEAR, eps2d=float(low_pass), radius_clip=0.0, sh_degree=sh_degree,
