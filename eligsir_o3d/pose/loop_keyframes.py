@@ -11,6 +11,7 @@ them are unchanged, and every move is recorded for the map to follow. Only a set
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -55,7 +56,8 @@ class KeyframeChain:
         """The worker process's handle (made on first use): at the lowest CPU priority under the real-time clock
         (``background``: it never slows the stream), at the mapper's otherwise (the mapper waits for its builds)."""
         if self._worker is None:
-            self._worker = LoopWorker(self.cfg, nice=19 if self.background else 0)
+            cpus = max(1, (os.cpu_count() or 1) // 4) if self.background else 0
+            self._worker = LoopWorker(self.cfg, nice=19 if self.background else 0, cpus=cpus)
         return self._worker
 
     def _settle_due(self, index: int | None) -> None:

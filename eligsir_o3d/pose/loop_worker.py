@@ -97,8 +97,8 @@ class LoopWorker:
     """The mapper's side of the worker process: keyframe builds (any number in flight, answered in order) and one
     verification in flight at a time."""
 
-    def __init__(self, cfg: LoopConfig, timeout_s: float = 60.0, nice: int = 19):
-        self.cfg, self.timeout_s, self.nice = cfg, float(timeout_s), int(nice)
+    def __init__(self, cfg: LoopConfig, timeout_s: float = 60.0, nice: int = 19, cpus: int = 0):
+        self.cfg, self.timeout_s, self.nice, self.cpus = cfg, float(timeout_s), int(nice), int(cpus)
         self.proc: subprocess.Popen | None = None
         self.sent = 0  # keyframes the child holds or builds (the first ``sent`` of the list)
         self.cpu_seconds = 0.0  # the child's CPU time (user + system), as it last reported
@@ -117,7 +117,8 @@ class LoopWorker:
         root = str(Path(__file__).resolve().parents[2])  # the child imports this very package
         env["PYTHONPATH"] = os.pathsep.join([root] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
         try:
-            self.proc = subprocess.Popen([sys.executable, "-m", "eligsir_o3d.pose.loop_worker", str(self.nice)],
+            self.proc = subprocess.Popen([sys.executable, "-m", "eligsir_o3d.pose.loop_worker", str(self.nice),
+                                          str(self.cpus)],
                                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, close_fds=True)
         except OSError as e:
             raise WorkerFailed(f"the loop verification process did not start ({e})") from e
@@ -216,9 +217,26 @@ class LoopWorker:
 
 # ---- the child ----------------------------------------------------------------------------------------------
 def _lower_priority(nice: int) -> None:
+    """``nice`` the process; at 19, also the idle scheduling class (a waking thread of the mapper then takes its
+    CPU at once rather than at the end of the child's time slice)."""
     try:
         os.nice(nice)
+        if nice >= 19 and hasattr(os, "SCHED_IDLE"):
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     except (AttributeError, OSError):
+        pass
+
+
+def _confine(cpus: int) -> None:
+    """Run on the last ``cpus`` of the CPUs this process may use (0: all of them). Open3D's thread pool sizes
+    itself from this set when it starts, so the child's registrations then keep to those CPUs."""
+    if cpus <= 0 or not hasattr(os, "sched_setaffinity"):
+        return
+    try:
+        allowed = sorted(os.sched_getaffinity(0))
+        if cpus < len(allowed):
+            os.sched_setaffinity(0, allowed[-cpus:])
+    except OSError:
         pass
 
 
@@ -279,6 +297,7 @@ def serve(inp, out) -> None:
 
 def main() -> None:
     _lower_priority(int(sys.argv[1]) if len(sys.argv) > 1 else 19)
+    _confine(int(sys.argv[2]) if len(sys.argv) > 2 else 0)
     out = os.fdopen(os.dup(1), "wb")  # the replies' own pipe: C++ code printing to stdout goes to stderr instead
     os.dup2(2, 1)
     serve(sys.stdin.buffer, out)

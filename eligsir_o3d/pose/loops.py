@@ -216,13 +216,29 @@ def verify(keys: list[Keyframe], poses: list[np.ndarray], k: int, j: int, cfg: L
 def register(src, tgt, T: np.ndarray, cfg: LoopConfig) -> np.ndarray:
     """Multi-scale generalized ICP (plane to plane: it does not slide along flat surfaces as point-to-plane
     does) of ``src`` onto ``tgt`` from ``T``, at correspondence distances ``icp_coarse``, half of it, then
-    ``max_dist``."""
-    reg = o3d.pipelines.registration
-    method = reg.TransformationEstimationForGeneralizedICP()
-    crit = reg.ICPConvergenceCriteria(relative_fitness=1e-6, relative_rmse=1e-6, max_iteration=30)
+    ``max_dist``: small_gicp's, on one thread (deterministic), each cloud's covariances and the target's k-d tree
+    computed once for the three scales."""
+    import small_gicp
+
+    source, target = _gicp_cloud(src), _gicp_cloud(tgt)
+    tree = small_gicp.KdTree(target, num_threads=1)
+    small_gicp.estimate_covariances(target, tree, num_neighbors=_GICP_NEIGHBOURS, num_threads=1)
+    small_gicp.estimate_covariances(source, num_neighbors=_GICP_NEIGHBOURS, num_threads=1)
+    T = np.asarray(T, dtype=np.float64)
     for dist in (cfg.icp_coarse, cfg.icp_coarse / 2.0, cfg.max_dist):
-        T = reg.registration_generalized_icp(src, tgt, dist, T, method, crit).transformation
+        T = small_gicp.align(target, source, tree, T, registration_type="GICP", max_correspondence_distance=dist,
+                             num_threads=1, max_iterations=_GICP_ITERATIONS).T_target_source
     return np.asarray(T)
+
+
+_GICP_NEIGHBOURS = 20  # the neighbourhood of a point's covariance (Open3D's GICP uses the same)
+_GICP_ITERATIONS = 30
+
+
+def _gicp_cloud(cloud: o3d.geometry.PointCloud):
+    import small_gicp
+
+    return small_gicp.PointCloud(np.asarray(cloud.points, dtype=np.float64))
 
 
 def timed_verify(keys, poses, k: int, j: int, cfg: LoopConfig) -> tuple[LoopResult, float]:
