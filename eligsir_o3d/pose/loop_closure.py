@@ -59,6 +59,9 @@ class LoopClosureConfig:
     """Verify loop candidates in a worker process: auto (on under the real-time clock and in live runs), on, off."""
     keyframe_work: str = "process"
     """Where keyframes' clouds and odometry edges are built: process (the worker process), inline (mapper thread)."""
+    hold_backlog: int = 2
+    """With ``background``: the worker process is stopped while this many frames wait for the mapper, until none
+    does (0: never stopped)."""
 
 
 def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None, realtime: bool = False) -> "LoopClosure | None":
@@ -78,7 +81,7 @@ def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None, realtim
         return None
     background_on = background == "on" or (background == "auto" and realtime)
     return LoopClosure(for_source(cfg.detect, source), cfg.graph, background=background_on,
-                       keyframe_worker=work == "process")
+                       keyframe_worker=work == "process", hold_backlog=int(cfg.hold_backlog))
 
 
 class LoopClosure(KeyframeChain):
@@ -88,13 +91,15 @@ class LoopClosure(KeyframeChain):
     of the current keyframe (the anchor of Gaussians created now); ``take_moves()`` returns ``{keyframe index:
     (old pose, new pose)}`` since the last call; ``pose_of(index, T)`` is the final corrected pose of a frame
     that was given pose ``T`` when it was integrated. ``background``: verify in the worker process and settle
-    keyframes as their builds arrive; ``keyframe_worker``: build keyframes in the worker process."""
+    keyframes as their builds arrive; ``keyframe_worker``: build keyframes in the worker process; ``hold_backlog``:
+    see :meth:`set_load`."""
 
     name = "loop-closure"
 
     def __init__(self, loops: LoopConfig | None = None, graph: GraphConfig | None = None, *, background: bool = False,
-                 keyframe_worker: bool = False):
+                 keyframe_worker: bool = False, hold_backlog: int = 2):
         self.cfg = loops or LoopConfig()
+        self.hold_backlog = int(hold_backlog)
         self.background = bool(background)
         self.keyframe_worker = bool(keyframe_worker)
         self.settled = 0  # keyframes whose cloud and odometry edge are in the graph (the first ``settled``)
@@ -123,6 +128,7 @@ class LoopClosure(KeyframeChain):
         self.worker_seconds = 0.0  # verification in the worker process
         self.worker_cpu_seconds = 0.0  # the worker process's CPU time (its own report)
         self.wait_seconds = 0.0  # the mapper's thread waiting for a keyframe's build at its settling frame
+        self.held_seconds = 0.0  # the worker process stopped while the mapper was behind (:meth:`set_load`)
         self.keyframe_seconds = 0.0  # building keyframes, wherever it ran
         self.injected: list[tuple[int, np.ndarray]] = []  # test hook: (frame index, wrong T_target_source)
         self.pending: list[tuple[int, int]] = []  # (keyframe, candidate) pairs waiting for verification
@@ -148,6 +154,17 @@ class LoopClosure(KeyframeChain):
             return T
         finally:
             self.seconds += time.perf_counter() - t0
+
+    def set_load(self, backlog: int) -> None:
+        """The stream's backlog (frames waiting for the mapper): with ``background``, the worker process is stopped
+        while ``hold_backlog`` or more frames wait (0: never) and goes on when none does, so loop closure takes
+        no CPU from a mapper that is behind."""
+        if not self.background or self._worker is None or self.failure is not None:
+            return
+        if backlog >= self.hold_backlog > 0:
+            self._worker.hold(True)
+        elif backlog <= 0:
+            self._worker.hold(False)
 
     def _is_keyframe(self, index: int, T_raw: np.ndarray) -> bool:
         if not self.keys:
@@ -225,6 +242,7 @@ class LoopClosure(KeyframeChain):
         if self._worker is not None:
             self.worker_cpu_seconds = max(self.worker_cpu_seconds, self._worker.cpu_seconds)
             self._worker.close(kill)
+            self.held_seconds += self._worker.held_seconds
             self._worker = None
 
     def _take(self, result: LoopResult) -> bool:
@@ -300,6 +318,7 @@ class LoopClosure(KeyframeChain):
                 "worker_seconds": self.worker_seconds, "worker_cpu_seconds": self.worker_cpu_seconds,
                 "keyframe_work": "process" if self.keyframe_worker and self.failure is None else "inline",
                 "keyframe_seconds": self.keyframe_seconds, "wait_seconds": self.wait_seconds,
+                "worker_held_seconds": self.held_seconds + (self._worker.held_seconds if self._worker else 0.0),
                 "worker_failure": self.failure, **self.summary}
 
     # ---- state -------------------------------------------------------------------------------------------

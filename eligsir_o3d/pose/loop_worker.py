@@ -12,6 +12,11 @@ keyframes by position and carries their current pose estimates; the child builds
 with :func:`.loops.verify`. Keyframes built on the mapper's side cross once, as clouds (points and normals). The
 child computes exactly what the mapper's thread would.
 
+While the mapper is behind its stream the handle can stop the child outright (:meth:`~LoopWorker.hold`, SIGSTOP
+and SIGCONT), once the child has said it is ready and dies with its parent (Linux's parent-death signal, sent
+when the thread that started it ends), so a stopped child never outlives the mapper; elsewhere it is never
+stopped.
+
 A worker that cannot start, dies, fails, or gives no reply for ``timeout_s`` while work is in flight raises
 :class:`WorkerFailed` from :meth:`~LoopWorker.built` and :meth:`~LoopWorker.result` (the caller then works on its
 own thread). The child exits at end of input: when :meth:`~LoopWorker.close` runs (also at garbage collection and
@@ -23,6 +28,7 @@ from __future__ import annotations
 import os
 import pickle
 import queue
+import signal
 import struct
 import subprocess
 import sys
@@ -74,9 +80,13 @@ def _writer(stream, outbox: queue.Queue) -> None:
             pass
 
 
-def _reader(stream, inbox: queue.Queue) -> None:
+def _reader(stream, inbox: queue.Queue, ready: threading.Event) -> None:
     try:
         while (message := _read(stream)) is not None:
+            if message[0] == "ready":
+                if message[1]:  # it dies with its parent: it may be stopped
+                    ready.set()
+                continue
             inbox.put(message)
     except Exception:  # noqa: BLE001 - a broken pipe or message: reported as the end, the mapper verifies inline
         pass
@@ -84,8 +94,14 @@ def _reader(stream, inbox: queue.Queue) -> None:
 
 
 def _stop(proc: subprocess.Popen, outbox: queue.Queue) -> None:
-    """End the child: close its input (it exits), then kill it if it has not after a moment."""
+    """End the child: close its input (it exits; a stopped child is let go on first), then kill it if it has not
+    after a moment."""
     outbox.put(None)
+    if hasattr(signal, "SIGCONT") and proc.poll() is None:
+        try:
+            os.kill(proc.pid, signal.SIGCONT)
+        except OSError:
+            pass
     try:
         proc.wait(timeout=3.0)
     except subprocess.TimeoutExpired:
@@ -110,6 +126,9 @@ class LoopWorker:
         self._built: dict[int, KeyframeData] = {}  # finished builds not yet taken
         self._done: tuple | None = None  # the finished verification: (job number, result, seconds)
         self._since = 0.0  # the last reply, or the submission that found nothing in flight
+        self._held: float | None = None  # when the child was stopped (:meth:`hold`), None while it runs
+        self.held_seconds = 0.0  # how long the child was stopped, all told
+        self._ready = threading.Event()  # the child said it runs (and dies with its parent): it may be stopped
         self._closer = None
 
     def _start(self) -> None:
@@ -122,8 +141,9 @@ class LoopWorker:
                                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, close_fds=True)
         except OSError as e:
             raise WorkerFailed(f"the loop verification process did not start ({e})") from e
-        for target, stream, box in ((_writer, self.proc.stdin, self._outbox), (_reader, self.proc.stdout, self._inbox)):
-            threading.Thread(target=target, args=(stream, box), name="eligsir-loops-io", daemon=True).start()
+        for target, args in ((_writer, (self.proc.stdin, self._outbox)),
+                             (_reader, (self.proc.stdout, self._inbox, self._ready))):
+            threading.Thread(target=target, args=args, name="eligsir-loops-io", daemon=True).start()
         self._closer = weakref.finalize(self, _stop, self.proc, self._outbox)  # also runs at interpreter exit
         self._outbox.put(("config", self.cfg))
 
@@ -160,6 +180,32 @@ class LoopWorker:
         self._outbox.put(("verify", self._jobs, k, j, {k: poses[k].copy(), j: poses[j].copy()}))
         self._job = (self._jobs, time.monotonic())
 
+    def hold(self, stop: bool) -> None:
+        """Stop the child (``stop``) or let it go on: while the mapper is behind its stream the child takes no CPU
+        at all, not even what the idle scheduling class leaves it (a stopped child's time does not count toward
+        ``timeout_s``). Does nothing where the platform has no SIGSTOP, no child runs, or the child has not said
+        it is ready (until then it could not die with its parent)."""
+        if self.proc is None or not hasattr(signal, "SIGSTOP") or stop == (self._held is not None):
+            return
+        if stop and not self._ready.is_set():
+            return
+        try:
+            os.kill(self.proc.pid, signal.SIGSTOP if stop else signal.SIGCONT)
+        except OSError:  # the child is gone: the next reply-wait reports it
+            return
+        if stop:
+            self._held = time.monotonic()
+        else:
+            held = time.monotonic() - self._held
+            self._since += held
+            self.held_seconds += held
+            self._held = None
+
+    @property
+    def held(self) -> bool:
+        """The child is stopped by :meth:`hold`."""
+        return self._held is not None
+
     @property
     def busy(self) -> bool:
         """A build or a verification is in flight."""
@@ -168,13 +214,16 @@ class LoopWorker:
     def _pump(self, ready, wait: bool) -> None:
         """File the child's replies until ``ready()`` (``wait``: block for it, up to the time limit) or, without
         ``wait``, until none is left. Raises :class:`WorkerFailed` when the child died, failed, or gave no reply
-        within ``timeout_s`` while work was in flight."""
+        within ``timeout_s`` while work was in flight. Waiting lets a held child go on; without ``wait`` a held
+        child's replies so far are filed."""
+        if wait:
+            self.hold(False)
         while not ready() and self.busy:
             left = self._since + self.timeout_s - time.monotonic()
             try:
                 message = self._inbox.get(timeout=max(left, 0.0)) if wait else self._inbox.get_nowait()
             except queue.Empty:
-                if left > 0 and not wait:
+                if (left > 0 or self.held) and not wait:
                     return
                 raise WorkerFailed(f"the loop verification process gave no reply in {self.timeout_s:g} s") from None
             if message[0] == "eof":
@@ -208,11 +257,12 @@ class LoopWorker:
         afterwards."""
         if kill and self.proc is not None and self.proc.poll() is None:
             self.proc.kill()
+        self.hold(False)
         if self._closer is not None:
             self._closer()
-        self.proc, self.sent, self._job, self._closer, self._done = None, 0, None, None, None
+        self.proc, self.sent, self._job, self._closer, self._done, self._held = None, 0, None, None, None, None
         self._builds, self._built = set(), {}
-        self._outbox, self._inbox = queue.Queue(), queue.Queue()
+        self._outbox, self._inbox, self._ready = queue.Queue(), queue.Queue(), threading.Event()
 
 
 # ---- the child ----------------------------------------------------------------------------------------------
@@ -238,6 +288,19 @@ def _confine(cpus: int) -> None:
             os.sched_setaffinity(0, allowed[-cpus:])
     except OSError:
         pass
+
+
+def _die_with_parent() -> bool:
+    """Linux: the child is killed when the mapper's process ends, even while it is stopped (:meth:`LoopWorker.hold`)
+    and cannot read the end of its input. True where that is armed."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        return ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL)) == 0  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return False
 
 
 def _cpu_seconds() -> float:
@@ -298,8 +361,10 @@ def serve(inp, out) -> None:
 def main() -> None:
     _lower_priority(int(sys.argv[1]) if len(sys.argv) > 1 else 19)
     _confine(int(sys.argv[2]) if len(sys.argv) > 2 else 0)
+    armed = _die_with_parent()
     out = os.fdopen(os.dup(1), "wb")  # the replies' own pipe: C++ code printing to stdout goes to stderr instead
     os.dup2(2, 1)
+    _write(out, ("ready", armed))
     serve(sys.stdin.buffer, out)
 
 

@@ -3,7 +3,8 @@
 The worker must give the same registration as verification inline, close the synthetic room's loop as well, give
 way with a RuntimeWarning (the run then verifies inline and still closes its loop) when it is killed, cannot start
 or falls silent, and leave no process behind: after finish, at garbage collection, at interpreter exit, and when
-its parent dies. Its module must load without torch.
+its parent dies (also while it is stopped). Held while the mapper is behind, it is stopped past its time limit and
+then answers. Its module must load without torch.
 """
 
 from __future__ import annotations
@@ -104,6 +105,66 @@ def test_the_worker_closes_the_loop_and_ends_with_the_stream(room):
     assert lc._worker is None and procs and procs[0].poll() is not None  # finish ended the process
 
 
+def _stopped(pid: int, timeout: float = 10.0) -> bool:
+    """The process ``pid`` shows as stopped (a signal takes effect when the process is next scheduled)."""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        with open(f"/proc/{pid}/stat") as f:
+            if f.read().rsplit(")", 1)[1].split()[0] == "T":
+                return True
+        time.sleep(0.01)
+    return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_held_worker_is_stopped_past_its_time_limit_and_then_answers(room):
+    seq, depths, poses = room
+    cfg = loop_config()
+    raw = drifted(poses)
+    keys = [Keyframe(i, raw[i], keyframe_cloud(depths[i], seq.camera, cfg)) for i in range(N)]
+    worker = LoopWorker(cfg, timeout_s=1.0)
+    try:
+        worker.submit(keys, raw, LOOP, 0)
+        worker.hold(True)
+        assert not worker.held  # not before the child says it is ready (and dies with its parent)
+        assert worker._ready.wait(60)
+        worker.hold(True)
+        assert worker.held and _stopped(worker.proc.pid)
+        time.sleep(1.5)  # past timeout_s: a stopped child is not a silent one
+        assert worker.result() is None and worker.held
+        got, _ = worker.result(wait=True)  # waiting lets it go on
+        assert not worker.held and worker.held_seconds >= 1.5
+        np.testing.assert_allclose(got.transform, verify(keys, raw, LOOP, 0, cfg).transform, atol=1e-6)
+        worker.hold(True)
+        pid = worker.proc.pid
+    finally:
+        worker.close()
+    assert _gone(pid)  # closing lets a stopped child go on to its end
+
+
+def test_the_worker_is_held_while_the_mapper_is_behind(room):
+    seq, depths, poses = room
+    raw = drifted(poses)
+    lc = LoopClosure(loop_config(), background=True, hold_backlog=2)
+    i = 0
+    while lc._worker is None:
+        lc.on_frame(i, raw[i], depths[i], seq.camera)
+        i += 1
+    assert lc._worker._ready.wait(60)
+    for backlog, held in ((2, True), (1, True), (3, True), (0, False), (1, False)):
+        lc.set_load(backlog)
+        assert lc._worker.held is held, backlog
+    lc.set_load(2)
+    time.sleep(0.2)
+    lc.finish()  # waits: the worker goes on
+    assert lc.counters()["worker_held_seconds"] >= 0.2
+    never = LoopClosure(loop_config(), background=True, hold_backlog=0)
+    never.on_frame(0, raw[0], depths[0], seq.camera)
+    never.set_load(4)
+    assert never._worker is None or not never._worker.held
+    never.finish()
+
+
 def test_a_checkpoint_keeps_the_candidate_the_worker_is_verifying(room):
     seq, depths, poses = room
     lc = LoopClosure(loop_config(), background=True)
@@ -178,12 +239,17 @@ from eligsir_o3d.pose.loop_worker import LoopWorker
 from eligsir_o3d.pose.loops import LoopConfig
 w = LoopWorker(LoopConfig())
 w._start()
+if sys.argv[1] == "held":
+    assert w._ready.wait(60)
+    w.hold(True)
+    assert w.held
 print(w.proc.pid, flush=True)
-os._exit(0) if sys.argv[1] == "die" else sys.exit(0)
+os._exit(0) if sys.argv[1] in ("die", "held") else sys.exit(0)
 """
 
 
-@pytest.mark.parametrize("how", ["exit", "die"])  # interpreter exit (atexit), the parent killed (stdin EOF)
+@pytest.mark.parametrize("how", ["exit", "die", "held"])  # interpreter exit (atexit), the parent killed (stdin EOF),
+# the parent killed while the child is stopped (it cannot read its input: Linux's parent-death signal)
 def test_no_worker_outlives_its_parent(how):
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(ROOT / "tests")]))
     out = subprocess.run([sys.executable, "-c", _SCRIPT, how], capture_output=True, text=True, env=env, timeout=120)
