@@ -20,6 +20,13 @@ def track_corrected(rec, frame, T_raw: np.ndarray) -> np.ndarray:
     return T
 
 
+def loads_to_loops(rec, backlog: int) -> None:
+    """The stream's backlog to a Reconstructor's loop closure (its worker process is stopped while the mapper is
+    behind: :meth:`~eligsir_o3d.pose.loop_closure.LoopClosure.set_load`); nothing without loop closure."""
+    if rec.loops is not None:
+        rec.loops.set_load(backlog)
+
+
 def finish_loops(rec) -> None:
     """At the end of a Reconstructor's stream: its loop closure's last background verification taken
     (:meth:`~eligsir_o3d.pose.loop_closure.LoopClosure.finish`, which also ends the worker process) and the map

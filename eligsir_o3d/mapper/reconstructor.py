@@ -34,7 +34,7 @@ from ..scheduling.fixed_work import FULL, LoadScaledChecks
 from ..scheduling.supervision import SupervisionGrid
 from .checkpoints import restore
 from .intake import checked_pose, to_frame
-from .loops import finish_loops, track_corrected
+from .loops import finish_loops, loads_to_loops, track_corrected
 from .state import MapperState, StatePart
 
 
@@ -213,11 +213,9 @@ class Reconstructor:
     def set_load(self, backlog: int, period_s: float | None = None, cost=None) -> None:
         """The load a clock reports: ``backlog`` frames waiting, ``period_s`` seconds that one source frame grants
         (None: unchanged) and, under a deterministic budget, the ``CostModel`` that prices an update (None: the
-        fidelity policy measures seconds). The one route by which load reaches the fidelity policy (and loop
-        closure's worker process)."""
+        fidelity policy measures seconds). The one route by which load reaches the policies and loop closure."""
         self.backlog = int(backlog)
-        if self.loops is not None:
-            self.loops.set_load(self.backlog)  # loop closure's worker stops while the mapper is behind
+        loads_to_loops(self, self.backlog)  # loop closure's worker stops while the mapper is behind
         if period_s is not None:
             cost_fn = None if cost is None else (lambda pixels: cost.update(pixels, priced_gaussians(self)))
             self.fidelity.attach(period_s, cost_fn)

@@ -60,8 +60,7 @@ class LoopClosureConfig:
     keyframe_work: str = "process"
     """Where keyframes' clouds and odometry edges are built: process (the worker process), inline (mapper thread)."""
     hold_backlog: int = 2
-    """With ``background``: the worker process is stopped while this many frames wait for the mapper, until none
-    does (0: never stopped)."""
+    """With background: stop the worker process while this many frames wait, until none does (0: never)."""
 
 
 def loop_closure_for(cfg: LoopClosureConfig, tracked: bool, source=None, realtime: bool = False) -> "LoopClosure | None":

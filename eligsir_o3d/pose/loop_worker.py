@@ -1,9 +1,10 @@
 """The loop-closure worker: a separate process (no GIL shared with the mapper, at a lower CPU priority) that
 builds keyframes and verifies loop candidates.
 
-:class:`LoopWorker` is the mapper's handle. On first use it starts ``python -m eligsir_o3d.pose.loop_worker``
-(this module, which imports neither torch nor the mapper) at the handle's ``nice`` (19 by default: the lowest
-priority), with one OpenMP/BLAS thread. Messages are pickled, length-prefixed, over the child's stdin and stdout;
+:class:`LoopWorker` is the mapper's handle. On first use it starts ``python -m eligsir_o3d.pose.loop_child``
+(:mod:`.loop_child`, which imports neither torch nor the mapper) at the handle's ``nice`` (19 by default: the
+lowest priority, and the idle scheduling class) on the handle's ``cpus`` (0: all), with one OpenMP/BLAS thread.
+Messages are pickled, length-prefixed, over the child's stdin and stdout;
 two daemon threads of the mapper's process write and read them, so no call blocks on the pipe unless asked to
 wait. :meth:`~LoopWorker.build` hands the child a
 keyframe's strided depth, intrinsics and tracker pose; the child builds its cloud and its odometry edge from the
@@ -26,10 +27,8 @@ at interpreter exit) or when the parent dies.
 from __future__ import annotations
 
 import os
-import pickle
 import queue
 import signal
-import struct
 import subprocess
 import sys
 import threading
@@ -39,9 +38,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .loop_child import read_message, write_message
 from .loops import Keyframe, KeyframeData, LoopConfig, LoopResult
 
-_HEADER = struct.Struct("<Q")  # the byte length of the pickled message that follows
 _ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE"}
 _EOF = ("eof",)
 
@@ -50,27 +49,10 @@ class WorkerFailed(RuntimeError):
     """The verification process is gone or late; the message says what happened."""
 
 
-def _write(stream, message) -> None:
-    data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
-    stream.write(_HEADER.pack(len(data)))
-    stream.write(data)
-    stream.flush()
-
-
-def _read(stream):
-    """The next message, or None at end of input."""
-    head = stream.read(_HEADER.size)
-    if len(head) < _HEADER.size:
-        return None
-    size = _HEADER.unpack(head)[0]
-    data = stream.read(size)
-    return None if len(data) < size else pickle.loads(data)
-
-
 def _writer(stream, outbox: queue.Queue) -> None:
     try:
         while (message := outbox.get()) is not None:
-            _write(stream, message)
+            write_message(stream, message)
     except Exception:  # noqa: BLE001 - the child is gone or a message would not pickle: its input ends
         pass
     finally:
@@ -82,7 +64,7 @@ def _writer(stream, outbox: queue.Queue) -> None:
 
 def _reader(stream, inbox: queue.Queue, ready: threading.Event) -> None:
     try:
-        while (message := _read(stream)) is not None:
+        while (message := read_message(stream)) is not None:
             if message[0] == "ready":
                 if message[1]:  # it dies with its parent: it may be stopped
                     ready.set()
@@ -136,7 +118,7 @@ class LoopWorker:
         root = str(Path(__file__).resolve().parents[2])  # the child imports this very package
         env["PYTHONPATH"] = os.pathsep.join([root] + [p for p in env.get("PYTHONPATH", "").split(os.pathsep) if p])
         try:
-            self.proc = subprocess.Popen([sys.executable, "-m", "eligsir_o3d.pose.loop_worker", str(self.nice),
+            self.proc = subprocess.Popen([sys.executable, "-m", "eligsir_o3d.pose.loop_child", str(self.nice),
                                           str(self.cpus)],
                                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env, close_fds=True)
         except OSError as e:
@@ -263,110 +245,3 @@ class LoopWorker:
         self.proc, self.sent, self._job, self._closer, self._done, self._held = None, 0, None, None, None, None
         self._builds, self._built = set(), {}
         self._outbox, self._inbox, self._ready = queue.Queue(), queue.Queue(), threading.Event()
-
-
-# ---- the child ----------------------------------------------------------------------------------------------
-def _lower_priority(nice: int) -> None:
-    """``nice`` the process; at 19, also the idle scheduling class (a waking thread of the mapper then takes its
-    CPU at once rather than at the end of the child's time slice)."""
-    try:
-        os.nice(nice)
-        if nice >= 19 and hasattr(os, "SCHED_IDLE"):
-            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-    except (AttributeError, OSError):
-        pass
-
-
-def _confine(cpus: int) -> None:
-    """Run on the last ``cpus`` of the CPUs this process may use (0: all of them). Open3D's thread pool sizes
-    itself from this set when it starts, so the child's registrations then keep to those CPUs."""
-    if cpus <= 0 or not hasattr(os, "sched_setaffinity"):
-        return
-    try:
-        allowed = sorted(os.sched_getaffinity(0))
-        if cpus < len(allowed):
-            os.sched_setaffinity(0, allowed[-cpus:])
-    except OSError:
-        pass
-
-
-def _die_with_parent() -> bool:
-    """Linux: the child is killed when the mapper's process ends, even while it is stopped (:meth:`LoopWorker.hold`)
-    and cannot read the end of its input. True where that is armed."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        import ctypes
-
-        return ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL)) == 0  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        return False
-
-
-def _cpu_seconds() -> float:
-    import resource
-
-    usage = resource.getrusage(resource.RUSAGE_SELF)
-    return usage.ru_utime + usage.ru_stime
-
-
-def serve(inp, out) -> None:
-    """The child's loop: keyframes arrive once (clouds, or inputs to build, answered with what was built),
-    verifications reply with their result; every reply carries its seconds and the child's CPU seconds so far;
-    returns at end of input."""
-    import traceback
-
-    import open3d as o3d
-
-    from .loops import keyframe_data, timed_verify
-
-    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
-    keys: list[Keyframe] = []
-    cfg = LoopConfig()
-    while (message := _read(inp)) is not None:
-        kind = message[0]
-        if kind == "config":
-            cfg = message[1]
-        elif kind in ("keyframe", "build"):
-            if kind == "keyframe":
-                _, index, raw_pose, points, normals = message
-                cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-                cloud.normals = o3d.utility.Vector3dVector(normals)
-            else:
-                _, k, index, raw_pose, strided, intr = message
-                cloud = None
-            keys.append(Keyframe(int(index), raw_pose, cloud))
-            old = len(keys) - 1 - cfg.local - 2  # local maps are rebuilt on demand: keep the recent ones cached
-            if old >= 0:
-                keys[old].local_cloud = None
-            if kind == "build":
-                try:
-                    if k != len(keys) - 1:
-                        raise IndexError(f"keyframe {k} built as the child's keyframe {len(keys) - 1}")
-                    data = keyframe_data(keys, k, strided, intr, cfg)
-                except Exception:  # noqa: BLE001 - reported to the mapper, which builds on its own thread
-                    _write(out, ("error", k, traceback.format_exc(limit=3)))
-                    continue
-                _write(out, ("built", k, data, data.seconds, _cpu_seconds()))
-        elif kind == "verify":
-            _, number, k, j, poses = message
-            try:
-                result, seconds = timed_verify(keys, poses, k, j, cfg)
-            except Exception:  # noqa: BLE001 - reported to the mapper, which verifies on its own thread
-                _write(out, ("error", number, traceback.format_exc(limit=3)))
-                continue
-            _write(out, ("result", number, result, seconds, _cpu_seconds()))
-
-
-def main() -> None:
-    _lower_priority(int(sys.argv[1]) if len(sys.argv) > 1 else 19)
-    _confine(int(sys.argv[2]) if len(sys.argv) > 2 else 0)
-    armed = _die_with_parent()
-    out = os.fdopen(os.dup(1), "wb")  # the replies' own pipe: C++ code printing to stdout goes to stderr instead
-    os.dup2(2, 1)
-    _write(out, ("ready", armed))
-    serve(sys.stdin.buffer, out)
-
-
-if __name__ == "__main__":
-    main()

@@ -1,4 +1,4 @@
-"""Loop verification in the worker process (pose.loop_worker) and its fallback to the mapper's thread.
+"""Loop verification in the worker process (pose.loop_worker, pose.loop_child) and its fallback to the mapper's thread.
 
 The worker must give the same registration as verification inline, close the synthetic room's loop as well, give
 way with a RuntimeWarning (the run then verifies inline and still closes its loop) when it is killed, cannot start
@@ -258,7 +258,8 @@ def test_no_worker_outlives_its_parent(how):
 
 
 def test_the_worker_module_loads_without_torch():
-    code = "import sys, eligsir_o3d.pose.loop_worker; assert 'torch' not in sys.modules, 'torch loaded'"
+    code = ("import sys, eligsir_o3d.pose.loop_worker, eligsir_o3d.pose.loop_child; "
+            "assert 'torch' not in sys.modules, 'torch loaded'")
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr
