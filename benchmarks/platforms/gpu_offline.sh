@@ -5,7 +5,7 @@
 #   bash benchmarks/platforms/gpu_offline.sh prepare [FRAMES]
 # writes three folders that git ignores (.git/info/exclude), each under the 64 MiB a call may carry with the tree:
 #   .gpu_a/  the first 58 MiB of the open3d-cpu wheel
-#   .gpu_b/  the rest of it; gsplat, plyfile, pytorch-msssim and tbb wheels; Debian's libEGL, libGL, libusb & co
+#   .gpu_b/  the rest of it; gsplat, plyfile, pytorch-msssim, tbb and small-gicp wheels; Debian's libEGL, libGL, libusb & co
 #   .gpu_c/  the 7-Scenes kitchen's first FRAMES frames (default 200) as a TUM-style folder: .gpu_c/kitchen
 # Wheels are for CPython $PYVER (default 3.12, the device image's python3).
 #
@@ -52,7 +52,7 @@ prepare() {
   "$PY" -m pip download -q --no-deps --only-binary=:all: --python-version "$PYVER" --implementation cp \
     --platform manylinux_2_35_x86_64 --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 \
     --platform manylinux2014_x86_64 --platform any -d "$tmp" \
-    "$O3D" gsplat==1.5.3 plyfile==1.1.5 pytorch-msssim==1.0.0 tbb==2023.2.0 || return 1
+    "$O3D" gsplat==1.5.3 plyfile==1.1.5 pytorch-msssim==1.0.0 tbb==2023.2.0 small-gicp==1.0.1 || return 1
   local whl
   whl=$(ls "$tmp"/open3d_cpu-*.whl) || return 1
   head -c $((PART_MIB * 1024 * 1024)) "$whl" > .gpu_a/open3d.part0
