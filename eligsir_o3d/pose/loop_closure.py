@@ -10,7 +10,8 @@ and *settle* ``settle_frames`` frames later: the edges enter the graph and the k
 every later keyframe rigidly (the tail keeps its relative poses), so the map follows. The mapper waits for a build
 only at its settling frame, so offline runs give the same trajectory wherever the build ran (the process then runs
 at the mapper's CPU priority); under the real-time clock (``background``) a keyframe settles as soon as its build
-arrives (the process at the lowest). A settled keyframe looks for loop candidates (:func:`.loops.candidates`) and
+arrives (the process at the lowest, on a quarter of the CPUs, and stopped while the mapper is behind:
+:meth:`LoopClosure.set_load`). A settled keyframe looks for loop candidates (:func:`.loops.candidates`) and
 verifies at most ``max_candidates`` of them (:func:`.loops.verify`); an accepted loop edge triggers one optimisation
 of the settled keyframes' graph (:func:`.pose_graph.optimise`; the unsettled tail moves rigidly with the last
 settled keyframe), whose line process may still prune it (then counted as rejected); skip edges not yet optimised

@@ -53,10 +53,12 @@ class KeyframeChain:
             self._give_up_worker(str(e))
 
     def _get_worker(self) -> LoopWorker:
-        """The worker process's handle (made on first use): at the lowest CPU priority under the real-time clock
-        (``background``: it never slows the stream), at the mapper's otherwise (the mapper waits for its builds)."""
+        """The worker process's handle (made on first use): under the real-time clock (``background``: it never
+        slows the stream) at the lowest CPU priority on a quarter of the CPUs this process may use, at the mapper's
+        priority on all of them otherwise (the mapper waits for its builds)."""
         if self._worker is None:
-            cpus = max(1, (os.cpu_count() or 1) // 4) if self.background else 0
+            usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+            cpus = max(1, usable // 4) if self.background else 0
             self._worker = LoopWorker(self.cfg, nice=19 if self.background else 0, cpus=cpus)
         return self._worker
 
